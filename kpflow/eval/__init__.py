@@ -1,0 +1,1 @@
+"""Evaluation utilities: trajectory metrics (see :mod:`kpflow.eval.metrics`)."""

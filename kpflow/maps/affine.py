@@ -1,0 +1,99 @@
+"""Affine transportation maps: rigid (Kabsch), similarity (Umeyama) and full affine (least squares).
+
+phi(x) = A x + t. With centred keypoints X = S - mean(S), Y = T - mean(T) and H = X^T Y / N = U diag(s) V^T,
+the rigid and similarity fits are (Umeyama 1991, Eqs. 39-42)
+
+    R = V E U^T,  E = diag(1, ..., 1, sign det(V U^T))   (reflection-safe),
+    c = tr(diag(s) E) / (|X|^2 / N)                       (similarity only; c = 1 when rigid),
+    A = c R,  t = mean(T) - A mean(S);
+
+the affine fit solves min_{A,t} sum_i |A s_i + t - t_i|^2.
+
+Degenerate keypoints: all-coincident sources raise. Collinear sources (or coplanar in 3-D) raise for
+``kind="affine"`` since A is then undetermined; for rigid/similarity fits in 3-D collinear keypoints leave
+the spin about their common line undetermined and the SVD picks one, deterministically.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from kpflow.maps.base import TransportMap
+
+Kind = Literal["rigid", "similarity", "affine", "translation"]
+KINDS = ("rigid", "similarity", "affine", "translation")
+
+
+class AffineMap(TransportMap):
+    """phi(x) = A x + t fitted by Kabsch (``rigid``), Umeyama (``similarity``), least squares (``affine``),
+    or mean displacement (``translation``). Batched fits supported."""
+
+    supports_batch = True
+
+    def __init__(self, kind: Kind = "rigid") -> None:
+        super().__init__()
+        if kind not in KINDS:
+            raise ValueError(f"unknown affine kind {kind!r}; choose one of {KINDS}")
+        self.kind = kind
+        self.register_buffer("A", None)
+        self.register_buffer("t", None)
+
+    def required_points(self, dim: int) -> int:
+        return {"translation": 1, "rigid": 2, "similarity": 2}.get(self.kind, dim + 1)
+
+    def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
+        self.A, self.t = fit_affine(source, target, self.kind)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.t[:, None, :], x, self.A.transpose(1, 2))
+
+    def _inverse(self, y: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.solve(self.A[:, None], (y - self.t[:, None, :]).unsqueeze(-1)).squeeze(-1)
+
+    def _jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        return self.A[:, None].expand(-1, x.shape[1], -1, -1)
+
+
+def fit_affine(source: torch.Tensor, target: torch.Tensor, kind: Kind) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-form fit on ``[B, N, D]`` pairs; returns ``A [B, D, D]``, ``t [B, D]`` (module docstring)."""
+    b, n, d = source.shape
+    mu_s, mu_t = source.mean(1), target.mean(1)
+    x, y = source - mu_s[:, None], target - mu_t[:, None]
+    eye = torch.eye(d, dtype=source.dtype, device=source.device).expand(b, d, d)
+    if kind == "translation":
+        return eye.clone(), mu_t - mu_s
+    spread = x.square().sum((1, 2)) / n  # [B]
+    scale = source.abs().amax((1, 2)).clamp_min(1.0)
+    eps = torch.finfo(source.dtype).eps
+    if (spread.sqrt() <= 1e3 * eps * scale).any():
+        raise ValueError("all source keypoints coincide: the rotation of the map is undetermined")
+    if kind == "affine":
+        sv = torch.linalg.svdvals(x)  # [B, D]
+        if (sv[:, -1] <= 1e4 * eps * sv[:, 0]).any():
+            shape = "collinear" if d == 2 else "coplanar or collinear"
+            raise ValueError(f"source keypoints are {shape}: a full affine map is undetermined (use rigid or similarity)")
+        ones = torch.ones(b, n, 1, dtype=source.dtype, device=source.device)
+        sol = torch.linalg.lstsq(torch.cat([x, ones], -1), y).solution  # [B, D+1, D]
+        a = sol[:, :d].transpose(1, 2)
+        return a, mu_t - (a @ mu_s[..., None]).squeeze(-1)
+    h = x.transpose(1, 2) @ y / n  # [B, D, D]
+    u, s, vh = torch.linalg.svd(h)
+    v = vh.transpose(1, 2)
+    sign = torch.linalg.det(v @ u.transpose(1, 2)).sign()
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    e = torch.ones(b, d, dtype=source.dtype, device=source.device)
+    e[:, -1] = sign
+    r = v @ (e[..., None] * u.transpose(1, 2))
+    if kind == "similarity":
+        c = (s * e).sum(-1) / spread
+        r = c[:, None, None] * r
+    return r, mu_t - (r @ mu_s[..., None]).squeeze(-1)
+
+
+def make_alignment(kind: str | None) -> AffineMap | None:
+    """The prior alignment a nonlinear map sits on: an :class:`AffineMap` or ``None`` for ``"none"``."""
+    if kind is None or kind == "none":
+        return None
+    return AffineMap(kind)

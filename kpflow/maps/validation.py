@@ -1,0 +1,82 @@
+"""Input checks shared by every transportation map: each failure names the problem."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+
+def as_float_tensor(x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
+    """Convert ``x`` to a floating tensor (on ``like``'s device and dtype when given)."""
+    if not isinstance(x, torch.Tensor):
+        x = torch.as_tensor(x)
+    if like is not None:
+        if x.device != like.device:
+            raise ValueError(f"{name} is on {x.device} but the map was fitted on {like.device}")
+        x = x.to(like.dtype)
+    elif not torch.is_floating_point(x):
+        x = x.to(torch.get_default_dtype())
+    return x
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    if not torch.isfinite(x).all():
+        bad = (~torch.isfinite(x)).nonzero()[0].tolist()
+        raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
+
+
+def check_pairs(source, target, min_points: Callable[[int], int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate keypoint pairs ``source [*B, N, D]`` and ``target [*B, N, D]`` (batch dims broadcast).
+
+    Raises ``ValueError`` for: fewer than two dimensions, mismatched N or D, fewer than ``min_points``
+    keypoints (``min_points(D)``), NaN/inf, and two coinciding source keypoints whose targets differ (no map can send one point
+    to two places). Returns float tensors of a common dtype, broadcast to a common batch shape.
+    """
+    source = as_float_tensor(source, "source")
+    target = as_float_tensor(target, "target")
+    for name, t in (("source", source), ("target", target)):
+        if t.ndim < 2:
+            raise ValueError(f"{name} must have shape [..., N, D]; got {tuple(t.shape)}")
+    if source.shape[-2:] != target.shape[-2:]:
+        raise ValueError(
+            f"source has shape [N={source.shape[-2]}, D={source.shape[-1]}] per set but target has "
+            f"[N={target.shape[-2]}, D={target.shape[-1]}]: keypoints must correspond one to one"
+        )
+    if source.device != target.device:
+        raise ValueError(f"source is on {source.device} but target is on {target.device}")
+    n, need = source.shape[-2], min_points(source.shape[-1])
+    if n < need:
+        raise ValueError(f"too few keypoints: this map needs at least {need} in {source.shape[-1]}-D, got {n}")
+    check_finite(source, "source")
+    check_finite(target, "target")
+    dtype = torch.promote_types(source.dtype, target.dtype)
+    try:
+        batch = torch.broadcast_shapes(source.shape[:-2], target.shape[:-2])
+    except RuntimeError as e:
+        raise ValueError(
+            f"source batch shape {tuple(source.shape[:-2])} and target batch shape "
+            f"{tuple(target.shape[:-2])} do not broadcast"
+        ) from e
+    source = source.to(dtype).expand(*batch, *source.shape[-2:])
+    target = target.to(dtype).expand(*batch, *target.shape[-2:])
+    _check_duplicates(source, target)
+    return source, target
+
+
+def _check_duplicates(source: torch.Tensor, target: torch.Tensor) -> None:
+    scale = (source.amax(-2) - source.amin(-2)).norm(dim=-1).clamp_min(1e-12)  # [*B]
+    tol = 1e-9 * scale if source.dtype == torch.float64 else 1e-6 * scale
+    ds = torch.cdist(source, source)  # [*B, N, N]
+    dt = torch.cdist(target, target)
+    n = source.shape[-2]
+    off = ~torch.eye(n, dtype=torch.bool, device=source.device)
+    tol = tol[..., None, None]
+    clash = (ds <= tol) & (dt > tol * 1e3) & off
+    if clash.any():
+        idx = clash.nonzero()[0].tolist()
+        i, j = idx[-2], idx[-1]
+        raise ValueError(
+            f"duplicate source keypoints {i} and {j} coincide but their targets differ: "
+            "no map can send one point to two places"
+        )

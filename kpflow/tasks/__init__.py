@@ -1,0 +1,1 @@
+"""Tasks: scenes, demonstrators and datasets that produce demonstrations to transport."""

@@ -1,0 +1,37 @@
+"""Frames task: reaching between reference frames described by keypoints.
+
+* :mod:`.frames` -- :class:`Frame` poses, their five keypoints, random poses.
+* :mod:`.demonstrator` -- synthetic minimum-jerk reaching demonstrations.
+* :mod:`.lasa` -- LASA handwriting demonstrations with frames at their ends.
+"""
+
+from .demonstrator import Demonstration, demonstrate, minimum_jerk
+from .frames import (
+    Frame,
+    euler_to_matrix,
+    frame_keypoints,
+    random_frame,
+    rotation_2d,
+    scene_keypoints,
+    so3_exp,
+    so3_log,
+)
+from .lasa import LASA_SHAPES, end_heading, lasa_frames, load_lasa
+
+__all__ = [
+    "Frame",
+    "frame_keypoints",
+    "scene_keypoints",
+    "random_frame",
+    "rotation_2d",
+    "euler_to_matrix",
+    "so3_exp",
+    "so3_log",
+    "Demonstration",
+    "demonstrate",
+    "minimum_jerk",
+    "LASA_SHAPES",
+    "load_lasa",
+    "lasa_frames",
+    "end_heading",
+]

@@ -1,0 +1,33 @@
+"""Keypoint sets shared by the tests."""
+
+import math
+
+import torch
+
+
+def rotation(d: int, angle: float, dtype=torch.float64) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    r = torch.eye(d, dtype=dtype)
+    r[:2, :2] = torch.tensor([[c, -s], [s, c]], dtype=dtype)
+    if d == 3:  # add a tilt so 3-D is not just a planar rotation
+        t = torch.tensor([[1, 0, 0], [0, math.cos(0.4), -math.sin(0.4)], [0, math.sin(0.4), math.cos(0.4)]], dtype=dtype)
+        r = t @ r
+    return r
+
+
+def deformation(x: torch.Tensor) -> torch.Tensor:
+    """A smooth non-rigid displacement field of magnitude ~0.08."""
+    return 0.08 * torch.sin(2.5 * x.roll(1, -1)) * torch.cos(1.5 * x)
+
+
+def keypoint_pair(d: int = 2, n: int = 25, seed: int = 0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    src = torch.rand(n, d, generator=g, dtype=dtype)
+    tgt = src @ rotation(d, 0.5, dtype).T + 0.3 + deformation(src)
+    return src, tgt
+
+
+def grid(d: int, lo: float = -1.0, hi: float = 2.0, n: int = 12, dtype=torch.float64) -> torch.Tensor:
+    """A grid three times the [0, 1]^d keypoint extent."""
+    axes = [torch.linspace(lo, hi, n, dtype=dtype)] * d
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
