@@ -1,0 +1,23 @@
+"""Evaluate: ``python evaluate.py experiment=frames map=gp``. Builds the map factory and the experiment from
+``conf/``, runs it, writes the resolved config, results and plots under the run's output folder."""
+
+import hydra
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from kpflow.utils.run import log_metrics, make_loggers, start_run
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
+def main(cfg: DictConfig) -> dict:
+    out = start_run(cfg)
+    loggers = make_loggers(cfg)
+    run = instantiate(cfg.experiment)
+    results = run(make_map=instantiate(cfg.map), output_dir=out, seed=cfg.seed)
+    log_metrics(loggers, results["metrics"])
+    print(f"results: {out / 'results.md'}  plots: {sorted(str(p) for p in out.glob('*.png'))}")
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,58 @@
+"""Matplotlib drawings shared by the experiments: frames, trajectories with uncertainty bands, vector fields."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+
+def draw_frame(ax, position: torch.Tensor, rotation: torch.Tensor, size: float, label: str | None = None) -> None:
+    """A 2-D frame as a red x axis and a green y axis from its origin."""
+    p, r = position.detach().cpu().numpy(), rotation.detach().cpu().numpy()
+    ax.arrow(*p, *(size * r[:, 0]), color="tab:red", width=size * 0.06, length_includes_head=True, zorder=5)
+    ax.arrow(*p, *(size * r[:, 1]), color="tab:green", width=size * 0.06, length_includes_head=True, zorder=5)
+    if label:
+        ax.annotate(label, p, textcoords="offset points", xytext=(4, -10), fontsize=7)
+
+
+def draw_band(ax, mean: torch.Tensor, std: torch.Tensor, k: float = 2.0, **kwargs) -> None:
+    """Shade the k-sigma tube around a 2-D curve: offsets of k * |std| along the curve's normals."""
+    m = mean.detach().cpu().numpy()
+    s = k * std.detach().cpu().norm(dim=-1).numpy() / np.sqrt(std.shape[-1])
+    tangent = np.gradient(m, axis=0)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], -1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-12)
+    upper, lower = m + s[:, None] * normal, m - s[:, None] * normal
+    poly = np.concatenate([upper, lower[::-1]])
+    ax.fill(poly[:, 0], poly[:, 1], alpha=kwargs.pop("alpha", 0.25), lw=0, **kwargs)
+
+
+def draw_curve(ax, xy: torch.Tensor, **kwargs) -> None:
+    a = xy.detach().cpu().numpy()
+    ax.plot(a[:, 0], a[:, 1], **kwargs)
+
+
+def draw_field(ax, field, lo: np.ndarray, hi: np.ndarray, n: int = 25, dtype=torch.float64) -> None:
+    """Stream lines of a 2-D vector field ``field(x [M, 2]) -> [M, 2]`` over the box [lo, hi]."""
+    xs, ys = np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = torch.as_tensor(np.stack([gx.ravel(), gy.ravel()], -1), dtype=dtype)
+    v = field(pts).detach().cpu().numpy()
+    speed = np.linalg.norm(v, axis=-1).reshape(gx.shape)
+    ax.streamplot(xs, ys, v[:, 0].reshape(gx.shape), v[:, 1].reshape(gx.shape), color=speed, cmap="Greys", density=0.9, linewidth=0.6, arrowsize=0.6)
+
+
+def new_figure(rows: int, cols: int, size: float = 3.2):
+    fig, axes = plt.subplots(rows, cols, figsize=(size * cols, size * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=6)
+    return fig, axes
+
+
+def close(fig) -> None:
+    plt.close(fig)

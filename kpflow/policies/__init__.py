@@ -1,0 +1,1 @@
+"""Policies: map an observation (and keypoints) to actions."""
