@@ -10,7 +10,7 @@ the full run takes a few minutes. The markdown tables are printed and written at
 
 Everything runs on ONE thread (``OMP_NUM_THREADS=1`` is set before numpy/torch are imported, and
 ``torch.set_num_threads(1)``). Times are medians over repetitions measured with ``time.perf_counter`` after
-one untimed warm-up repetition; each repetition uses a fresh random problem (seeded, so runs are repeatable).
+untimed warm-up repetitions (two; one for slow cells); each repetition uses a fresh random problem (seeded).
 
 Problem: N keypoints in 2-D, ``source`` uniform in a 512 x 512 px workspace; ``target`` = a smooth deformation
 of ``source`` (a ~15 px random sine field) followed by a rigid motion (rotation up to +-30 degrees about the
@@ -120,6 +120,11 @@ def table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines)
 
 
+def warmup_reps(reps: int) -> int:
+    """Untimed repetitions before the timed ones: 2 (1 for slow cells that get fewer than 5 repetitions)."""
+    return 2 if reps >= 5 else 1
+
+
 def median(xs) -> float:
     return float(np.median(xs)) if len(xs) else float("nan")
 
@@ -137,11 +142,11 @@ FAMILIES = {  # name: factory of a map with default settings
 
 
 def bench_family(name, factory, n, ms, reps, budget, dtype):
-    """Fit ``reps`` random problems (plus a warm-up); returns fit times, transport times per M, residuals."""
+    """Fit ``reps`` random problems (after warm-ups); returns fit times, transport times per M, residuals."""
     fit_t, res = [], []
     tr_t = {m: [] for m in ms}
-    start = None
-    for rep in range(reps + 1):
+    start, warmup = None, warmup_reps(reps)
+    for rep in range(reps + warmup):
         src, tgt, _ = make_problem(1000 * n + rep, n, 0)
         s, t = torch.tensor(src, dtype=dtype), torch.tensor(tgt, dtype=dtype)
         queries = {m: torch.tensor(make_problem(7 + rep, 0, m)[2], dtype=dtype) for m in ms}
@@ -154,7 +159,7 @@ def bench_family(name, factory, n, ms, reps, budget, dtype):
             t2 = time.perf_counter()
             phi(q)
             times[m] = time.perf_counter() - t2
-        if rep == 0:  # warm-up
+        if rep < warmup:
             start = time.perf_counter()
             continue
         fit_t.append(t1 - t0)
@@ -229,18 +234,18 @@ def kpflow_runner(factory, dtype, method="forward"):
 
 
 def bench_problem_runner(run, n, m, reps, budget):
-    """Time ``run(src, tgt, q)`` (fit + transport) on ``reps`` random problems after one warm-up."""
+    """Time ``run(src, tgt, q)`` (fit + transport) on ``reps`` random problems after warm-ups."""
     times, res = [], []
-    start = None
+    start, warmup = None, warmup_reps(reps)
     dtype = getattr(run, "dtype", None)
-    for rep in range(reps + 1):
+    for rep in range(reps + warmup):
         src, tgt, q = make_problem(rep, n, m)
         if dtype is not None:
             src, tgt, q = (torch.tensor(a, dtype=dtype) for a in (src, tgt, q))
         t0 = time.perf_counter()
         phi = run(src, tgt, q)
         dt = time.perf_counter() - t0
-        if rep == 0:
+        if rep < warmup:
             start = time.perf_counter()
             continue
         times.append(dt)
@@ -310,7 +315,8 @@ def table_batched(cfg, log) -> tuple[str, dict]:
     for name, factory in (("ILWRMap", ILWRMap), ("AffineMap (rigid)", lambda: AffineMap("rigid"))):
         for dname, dtype in DTYPES.items():
             fit_t, tr_t, res_med, res_worst = [], [], [], []
-            for rep in range(cfg["reps_batch"] + 1):
+            warmup = warmup_reps(cfg["reps_batch"])
+            for rep in range(cfg["reps_batch"] + warmup):
                 srcs, tgt, q = make_batch(rep, b, n, m)
                 s, t, qq = (torch.tensor(a, dtype=dtype) for a in (srcs, tgt, q))
                 t0 = time.perf_counter()
@@ -319,7 +325,7 @@ def table_batched(cfg, log) -> tuple[str, dict]:
                 y = phi(qq)
                 t2 = time.perf_counter()
                 assert y.shape == (b, m, 2)
-                if rep == 0:
+                if rep < warmup:
                     continue
                 fit_t.append(t1 - t0), tr_t.append(t2 - t1)
                 with torch.no_grad():
@@ -431,7 +437,7 @@ def main(argv=None) -> None:
         f"{datetime.datetime.now().isoformat(timespec='seconds')}; {platform.processor() or platform.machine()}, "
         f"Python {platform.python_version()}, torch {torch.__version__} ({torch.get_num_threads()} thread), "
         f"numpy {np.__version__}, scipy {scipy.__version__}, scikit-learn {sklearn.__version__}; "
-        f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}. Medians after one warm-up repetition; "
+        f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}. Medians after untimed warm-up repetitions; "
         f"2-D keypoints in a 512 px workspace, target = rigid motion + ~15 px smooth deformation; residual = "
         f"max_i |phi(source_i) - target_i| in px."
     )

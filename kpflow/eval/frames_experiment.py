@@ -14,7 +14,6 @@ calibration: the share of held-out points inside the transported 2-sigma bands).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -25,32 +24,12 @@ from tqdm import tqdm
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
 from kpflow.policies.vector_field import GPVectorField
-from kpflow.tasks.frames import Demonstration, Frame, demonstrate, lasa_frames, load_lasa, scene_keypoints
+from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
+from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, moved, random_scenes
 from kpflow.transport import transport_trajectory
 from kpflow.utils.io import save_figure, write_json, write_text
 
 MapFactory = Callable[[], TransportMap]
-
-
-@dataclass
-class Scene:
-    start: Frame
-    goal: Frame
-    demo: Demonstration
-
-    def keypoints(self, size: float) -> torch.Tensor:
-        return scene_keypoints([self.start, self.goal], size)
-
-
-def moved(frame: Frame, dx: float, dy: float, dtheta: float) -> Frame:
-    return Frame.from_2d(float(frame.position[0]) + dx, float(frame.position[1]) + dy, float(frame.theta) + dtheta, dtype=frame.dtype)
-
-
-def lookahead_velocity(x: torch.Tensor, dt: float, horizon: int) -> torch.Tensor:
-    """(x[t + h] - x[t]) / (h dt), clamped at the end: a velocity that is not zero where a demonstration starts
-    at rest, so a first-order policy rolled out from the start does not stall there."""
-    idx = torch.arange(x.shape[0]).add(horizon).clamp_max(x.shape[0] - 1)
-    return (x[idx] - x) / (horizon * dt)
 
 
 def figure1(make_map: MapFactory, out: Path, shape: str, n_points: int, frame_size: float) -> dict:
@@ -91,22 +70,6 @@ def figure1(make_map: MapFactory, out: Path, shape: str, n_points: int, frame_si
     save_figure(fig, out / "figure1.png", dpi=150)
     plots.close(fig)
     return {"scenes": rows}
-
-
-def random_scenes(n: int, n_points: int, seed: int) -> list[Scene]:
-    """``n`` start/goal configurations in [-1, 1]^2 (at least 0.8 apart) with one demonstration each."""
-    g = torch.Generator().manual_seed(seed)
-    scenes = []
-    while len(scenes) < n:
-        p = torch.rand(4, generator=g, dtype=torch.float64) * 2 - 1
-        if (p[:2] - p[2:]).norm() < 0.8:
-            continue
-        heading = math.atan2(float(p[3] - p[1]), float(p[2] - p[0]))
-        th = heading + (torch.rand(2, generator=g, dtype=torch.float64) - 0.5) * 1.6
-        start = Frame.from_2d(float(p[0]), float(p[1]), float(th[0]), dtype=torch.float64)
-        goal = Frame.from_2d(float(p[2]), float(p[3]), float(th[1]), dtype=torch.float64)
-        scenes.append(Scene(start, goal, demonstrate(start, goal, n=n_points, generator=g, wiggle=0.15)))
-    return scenes
 
 
 def figure2(make_map: MapFactory, out: Path, n_configs: int, n_points: int, frame_size: float, seed: int, horizon: int) -> dict:

@@ -3,6 +3,7 @@
 * :mod:`.frames` -- :class:`Frame` poses, their five keypoints, random poses.
 * :mod:`.demonstrator` -- synthetic minimum-jerk reaching demonstrations.
 * :mod:`.lasa` -- LASA handwriting demonstrations with frames at their ends.
+* :mod:`.scenes` -- start/goal configurations with a demonstration each.
 """
 
 from .demonstrator import Demonstration, demonstrate, minimum_jerk
@@ -17,6 +18,7 @@ from .frames import (
     so3_log,
 )
 from .lasa import LASA_SHAPES, end_heading, lasa_frames, load_lasa
+from .scenes import Scene, lookahead_velocity, moved, random_scenes
 
 __all__ = [
     "Frame",
@@ -34,4 +36,8 @@ __all__ = [
     "load_lasa",
     "lasa_frames",
     "end_heading",
+    "Scene",
+    "lookahead_velocity",
+    "moved",
+    "random_scenes",
 ]

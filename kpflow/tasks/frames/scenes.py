@@ -1,0 +1,51 @@
+"""Scenes of the frames task: a start frame, a goal frame and a demonstration between them."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from kpflow.tasks.frames.demonstrator import Demonstration, demonstrate
+from kpflow.tasks.frames.frames import Frame, scene_keypoints
+
+
+@dataclass
+class Scene:
+    start: Frame
+    goal: Frame
+    demo: Demonstration
+
+    def keypoints(self, size: float) -> torch.Tensor:
+        """The ten keypoints of the start and goal frames ``[10, D]``."""
+        return scene_keypoints([self.start, self.goal], size)
+
+
+def moved(frame: Frame, dx: float, dy: float, dtheta: float) -> Frame:
+    """A 2-D frame translated by (dx, dy) and turned by dtheta."""
+    return Frame.from_2d(float(frame.position[0]) + dx, float(frame.position[1]) + dy, float(frame.theta) + dtheta, dtype=frame.dtype)
+
+
+def random_scenes(n: int, n_points: int, seed: int, min_distance: float = 0.8, wiggle: float = 0.15) -> list[Scene]:
+    """``n`` 2-D start/goal configurations in [-1, 1]^2 (at least ``min_distance`` apart, headings within
+    +-0.8 rad of the start-goal direction) with one demonstration each, reproducible from ``seed``."""
+    g = torch.Generator().manual_seed(seed)
+    scenes = []
+    while len(scenes) < n:
+        p = torch.rand(4, generator=g, dtype=torch.float64) * 2 - 1
+        if (p[:2] - p[2:]).norm() < min_distance:
+            continue
+        heading = math.atan2(float(p[3] - p[1]), float(p[2] - p[0]))
+        th = heading + (torch.rand(2, generator=g, dtype=torch.float64) - 0.5) * 1.6
+        start = Frame.from_2d(float(p[0]), float(p[1]), float(th[0]), dtype=torch.float64)
+        goal = Frame.from_2d(float(p[2]), float(p[3]), float(th[1]), dtype=torch.float64)
+        scenes.append(Scene(start, goal, demonstrate(start, goal, n=n_points, generator=g, wiggle=wiggle)))
+    return scenes
+
+
+def lookahead_velocity(x: torch.Tensor, dt: float, horizon: int) -> torch.Tensor:
+    """(x[t + h] - x[t]) / (h dt), clamped at the end: a velocity that is not zero where a demonstration starts
+    at rest, so a first-order policy rolled out from the start does not stall there."""
+    idx = torch.arange(x.shape[0]).add(horizon).clamp_max(x.shape[0] - 1)
+    return (x[idx] - x) / (horizon * dt)

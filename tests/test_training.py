@@ -1,0 +1,60 @@
+"""train.py trains, checkpoints, resumes the same run, and its checkpoints reload for deployment."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from kpflow.policies.neural_field import NeuralVectorField
+from kpflow.utils.checkpoint import load_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def train(tmp: Path, *extra: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "train.py", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def test_train_resume_and_reload(tmp_path):
+    train(tmp_path, "trainer.max_epochs=2")
+    first = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
+    assert first["epoch"] == 1 and (tmp_path / "config.yaml").exists()
+
+    train(tmp_path, "trainer.max_epochs=4", "resume=true")
+    resumed = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
+    assert resumed["epoch"] == 3 and resumed["global_step"] == 2 * first["global_step"]  # continued, not restarted
+
+    model = load_checkpoint(NeuralVectorField, tmp_path / "checkpoints" / "last.ckpt")
+    x = torch.zeros(5, 2)
+    assert model(x).shape == (5, 2)
+    again = load_checkpoint(NeuralVectorField, tmp_path / "checkpoints" / "last.ckpt")
+    torch.testing.assert_close(model(x), again(x))
+    assert not torch.allclose(model.x_std, torch.ones(2))  # standardisation travelled in the checkpoint
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    cmd = [sys.executable, "train.py", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "does not exist" in done.stderr
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "broken.ckpt"
+    bad.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(ValueError, match="not a readable NeuralVectorField checkpoint"):
+        load_checkpoint(NeuralVectorField, bad)
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(NeuralVectorField, tmp_path / "missing.ckpt")
+
+
+def test_bad_data_config_is_a_clear_error():
+    from kpflow.data.transported_demos import TransportedDemosDataModule
+    from kpflow.maps import ILWRMap
+
+    with pytest.raises(ValueError, match="target must index"):
+        TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)
