@@ -407,6 +407,7 @@ def write_atomic(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -424,7 +425,7 @@ def main(argv=None) -> None:
 
     warnings.filterwarnings("ignore")  # sklearn ConvergenceWarning, gpytorch NumericalWarning (jitter added)
     cfg = config(args.quick)
-    t_start = time.perf_counter()
+    t_start, load_start = time.perf_counter(), os.getloadavg()[0]
 
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
@@ -461,7 +462,10 @@ def main(argv=None) -> None:
     if args.profile:
         log("profile")
         sections.append("## where ILWRMap.fit spends its time\n\n" + profile_ilwr())
-    sections.append(f"_total run time {time.perf_counter() - t_start:.0f} s_")
+    load_end = os.getloadavg()[0]
+    sections.append(f"_total run time {time.perf_counter() - t_start:.0f} s; 1-min load average {load_start:.2f} at "
+                    f"start, {load_end:.2f} at end on {os.cpu_count()} CPUs (above ~1 means other processes shared "
+                    f"the CPUs and timings are noisier)_")
     text = "\n\n".join(sections) + "\n"
     print(text)
     write_atomic(args.out, text)

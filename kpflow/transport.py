@@ -89,6 +89,7 @@ def transport_trajectory(
     velocities: torch.Tensor | None = None,
     orientations: torch.Tensor | None = None,
     stiffness: torch.Tensor | None = None,
+    stiffness_mode: str = "rotation",
     n_samples: int = 0,
     generator: torch.Generator | None = None,
 ) -> TransportedTrajectory:
@@ -101,6 +102,6 @@ def transport_trajectory(
         std=var.sqrt(),
         velocities=None if velocities is None else transport_velocities(phi, positions, velocities, jac),
         orientations=None if orientations is None else transport_orientations(phi, positions, orientations, jac),
-        stiffness=None if stiffness is None else transport_stiffness(phi, positions, stiffness, jac=jac),
+        stiffness=None if stiffness is None else transport_stiffness(phi, positions, stiffness, stiffness_mode, jac),
         samples=phi.sample(positions, n_samples, generator) if n_samples > 0 else None,
     )

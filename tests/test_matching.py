@@ -178,8 +178,6 @@ def test_asymmetric_box_under_arbitrary_3d_rotations():
     assert hits / 40 >= MIN_RATE, f"true order in {hits}/40 trials"
 
 
-@pytest.mark.xfail(strict=True, reason="library bug: the 3-D tie-break angle uses (tr R - 2) / 2 instead of (tr R - 1) / 2, "
-                   "so every rotation of 120 degrees or more counts as pi and ties among them are broken by start order")
 def test_tie_break_returns_the_rotation_closest_to_identity_in_3d():
     # a planar T in 3-D is symmetric under the half turn S about y: R and R S fit equally well
     t3 = torch.cat([T_SHAPE, torch.zeros(12, 1, dtype=torch.float64)], 1)

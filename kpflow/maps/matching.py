@@ -90,7 +90,7 @@ def match_keypoints(
     distinct = {tuple(r[1]) for r in ties}
 
     def angle(rot: np.ndarray) -> float:
-        return float(np.arccos(np.clip((np.trace(rot) - (d - 2) - 1) / 2 if d == 3 else rot[0, 0], -1, 1)))
+        return float(np.arccos(np.clip((np.trace(rot) - 1) / 2 if d == 3 else rot[0, 0], -1, 1)))
 
     rms, perm, rot, t = min(ties, key=lambda r: angle(r[2]))
     as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=src.dtype, device=src.device)  # noqa: E731
