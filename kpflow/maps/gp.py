@@ -35,7 +35,7 @@ class GPMap(TransportMap):
         noise: float = 1e-4,
         min_noise: float | None = None,
         fixed_noise: bool = False,
-        iters: int = 10,
+        iters: int = 6,
     ) -> None:
         super().__init__()
         self.alignment = AffineMap(alignment if alignment not in (None, "none") else "translation")

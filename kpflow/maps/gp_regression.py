@@ -77,10 +77,17 @@ class GPRegressor(nn.Module):
         model.eval()
         likelihood.eval()
         self.model, self.likelihood = model, likelihood
-        with torch.no_grad():
-            k = model.covar_module(xs[0]).to_dense() + likelihood.noise * torch.eye(n, dtype=x.dtype, device=x.device)
-            self._chol = psd_safe_cholesky(k)
+        self._chol = None  # built on first use by gradient_variance
         return self
+
+    def _train_cholesky(self) -> torch.Tensor:
+        if self._chol is None:
+            train = self.model.train_inputs[0][0]
+            with torch.no_grad():
+                k = self.model.covar_module(train).to_dense()
+                k = k + self.likelihood.noise * torch.eye(train.shape[0], dtype=k.dtype, device=k.device)
+                self._chol = psd_safe_cholesky(k)
+        return self._chol
 
     def _optimise(self, model, likelihood, xs, ys) -> None:
         model.train()
@@ -156,6 +163,6 @@ class GPRegressor(nn.Module):
             g = -kx[..., None] * (xs[:, None, :] - train[None]) / ell2  # [M, N, d]
             n = train.shape[0]
             flat = g.transpose(0, 1).reshape(n, -1)  # [N, M*d]
-            quad = (flat * torch.cholesky_solve(flat, self._chol)).sum(0).reshape(x.shape[0], -1)
+            quad = (flat * torch.cholesky_solve(flat, self._train_cholesky())).sum(0).reshape(x.shape[0], -1)
             prior = kern.outputscale / ell2
         return (prior - quad).clamp_min(0.0) * (self.y_scale / self.x_scale) ** 2

@@ -34,6 +34,15 @@ from kpflow.maps.affine import AffineMap, fit_affine
 from kpflow.maps.base import TransportMap
 
 SQRT_E_2 = math.sqrt(math.e / 2.0)
+#: exponents below this are clamped: exp(-80) ~ 2e-35 is a normal float32, while smaller results are subnormal
+#: numbers, which CPUs compute up to 50x slower. The weights this drops are below 1e-34.
+MIN_EXPONENT = -80.0
+
+
+def weight(exponent: torch.Tensor) -> torch.Tensor:
+    """exp(exponent) with the exponent clamped at ``MIN_EXPONENT`` (used identically by fit, forward, inverse
+    and Jacobian, so they stay consistent)."""
+    return torch.exp(exponent.clamp_min(MIN_EXPONENT))
 
 
 class ILWRMap(TransportMap):
@@ -129,10 +138,11 @@ class ILWRMap(TransportMap):
         for k in range(self.centres.shape[1]):
             c, v, nr2 = self.centres[:, k, None], self.vectors[:, k, None], self.neg_rho2[:, k, None, None]
             diff = x - c
-            w = torch.exp(nr2 * diff.square().sum(-1, keepdim=True))  # [B, M, 1]
+            w = weight(nr2 * diff.square().sum(-1, keepdim=True))  # [B, M, 1]
             # J_k = I + 2 (-rho^2) w v diff^T ;  J <- J_k J = J + 2 (-rho^2) w v (diff^T J)
-            row = (diff[..., None, :] @ jac)  # [B, M, 1, D]
-            jac = jac + (2 * nr2 * w)[..., None] * v[..., :, None] * row
+            row = diff[..., None, :] @ jac  # [B, M, 1, D]
+            live = w > math.exp(MIN_EXPONENT)  # the clamped weight is constant there: zero derivative
+            jac = jac + (2 * nr2 * w * live)[..., None] * v[..., :, None] * row
             x = x + w * v
         return jac
 
@@ -173,13 +183,13 @@ def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, 
         d2 = (z - c).square_().sum(-1, keepdim=True)  # [B, N, 1]
         rv = torch.bmm(r, v.transpose(1, 2))  # [B, N, 1]
         nrho2 = (grid_c / vn2).clamp_min(-1e30)  # [B, C]; finite even when v = 0
-        w = torch.exp(torch.bmm(d2, nrho2[:, None, :]))  # [B, N, C]
+        w = weight(torch.bmm(d2, nrho2[:, None, :]))  # [B, N, C]
         # sum_i |r_i - a w_i v|^2 - |r_i|^2 = sum_i a^2 w_i^2 |v|^2 - 2 a w_i (r_i . v)
         loss = alpha_c**2 * w.square().sum(1) * vn2 - 2.0 * alpha_c * (w * rv).sum(1)  # [B, C]
         val, idx = loss.min(-1, keepdim=True)
         best = torch.gather(nrho2, 1, idx)  # [B, 1]
         v = v * (alpha_c[idx] * (val < 0))[..., None]  # skip the step when nothing improves
-        z = torch.addcmul(z, torch.exp(d2 * best[:, None]), v)
+        z = torch.addcmul(z, weight(d2 * best[:, None]), v)
         centres.append(c)
         vectors.append(v)
         rhos.append(best)
@@ -190,7 +200,7 @@ def apply_steps(x: torch.Tensor, centres: torch.Tensor, vectors: torch.Tensor, n
     """psi_K o ... o psi_1 (x) for ``x [B, M, D]`` (Eq. 3)."""
     for k in range(centres.shape[1]):
         d2 = (x - centres[:, k, None]).square_().sum(-1, keepdim=True)
-        x = torch.addcmul(x, torch.exp(d2 * neg_rho2[:, k, None, None]), vectors[:, k, None])
+        x = torch.addcmul(x, weight(d2 * neg_rho2[:, k, None, None]), vectors[:, k, None])
     return x
 
 
@@ -204,13 +214,14 @@ def invert_steps(y: torch.Tensor, centres: torch.Tensor, vectors: torch.Tensor, 
         b = (dy * v).sum(-1)  # d . v
         c = v.square().sum(-1)  # |v|^2          [B, 1]
         lo, hi = torch.zeros_like(a), torch.ones_like(a)
-        t = torch.exp(nr2 * a)  # first guess: the weight at y
+        t = weight(nr2 * a)  # first guess: the weight at y
         for _ in range(iters):
-            e = torch.exp(nr2 * (a - 2 * t * b + t * t * c))
+            expo = nr2 * (a - 2 * t * b + t * t * c)
+            e = weight(expo)
             g = t - e
             lo = torch.where(g < 0, t, lo)
             hi = torch.where(g >= 0, t, hi)
-            dg = 1.0 - e * nr2 * (2 * t * c - 2 * b)  # > 0 for a diffeomorphic step
+            dg = 1.0 - (expo > MIN_EXPONENT) * e * nr2 * (2 * t * c - 2 * b)  # > 0 for a diffeomorphic step
             t_new = t - g / dg
             t = torch.where((t_new >= lo) & (t_new <= hi), t_new, 0.5 * (lo + hi))
         y = y - t[..., None] * v

@@ -65,18 +65,19 @@ def check_pairs(source, target, min_points: Callable[[int], int]) -> tuple[torch
 
 
 def _check_duplicates(source: torch.Tensor, target: torch.Tensor) -> None:
-    scale = (source.amax(-2) - source.amin(-2)).norm(dim=-1).clamp_min(1e-12)  # [*B]
-    tol = 1e-9 * scale if source.dtype == torch.float64 else 1e-6 * scale
-    ds = torch.cdist(source, source)  # [*B, N, N]
-    dt = torch.cdist(target, target)
-    n = source.shape[-2]
+    n, d = source.shape[-2:]
+    source, target = source.reshape(-1, n, d), target.reshape(-1, n, d)
+    scale = (source.amax(-2) - source.amin(-2)).norm(dim=-1).clamp_min(1e-12)  # [B]
+    tol = (1e-9 if source.dtype == torch.float64 else 1e-6) * scale
     off = ~torch.eye(n, dtype=torch.bool, device=source.device)
-    tol = tol[..., None, None]
-    clash = (ds <= tol) & (dt > tol * 1e3) & off
+    close = (torch.cdist(source, source) <= tol[:, None, None]) & off  # [B, N, N]
+    if not close.any():
+        return
+    b, i, j = close.nonzero().T  # only coinciding sources need their targets compared
+    clash = (target[b, i] - target[b, j]).norm(dim=-1) > 1e3 * tol[b]
     if clash.any():
-        idx = clash.nonzero()[0].tolist()
-        i, j = idx[-2], idx[-1]
+        k = clash.nonzero()[0, 0]
         raise ValueError(
-            f"duplicate source keypoints {i} and {j} coincide but their targets differ: "
+            f"duplicate source keypoints {int(i[k])} and {int(j[k])} coincide but their targets differ: "
             "no map can send one point to two places"
         )

@@ -1,0 +1,20 @@
+"""The benchmark scripts still run (a smoke test; speed itself is judged by reading their tables)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_maps_benchmark_quick_writes_its_tables(tmp_path):
+    out = tmp_path / "maps.md"
+    done = subprocess.run([sys.executable, "benchmarks/maps.py", "--quick", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    text = out.read_text()
+    for heading in ("## 1.", "## 2.", "## 3.", "targets"):
+        assert heading in text
+    assert "ILWRMap" in text and "sklearn GP" in text
