@@ -92,8 +92,19 @@ def fit_affine(source: torch.Tensor, target: torch.Tensor, kind: Kind) -> tuple[
     return r, mu_t - (r @ mu_s[..., None]).squeeze(-1)
 
 
-def make_alignment(kind: str | None) -> AffineMap | None:
-    """The prior alignment a nonlinear map sits on: an :class:`AffineMap` or ``None`` for ``"none"``."""
-    if kind is None or kind == "none":
-        return None
-    return AffineMap(kind)
+class AlignedMap(TransportMap):
+    """Base of the nonlinear families that sit on a prior affine fit ``self.alignment`` (an :class:`AffineMap`;
+    ``alignment="none"`` makes it the identity). ``_fit_alignment`` fits it on flat ``[B, N, D]`` pairs."""
+
+    def __init__(self, alignment: str | None = "rigid") -> None:
+        super().__init__()
+        self.aligned = alignment not in (None, "none")
+        self.alignment = AffineMap(alignment if self.aligned else "translation")
+
+    def required_points(self, dim: int) -> int:
+        return self.alignment.required_points(dim) if self.aligned else 1
+
+    def _fit_alignment(self, source: torch.Tensor, target: torch.Tensor) -> None:
+        al = self.alignment
+        al.batch_shape, al.dim, al._source, al._target = torch.Size([source.shape[0]]), source.shape[-1], source, target
+        al.A, al.t = fit_affine(source, target if self.aligned else source, al.kind)

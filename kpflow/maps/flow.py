@@ -18,12 +18,11 @@ from __future__ import annotations
 import normflows as nf
 import torch
 
-from kpflow.maps.affine import AffineMap
-from kpflow.maps.base import TransportMap
+from kpflow.maps.affine import AlignedMap
 from kpflow.maps.neural import anchor_points, fit_regression, smooth_mlp
 
 
-class FlowMap(TransportMap):
+class FlowMap(AlignedMap):
     """normflows coupling flow on top of an affine alignment (module docstring)."""
 
     def __init__(
@@ -36,16 +35,11 @@ class FlowMap(TransportMap):
         prior_weight: float = 1e-2,
         seed: int = 0,
     ) -> None:
-        super().__init__()
-        self.alignment = AffineMap("translation" if alignment in (None, "none") else alignment)
-        self._identity = alignment in (None, "none")
+        super().__init__(alignment)
         self.n_layers, self.hidden, self.depth = n_layers, hidden, depth
         self.steps, self.prior_weight, self.seed = steps, prior_weight, seed
         self.flows: torch.nn.ModuleList | None = None
         self.losses: list[float] = []
-
-    def required_points(self, dim: int) -> int:
-        return 1 if self._identity else self.alignment.required_points(dim)
 
     def _build(self, d: int, like: torch.Tensor) -> torch.nn.ModuleList:
         gen = torch.random.fork_rng(devices=[]) if like.device.type == "cpu" else torch.random.fork_rng()
@@ -61,7 +55,7 @@ class FlowMap(TransportMap):
 
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         src, tgt = source[0], target[0]
-        self.alignment.fit(src, src if self._identity else tgt)
+        self._fit_alignment(source, target)
         self.centre = tgt.mean(0)
         self.spread = (tgt - self.centre).square().sum(-1).mean().sqrt().clamp_min(1e-12)
         self.flows = self._build(src.shape[-1], src)

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import torch
 
-from kpflow.maps.affine import AffineMap
-from kpflow.maps.base import TransportMap, jacobian_autograd, newton_inverse
+from kpflow.maps.affine import AlignedMap
+from kpflow.maps.base import jacobian_autograd, newton_inverse
 from kpflow.maps.gp_regression import GPRegressor
 
 
-class GPMap(TransportMap):
+class GPMap(AlignedMap):
     """Affine alignment plus a gpytorch GP on the residual (module docstring).
 
     Args:
@@ -37,19 +37,11 @@ class GPMap(TransportMap):
         fixed_noise: bool = False,
         iters: int = 6,
     ) -> None:
-        super().__init__()
-        self.alignment = AffineMap(alignment if alignment not in (None, "none") else "translation")
-        self._identity = alignment in (None, "none")
+        super().__init__(alignment)
         self.gp = GPRegressor(lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters)
 
-    def required_points(self, dim: int) -> int:
-        return 1 if self._identity else self.alignment.required_points(dim)
-
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
-        if self._identity:
-            self.alignment.fit(source[0], source[0])
-        else:
-            self.alignment.fit(source[0], target[0])
+        self._fit_alignment(source, target)
         base = self.alignment._forward(source)
         self.gp.fit(source[0], (target - base)[0])
 

@@ -30,8 +30,7 @@ import math
 
 import torch
 
-from kpflow.maps.affine import AffineMap, fit_affine
-from kpflow.maps.base import TransportMap
+from kpflow.maps.affine import AlignedMap
 
 SQRT_E_2 = math.sqrt(math.e / 2.0)
 #: exponents below this are clamped: exp(-80) ~ 2e-35 is a normal float32, while smaller results are subnormal
@@ -45,7 +44,7 @@ def weight(exponent: torch.Tensor) -> torch.Tensor:
     return torch.exp(exponent.clamp_min(MIN_EXPONENT))
 
 
-class ILWRMap(TransportMap):
+class ILWRMap(AlignedMap):
     """Diffeomorphic map from K locally weighted translations (module docstring). Batched fits supported.
 
     Args:
@@ -71,7 +70,7 @@ class ILWRMap(TransportMap):
         inverse_iters: int = 12,
         uncertainty_scale: float | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(alignment)
         if not 0.0 < beta <= 1.0:
             raise ValueError(f"beta must be in (0, 1]; got {beta}")
         if not 0.0 < margin < 1.0:
@@ -80,32 +79,21 @@ class ILWRMap(TransportMap):
             raise ValueError(f"need n_steps >= 1 and n_rho >= 2; got {n_steps}, {n_rho}")
         self.n_steps, self.beta, self.n_rho, self.margin = n_steps, beta, n_rho, margin
         self.tol, self.inverse_iters, self.uncertainty_scale = tol, inverse_iters, uncertainty_scale
-        self.alignment = None if alignment in (None, "none") else AffineMap(alignment)
         for name in ("centres", "vectors", "neg_rho2", "_chol", "_s2", "_ell2"):
             self.register_buffer(name, None)
 
-    def required_points(self, dim: int) -> int:
-        return max(1, self.alignment.required_points(dim)) if self.alignment is not None else 1
-
     # ------------------------------------------------------------------ fit
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
-        z = self._align(source, target)
+        self._fit_alignment(source, target)
+        z = self.alignment._forward(source)
         grid = -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=z.dtype, device=z.device)
         self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
         self._chol = None  # the uncertainty model is built on first use (predict/sample)
 
-    def _align(self, source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        if self.alignment is None:
-            return source
-        al = self.alignment
-        al.batch_shape, al.dim, al._source, al._target = torch.Size([source.shape[0]]), source.shape[-1], source, target
-        al.A, al.t = fit_affine(source, target, al.kind)
-        return al._forward(source)
-
     def _fit_uncertainty(self) -> None:
         n, d = self._source.shape[-2:]
         source, target = self._source.reshape(-1, n, d), self._target.reshape(-1, n, d)
-        base = self.alignment._forward(source) if self.alignment is not None else source
+        base = self.alignment._forward(source)
         if self.uncertainty_scale is not None:
             s2 = torch.full(source.shape[:1], float(self.uncertainty_scale) ** 2, dtype=source.dtype, device=source.device)
         else:
@@ -120,21 +108,16 @@ class ILWRMap(TransportMap):
 
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.alignment is not None:
-            x = self.alignment._forward(x)
-        return apply_steps(x, self.centres, self.vectors, self.neg_rho2)
+        return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
         x = invert_steps(y, self.centres, self.vectors, self.neg_rho2, self.inverse_iters)
-        return self.alignment._inverse(x) if self.alignment is not None else x
+        return self.alignment._inverse(x)
 
     def _jacobian(self, x: torch.Tensor) -> torch.Tensor:
         b, m, d = x.shape
-        if self.alignment is not None:
-            jac = self.alignment.A[:, None].expand(b, m, d, d)
-            x = self.alignment._forward(x)
-        else:
-            jac = torch.eye(d, dtype=x.dtype, device=x.device).expand(b, m, d, d)
+        jac = self.alignment.A[:, None].expand(b, m, d, d)
+        x = self.alignment._forward(x)
         for k in range(self.centres.shape[1]):
             c, v, nr2 = self.centres[:, k, None], self.vectors[:, k, None], self.neg_rho2[:, k, None, None]
             diff = x - c

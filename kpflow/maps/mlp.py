@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import torch
 
-from kpflow.maps.affine import AffineMap
-from kpflow.maps.base import TransportMap, newton_inverse
+from kpflow.maps.affine import AlignedMap
+from kpflow.maps.base import newton_inverse
 from kpflow.maps.neural import anchor_points, fit_regression, smooth_mlp
 
 
-class MLPMap(TransportMap):
+class MLPMap(AlignedMap):
     """Affine alignment plus an MLP residual (module docstring)."""
 
     exact_inverse = False
@@ -29,19 +29,14 @@ class MLPMap(TransportMap):
         prior_weight: float = 1e-2,
         seed: int = 0,
     ) -> None:
-        super().__init__()
-        self.alignment = AffineMap("translation" if alignment in (None, "none") else alignment)
-        self._identity = alignment in (None, "none")
+        super().__init__(alignment)
         self.hidden, self.depth, self.steps, self.prior_weight, self.seed = hidden, depth, steps, prior_weight, seed
         self.net: torch.nn.Module | None = None
         self.losses: list[float] = []
 
-    def required_points(self, dim: int) -> int:
-        return 1 if self._identity else self.alignment.required_points(dim)
-
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         src, tgt = source[0], target[0]
-        self.alignment.fit(src, src if self._identity else tgt)
+        self._fit_alignment(source, target)
         self.centre = src.mean(0)
         self.spread = (src - self.centre).square().sum(-1).mean().sqrt().clamp_min(1e-12)
         with torch.random.fork_rng(devices=[]):
