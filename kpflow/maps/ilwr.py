@@ -148,31 +148,35 @@ def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, 
     never increases. Returns centres ``[B, K, D]``, vectors ``[B, K, D]``, -rho^2 ``[B, K]`` and the fitted
     keypoints.
     """
-    d = z.shape[-1]
+    b, _, d = z.shape
     tiny = torch.finfo(z.dtype).tiny
     alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=z.dtype, device=z.device)
     alpha_c = alpha.repeat_interleave(neg_grid.shape[0])  # [C]
     grid_c = (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)  # [C]: -(rho |alpha v|)^2 / alpha^2
+    a2, neg_2a = alpha_c * alpha_c, -2.0 * alpha_c
+    alpha_b = alpha_c.expand(b, -1)
+    zero = z.new_zeros(())
     centres, vectors, rhos = [], [], []
     for k in range(n_steps):
         r = target - z
-        err2 = r.square().sum(-1)  # [B, N]
+        err2 = (r * r).sum(-1)  # [B, N]
         if tol > 0 and k > 0 and bool(err2.amax() <= tol * tol):
             break
-        p = err2.argmax(-1, keepdim=True)[..., None].expand(-1, 1, d)
+        p = err2.argmax(-1, keepdim=True).unsqueeze(-1).expand(-1, 1, d)
         c = torch.gather(z, 1, p)  # [B, 1, D]
-        v = torch.gather(r, 1, p).mul_(beta)
-        vn2 = v.square().sum(-1).clamp_min_(tiny)  # [B, 1]
-        d2 = (z - c).square_().sum(-1, keepdim=True)  # [B, N, 1]
-        rv = torch.bmm(r, v.transpose(1, 2))  # [B, N, 1]
-        nrho2 = (grid_c / vn2).clamp_min(-1e30)  # [B, C]; finite even when v = 0
-        w = weight(torch.bmm(d2, nrho2[:, None, :]))  # [B, N, C]
-        # sum_i |r_i - a w_i v|^2 - |r_i|^2 = sum_i a^2 w_i^2 |v|^2 - 2 a w_i (r_i . v)
-        loss = alpha_c**2 * w.square().sum(1) * vn2 - 2.0 * alpha_c * (w * rv).sum(1)  # [B, C]
+        v = torch.gather(r, 1, p) * beta
+        vn2 = (v * v).sum(-1).clamp_min_(tiny)  # [B, 1]
+        diff = z - c
+        d2 = (diff * diff).sum(-1, keepdim=True)  # [B, N, 1]
+        rv = torch.bmm(v, r.transpose(1, 2))  # [B, 1, N]
+        nrho2 = (grid_c / vn2).clamp_min_(-1e30)  # [B, C]; finite even when v = 0
+        w = weight(torch.bmm(d2, nrho2.unsqueeze(1)))  # [B, N, C]
+        # sum_i |r_i - a w_i v|^2 - |r_i|^2 = a^2 |v|^2 sum_i w_i^2 - 2 a sum_i w_i (r_i . v)
+        loss = torch.addcmul(neg_2a * torch.bmm(rv, w).squeeze(1), a2 * (w * w).sum(1), vn2)  # [B, C]
         val, idx = loss.min(-1, keepdim=True)
         best = torch.gather(nrho2, 1, idx)  # [B, 1]
-        v = v * (alpha_c[idx] * (val < 0))[..., None]  # skip the step when nothing improves
-        z = torch.addcmul(z, weight(d2 * best[:, None]), v)
+        v = v * torch.where(val < 0, torch.gather(alpha_b, 1, idx), zero).unsqueeze(-1)  # skip if nothing helps
+        z = torch.addcmul(z, weight(d2 * best.unsqueeze(1)), v)
         centres.append(c)
         vectors.append(v)
         rhos.append(best)
