@@ -15,6 +15,7 @@ def main(cfg: DictConfig) -> dict:
     run = instantiate(cfg.experiment)
     results = run(make_map=instantiate(cfg.map), output_dir=out, seed=cfg.seed)
     log_metrics(loggers, results["metrics"])
+    print((out / "results.md").read_text())
     print(f"results: {out / 'results.md'}  plots: {sorted(str(p) for p in out.glob('*.png'))}")
     return results
 

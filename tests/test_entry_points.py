@@ -50,3 +50,15 @@ def test_same_seed_same_numbers(tmp_path):
         return json.loads((d / "results.json").read_text())
 
     assert run(tmp_path / "a") == run(tmp_path / "b")
+
+
+def test_multirun_sweep_writes_one_run_per_map(tmp_path):
+    cmd = [
+        sys.executable, "evaluate.py", "-m", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
+        "experiment.n_points=40", f"hydra.sweep.dir={tmp_path}",
+    ]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    targets = sorted(yaml.safe_load((tmp_path / str(k) / "config.yaml").read_text())["map"]["_target_"] for k in (0, 1))
+    assert targets == ["kpflow.maps.AffineMap", "kpflow.maps.ILWRMap"]
+    assert all((tmp_path / str(k) / "results.json").exists() for k in (0, 1))

@@ -256,3 +256,10 @@ def test_degenerate_configurations():
         ILWRMap(beta=1.5)
     with pytest.raises(ValueError, match="unknown affine kind"):
         AffineMap("shear")
+
+
+def test_flow_log_det_matches_jacobian():
+    src, tgt = keypoint_pair(2)
+    phi = FlowMap(steps=50).fit(src, tgt)
+    x = grid(2, n=6)
+    torch.testing.assert_close(phi.log_det_jacobian(x), torch.linalg.slogdet(phi.jacobian(x)).logabsdet, atol=1e-8, rtol=0)

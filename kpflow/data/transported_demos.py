@@ -29,7 +29,7 @@ class TransportedDemosDataModule(lightning.LightningDataModule):
         target: int = 0,
         n_points: int = 200,
         frame_size: float = 0.1,
-        horizon: int = 10,
+        horizon: float = 0.05,
         n_val: int = 1,
         batch_size: int = 256,
         seed: int = 0,
@@ -50,13 +50,14 @@ class TransportedDemosDataModule(lightning.LightningDataModule):
         scenes = random_scenes(self.n_configs, self.n_points, self.seed)
         target = scenes[self.target]
         dt = float(target.demo.times[1] - target.demo.times[0])
+        duration = float(target.demo.times[-1] - target.demo.times[0])
         pairs = []
         for j, scene in enumerate(scenes):
             if j == self.target:
                 continue
             phi = self.make_map().fit(scene.keypoints(self.frame_size), target.keypoints(self.frame_size))
             x = phi(scene.demo.positions)
-            pairs.append((x.float(), lookahead_velocity(x, dt, self.horizon).float()))
+            pairs.append((x.float(), lookahead_velocity(x, duration, self.horizon).float()))
         self.target_scene, self.dt = target, dt
         val, train = pairs[: self.n_val], pairs[self.n_val :]
         self.train_set = TensorDataset(*(torch.cat(t) for t in zip(*train)))

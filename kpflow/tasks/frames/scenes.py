@@ -44,8 +44,23 @@ def random_scenes(n: int, n_points: int, seed: int, min_distance: float = 0.8, w
     return scenes
 
 
-def lookahead_velocity(x: torch.Tensor, dt: float, horizon: int) -> torch.Tensor:
-    """(x[t + h] - x[t]) / (h dt), clamped at the end: a velocity that is not zero where a demonstration starts
-    at rest, so a first-order policy rolled out from the start does not stall there."""
-    idx = torch.arange(x.shape[0]).add(horizon).clamp_max(x.shape[0] - 1)
-    return (x[idx] - x) / (horizon * dt)
+def lookahead_velocity(x: torch.Tensor, duration: float, fraction: float = 0.05) -> torch.Tensor:
+    """Arc-length look-ahead velocity along a path ``x [T, D]``:
+
+        v(s) = (x(s + ds) - x(s)) * (L / duration) / ds,   ds = fraction * L,
+
+    with x(.) interpolated in arc length s (L the path length) and x(s + ds) clamped at the end. It points along
+    the path at its mean speed, is not zero where a demonstration starts at rest (so a first-order policy rolled
+    out from the start does not stall there), and falls linearly to zero over the last ``ds`` before the goal.
+    """
+    seg = (x[1:] - x[:-1]).norm(dim=-1)
+    s = torch.cat([seg.new_zeros(1), seg.cumsum(0)])  # [T]
+    length = float(s[-1])
+    if length <= 0:
+        return torch.zeros_like(x)
+    ds = fraction * length
+    ahead = (s + ds).clamp_max(length)
+    j = torch.searchsorted(s, ahead).clamp(1, len(s) - 1)
+    u = ((ahead - s[j - 1]) / (s[j] - s[j - 1]).clamp_min(1e-12)).clamp(0, 1)[:, None]
+    x_ahead = x[j - 1] + u * (x[j] - x[j - 1])
+    return (x_ahead - x) * (length / duration) / ds
