@@ -14,9 +14,8 @@ from kpflow.tasks.frames import (
     load_lasa,
     random_frame,
     scene_keypoints,
-    so3_exp,
-    so3_log,
 )
+from kpflow.rotations import so3_exp, so3_log
 
 
 def _angle_between(u, v):

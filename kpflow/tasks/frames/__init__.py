@@ -7,16 +7,7 @@
 """
 
 from .demonstrator import Demonstration, demonstrate, minimum_jerk
-from .frames import (
-    Frame,
-    euler_to_matrix,
-    frame_keypoints,
-    random_frame,
-    rotation_2d,
-    scene_keypoints,
-    so3_exp,
-    so3_log,
-)
+from .frames import Frame, frame_keypoints, random_frame, scene_keypoints
 from .lasa import LASA_SHAPES, end_heading, lasa_frames, load_lasa
 from .scenes import Scene, lookahead_velocity, moved, random_scenes
 
@@ -25,10 +16,6 @@ __all__ = [
     "frame_keypoints",
     "scene_keypoints",
     "random_frame",
-    "rotation_2d",
-    "euler_to_matrix",
-    "so3_exp",
-    "so3_log",
     "Demonstration",
     "demonstrate",
     "minimum_jerk",

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .frames import Frame, rotation_2d, so3_exp, so3_log
+from kpflow.rotations import rotation_2d, so3_exp, so3_log
+
+from .frames import Frame
 
 __all__ = ["Demonstration", "demonstrate", "minimum_jerk"]
 

@@ -9,8 +9,7 @@ Following the keypoint-based policy transportation set-up (Franzese, Prakash, Ko
 is summarised by five keypoints rigidly attached to it (:func:`frame_keypoints`); a
 scene of several frames by their concatenation (:func:`scene_keypoints`).
 
-Also here: the small rotation helpers used by the demonstrator (:func:`rotation_2d`,
-:func:`euler_to_matrix`, :func:`so3_exp`, :func:`so3_log`).
+Rotation helpers (planar rotations, roll-pitch-yaw, SO(3) exp/log) live in :mod:`kpflow.rotations`.
 """
 
 from __future__ import annotations
@@ -21,102 +20,14 @@ from typing import Sequence
 
 import torch
 
+from kpflow.rotations import euler_to_matrix, float_dtype, rotation_2d
+
 __all__ = [
     "Frame",
     "frame_keypoints",
     "scene_keypoints",
     "random_frame",
-    "rotation_2d",
-    "euler_to_matrix",
-    "so3_exp",
-    "so3_log",
 ]
-
-
-def _float_dtype(*xs, dtype: torch.dtype | None = None) -> torch.dtype:
-    """``dtype`` if given, else the promoted dtype of the floating tensors among ``xs``, else the default."""
-    if dtype is not None:
-        return dtype
-    out = None
-    for x in xs:
-        if x is None or isinstance(x, (bool, int, float)):
-            continue
-        x = torch.as_tensor(x)  # numpy arrays keep their float64 / float32
-        if x.is_floating_point():
-            out = x.dtype if out is None else torch.promote_types(out, x.dtype)
-    return out if out is not None else torch.get_default_dtype()
-
-
-def _skew(w: torch.Tensor) -> torch.Tensor:
-    """Cross-product matrix ``[w]_x`` of ``w`` [..., 3] (so that ``[w]_x v = w x v``)."""
-    z = torch.zeros_like(w[..., 0])
-    return torch.stack(
-        [
-            torch.stack([z, -w[..., 2], w[..., 1]], dim=-1),
-            torch.stack([w[..., 2], z, -w[..., 0]], dim=-1),
-            torch.stack([-w[..., 1], w[..., 0], z], dim=-1),
-        ],
-        dim=-2,
-    )
-
-
-def rotation_2d(theta, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Planar rotation ``[[cos t, -sin t], [sin t, cos t]]`` for ``theta`` [...] -> [..., 2, 2]."""
-    theta = torch.as_tensor(theta, dtype=_float_dtype(theta, dtype=dtype))
-    c, s = torch.cos(theta), torch.sin(theta)
-    return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
-
-
-def euler_to_matrix(rpy, dtype: torch.dtype | None = None) -> torch.Tensor:
-    """Rotation from roll-pitch-yaw ``rpy`` [..., 3]: ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
-
-    (Fixed-axis X, then Y, then Z -- the ROS / URDF convention.)
-    """
-    rpy = torch.as_tensor(rpy, dtype=_float_dtype(rpy, dtype=dtype))
-    if rpy.shape[-1:] != (3,):
-        raise ValueError(f"rpy must have shape [..., 3], got {tuple(rpy.shape)}")
-    r, p, y = rpy.unbind(-1)
-    e = torch.eye(3, dtype=rpy.dtype)
-    return so3_exp(y[..., None] * e[2]) @ so3_exp(p[..., None] * e[1]) @ so3_exp(r[..., None] * e[0])
-
-
-def so3_exp(w) -> torch.Tensor:
-    """Rodrigues' formula: rotation vector ``w`` [..., 3] (axis * angle) -> rotation [..., 3, 3].
-
-    ``exp([w]_x) = I + sin(t) K + (1 - cos(t)) K^2`` with ``t = |w|`` and ``K = [w / t]_x``
-    (``I`` when ``t = 0``).
-    """
-    w = torch.as_tensor(w, dtype=_float_dtype(w))
-    t = torch.linalg.vector_norm(w, dim=-1)[..., None, None]
-    K = _skew(w / torch.where(t[..., 0] > 0, t[..., 0], 1.0))
-    eye = torch.eye(3, dtype=w.dtype).expand(K.shape)
-    return eye + torch.sin(t) * K + (1.0 - torch.cos(t)) * (K @ K)
-
-
-def so3_log(R) -> torch.Tensor:
-    """Rotation vector (axis * angle, angle in [0, pi]) of a single rotation ``R`` [3, 3].
-
-    ``angle = atan2(|v|, (trace R - 1) / 2)`` with ``v = vee(R - R^T) / 2 = sin(angle) axis``.
-    Near ``pi`` the axis is read from the symmetric part ``(R + R^T)/2 - cos(angle) I =
-    (1 - cos(angle)) axis axis^T`` (sign fixed by ``v``).
-    """
-    R = torch.as_tensor(R, dtype=_float_dtype(R))
-    if R.shape != (3, 3):
-        raise ValueError(f"so3_log takes one rotation [3, 3], got {tuple(R.shape)}")
-    v = 0.5 * torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = torch.linalg.vector_norm(v)
-    c = (0.5 * (torch.trace(R) - 1.0)).clamp(-1.0, 1.0)
-    angle = torch.atan2(s, c)
-    if angle < 1e-12:
-        return v  # first order: axis * angle ~ v
-    if c > -0.9:  # sin(angle) comfortably away from 0
-        return v * (angle / s)
-    B = 0.5 * (R + R.T) - c * torch.eye(3, dtype=R.dtype)
-    col = B[:, torch.argmax(B.diagonal())]
-    axis = col / torch.linalg.vector_norm(col)
-    if torch.dot(axis, v) < 0:
-        axis = -axis
-    return axis * angle
 
 
 @dataclass(frozen=True)
@@ -133,7 +44,7 @@ class Frame:
     rotation: torch.Tensor
 
     def __post_init__(self):
-        dtype = _float_dtype(self.position, self.rotation)
+        dtype = float_dtype(self.position, self.rotation)
         p = torch.as_tensor(self.position, dtype=dtype)
         R = torch.as_tensor(self.rotation, dtype=dtype)
         if p.ndim != 1 or p.shape[0] not in (2, 3):
@@ -155,14 +66,14 @@ class Frame:
     @classmethod
     def from_2d(cls, x, y, theta, dtype: torch.dtype | None = None) -> "Frame":
         """Planar frame at ``(x, y)`` whose x axis makes angle ``theta`` (radians) with the world x axis."""
-        dtype = _float_dtype(x, y, theta, dtype=dtype)
+        dtype = float_dtype(x, y, theta, dtype=dtype)
         p = torch.stack([torch.as_tensor(x, dtype=dtype), torch.as_tensor(y, dtype=dtype)])
         return cls(p, rotation_2d(theta, dtype=dtype))
 
     @classmethod
     def from_3d(cls, position, rotation_matrix, dtype: torch.dtype | None = None) -> "Frame":
         """Spatial frame from a position [3] and a rotation matrix [3, 3]."""
-        dtype = _float_dtype(position, rotation_matrix, dtype=dtype)
+        dtype = float_dtype(position, rotation_matrix, dtype=dtype)
         p = torch.as_tensor(position, dtype=dtype)
         R = torch.as_tensor(rotation_matrix, dtype=dtype)
         if p.shape != (3,) or R.shape != (3, 3):
@@ -172,7 +83,7 @@ class Frame:
     @classmethod
     def from_euler_3d(cls, position, rpy, dtype: torch.dtype | None = None) -> "Frame":
         """Spatial frame from a position [3] and roll-pitch-yaw [3] (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
-        dtype = _float_dtype(position, rpy, dtype=dtype)
+        dtype = float_dtype(position, rpy, dtype=dtype)
         return cls.from_3d(position, euler_to_matrix(torch.as_tensor(rpy, dtype=dtype)), dtype=dtype)
 
     # -- properties -------------------------------------------------------------------
@@ -200,7 +111,7 @@ class Frame:
     def transform(self, points) -> torch.Tensor:
         """Local -> world: ``x_world = R x_local + p`` for ``points`` [..., D]."""
         points = torch.as_tensor(points)
-        dtype = _float_dtype(points, self.position)
+        dtype = float_dtype(points, self.position)
         points = points.to(dtype)
         if points.shape[-1:] != (self.dim,):
             raise ValueError(f"points must have shape [..., {self.dim}], got {tuple(points.shape)}")
@@ -209,7 +120,7 @@ class Frame:
     def inverse_transform(self, points) -> torch.Tensor:
         """World -> local: ``x_local = R^T (x_world - p)`` for ``points`` [..., D]."""
         points = torch.as_tensor(points)
-        dtype = _float_dtype(points, self.position)
+        dtype = float_dtype(points, self.position)
         points = points.to(dtype)
         if points.shape[-1:] != (self.dim,):
             raise ValueError(f"points must have shape [..., {self.dim}], got {tuple(points.shape)}")

@@ -18,7 +18,9 @@ import numpy as np
 import torch
 
 from .demonstrator import Demonstration
-from .frames import Frame, rotation_2d
+from kpflow.rotations import rotation_2d
+
+from .frames import Frame
 
 __all__ = ["LASA_SHAPES", "load_lasa", "lasa_frames", "end_heading"]
 
