@@ -49,7 +49,6 @@ class TransportedDemosDataModule(lightning.LightningDataModule):
             return
         scenes = random_scenes(self.n_configs, self.n_points, self.seed)
         target = scenes[self.target]
-        dt = float(target.demo.times[1] - target.demo.times[0])
         duration = float(target.demo.times[-1] - target.demo.times[0])
         pairs = []
         for j, scene in enumerate(scenes):
@@ -58,7 +57,6 @@ class TransportedDemosDataModule(lightning.LightningDataModule):
             phi = self.make_map().fit(scene.keypoints(self.frame_size), target.keypoints(self.frame_size))
             x = phi(scene.demo.positions)
             pairs.append((x.float(), lookahead_velocity(x, duration, self.horizon).float()))
-        self.target_scene, self.dt = target, dt
         val, train = pairs[: self.n_val], pairs[self.n_val :]
         self.train_set = TensorDataset(*(torch.cat(t) for t in zip(*train)))
         self.val_set = TensorDataset(*(torch.cat(t) for t in zip(*val)))

@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
+from kpflow.policies.rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
 from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, moved, random_scenes
@@ -90,7 +91,7 @@ def figure2(make_map: MapFactory, out: Path, n_configs: int, n_points: int, fram
         duration = float(held.demo.times[-1] - held.demo.times[0])
         vel = torch.cat([lookahead_velocity(t.positions, duration, horizon) for t in transported])
         field = GPVectorField().fit(pos, vel, goal=held.goal.position)
-        rollout = field.rollout(held.demo.positions[0], dt, 2 * n_points)
+        rollout = euler_rollout(field, held.demo.positions[0], dt, 2 * n_points)
         truth = held.demo.positions
         rows.append(
             {

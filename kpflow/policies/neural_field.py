@@ -49,11 +49,3 @@ class NeuralVectorField(lightning.LightningModule):
 
     def configure_optimizers(self):
         return torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
-
-    @torch.no_grad()
-    def rollout(self, start: torch.Tensor, dt: float, steps: int) -> torch.Tensor:
-        """Euler integration from ``start [dim]``: ``[steps + 1, dim]``."""
-        xs = [start.to(self.x_mean)]
-        for _ in range(steps):
-            xs.append(xs[-1] + dt * self(xs[-1]))
-        return torch.stack(xs)

@@ -45,10 +45,3 @@ class GPVectorField:
         flat = x.reshape(-1, x.shape[-1])
         with torch.no_grad():
             return (self.prior(flat) + self.gp.mean(flat)).reshape(x.shape)
-
-    def rollout(self, start: torch.Tensor, dt: float, steps: int) -> torch.Tensor:
-        """Euler integration from ``start [D]``: ``[steps + 1, D]``."""
-        xs = [start]
-        for _ in range(steps):
-            xs.append(xs[-1] + dt * self(xs[-1][None])[0])
-        return torch.stack(xs)
