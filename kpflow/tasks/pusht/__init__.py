@@ -1,0 +1,34 @@
+"""Push-T: push a T-shaped block onto a goal pose (Diffusion Policy's standard physics), seen through 25 keypoints.
+
+* :mod:`.geometry` -- the T's boxes, its 12 keypoints (fixed order) and the coverage score.
+* :mod:`.workspace` -- the standard 512-px arena and the large 1024-px one with a 512-px training region.
+* :mod:`.physics` -- the pymunk space, built as the standard env builds it (quirks documented there).
+* :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it.
+* :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment.
+* :mod:`.render` -- RGB frames and videos.
+"""
+
+from .env import PushTEnv
+from .geometry import KEYPOINT_NAMES, N_KEYPOINTS, coverage, observation_keypoints, t_keypoints
+from .physics import PushTPhysics
+from .splits import FIXED_GOAL, SPLITS, Config, make_split, sample_config, split_config
+from .workspace import WORKSPACES, Workspace, get_workspace
+
+__all__ = [
+    "PushTEnv",
+    "PushTPhysics",
+    "KEYPOINT_NAMES",
+    "N_KEYPOINTS",
+    "coverage",
+    "observation_keypoints",
+    "t_keypoints",
+    "FIXED_GOAL",
+    "SPLITS",
+    "Config",
+    "make_split",
+    "sample_config",
+    "split_config",
+    "WORKSPACES",
+    "Workspace",
+    "get_workspace",
+]
