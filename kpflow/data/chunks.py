@@ -1,0 +1,151 @@
+"""Action-chunk training data from an :class:`~kpflow.data.episode_store.EpisodeStore`: for each time step
+the observation and the next ``H`` actions, split by episode into train and validation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import lightning
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from kpflow.data.episode_store import EpisodeStore
+
+
+class ChunkDataset(Dataset):
+    """One item per time step ``t`` of each listed episode.
+
+    Each item is a dict: ``obs`` (float32, the field's trailing shape, e.g. ``[25, 2]``), ``actions``
+    (float32 ``[H, A]``: ``a[t : t + H]``, padded past the episode end by repeating its last action),
+    ``mask`` (bool ``[H]``: True for real actions, False for padding), ``episode`` and ``t`` (ints).
+    The two fields are loaded into memory once.
+
+    Args:
+        store: the episodes.
+        episodes: indices of the episodes to use (``0 <= i < store.n_episodes``).
+        horizon: chunk length ``H >= 1``.
+        obs_key, action_key: the store fields holding observations and actions.
+    """
+
+    def __init__(
+        self,
+        store: EpisodeStore,
+        episodes: Sequence[int],
+        horizon: int = 20,
+        obs_key: str = "keypoints",
+        action_key: str = "action",
+    ) -> None:
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1; got {horizon}")
+        for key in (obs_key, action_key):
+            if key not in store.fields:
+                raise ValueError(f"field {key!r} not in {store.path}; available fields: {store.fields}")
+        episodes = [int(i) for i in episodes]
+        bad = [i for i in episodes if not 0 <= i < store.n_episodes]
+        if bad:
+            raise ValueError(f"episode indices {bad} out of range 0..{store.n_episodes - 1} of {store.path}")
+        self.horizon = horizon
+        self.obs = np.ascontiguousarray(store.field(obs_key), dtype=np.float32)
+        self.actions = np.ascontiguousarray(store.field(action_key), dtype=np.float32)
+        # Per item: its episode, local step t, and the episode's start/end rows in the concatenated arrays.
+        slices = [store.episode_slice(i) for i in episodes]
+        starts = np.array([s.start for s in slices], dtype=np.int64)
+        stops = np.array([s.stop for s in slices], dtype=np.int64)
+        lengths = stops - starts
+        self._episode = np.repeat(np.array(episodes, dtype=np.int64), lengths)
+        self._t = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        self._row = np.repeat(starts, lengths) + self._t
+        self._end = np.repeat(stops, lengths)
+
+    def __len__(self) -> int:
+        return len(self._row)
+
+    def __getitem__(self, k: int) -> dict[str, torch.Tensor | int]:
+        if not -len(self) <= k < len(self):
+            raise IndexError(f"item {k} out of range for {len(self)} items")
+        row, end = int(self._row[k]), int(self._end[k])
+        rows = np.arange(row, row + self.horizon)
+        return {
+            "obs": torch.from_numpy(self.obs[row].copy()),
+            "actions": torch.from_numpy(self.actions[np.minimum(rows, end - 1)]),
+            "mask": torch.from_numpy(rows < end),
+            "episode": int(self._episode[k]),
+            "t": int(self._t[k]),
+        }
+
+
+def split_episodes(n_episodes: int, val_fraction: float = 0.1, seed: int = 0) -> tuple[list[int], list[int]]:
+    """Split episode indices ``0..n_episodes-1`` into sorted ``(train, val)`` lists at random, by ``seed``.
+
+    Validation gets ``round(val_fraction * n_episodes)`` episodes, at least one when ``val_fraction > 0``,
+    and training always keeps at least one; so validation is empty only if ``n_episodes == 1`` or
+    ``val_fraction == 0``.
+    """
+    if n_episodes < 1:
+        raise ValueError(f"need at least one episode to split; got n_episodes={n_episodes}")
+    if not 0 <= val_fraction < 1:
+        raise ValueError(f"val_fraction must be in [0, 1); got {val_fraction}")
+    n_val = max(1, round(val_fraction * n_episodes)) if val_fraction > 0 else 0
+    n_val = min(n_val, n_episodes - 1)
+    order = np.random.default_rng(seed).permutation(n_episodes)
+    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+class ChunkDataModule(lightning.LightningDataModule):
+    """Train/val :class:`ChunkDataset` s from the episode store at ``path``, split by episode.
+
+    Args:
+        path: episode store (opened read-only).
+        horizon, obs_key, action_key: see :class:`ChunkDataset`.
+        val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
+        max_episodes: use only the first ``max_episodes`` episodes (all if None).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        horizon: int = 20,
+        obs_key: str = "keypoints",
+        action_key: str = "action",
+        val_fraction: float = 0.1,
+        batch_size: int = 256,
+        num_workers: int = 0,
+        seed: int = 0,
+        max_episodes: int | None = None,
+    ) -> None:
+        super().__init__()
+        if max_episodes is not None and max_episodes < 1:
+            raise ValueError(f"max_episodes must be >= 1 or None; got {max_episodes}")
+        self.path, self.horizon, self.obs_key, self.action_key = Path(path), horizon, obs_key, action_key
+        self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
+        self.seed, self.max_episodes = seed, max_episodes
+        self.train_episodes: list[int] | None = None
+        self.val_episodes: list[int] | None = None
+        self.train_set: ChunkDataset | None = None
+        self.val_set: ChunkDataset | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        store = EpisodeStore(self.path, mode="r")
+        n = store.n_episodes if self.max_episodes is None else min(store.n_episodes, self.max_episodes)
+        if n == 0:
+            raise ValueError(f"{self.path} holds no episodes")
+        self.train_episodes, self.val_episodes = split_episodes(n, self.val_fraction, self.seed)
+        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key)
+        self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
+        self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
+
+    def _loader(self, dataset: ChunkDataset | None, shuffle: bool) -> DataLoader:
+        if dataset is None:
+            raise RuntimeError("call setup() before asking for a dataloader")
+        generator = torch.Generator().manual_seed(self.seed) if shuffle else None
+        return DataLoader(dataset, self.batch_size, shuffle=shuffle, generator=generator, num_workers=self.num_workers)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_set, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_set, shuffle=False)
