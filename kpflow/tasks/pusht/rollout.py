@@ -1,0 +1,83 @@
+"""Running one Push-T episode with a policy, recording it in the Diffusion Policy convention."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .env import PushTEnv
+from .splits import Config
+
+#: Per-step fields of a recorded episode: the observation before each action, and that action.
+RECORDED_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")
+
+
+@dataclass
+class EpisodeResult:
+    """Outcome of one episode. ``first_step`` maps a coverage threshold to the first step reaching it (or None)."""
+
+    success: bool
+    coverage: float
+    max_coverage: float
+    steps: int
+    seconds: float
+    first_step: dict = field(default_factory=dict)
+    episode: dict | None = None  # recorded arrays [T, ...] (float32) when ``record``
+    frames: list | None = None  # RGB frames when ``render``
+
+
+def run_episode(
+    env: PushTEnv,
+    policy,
+    config: Config,
+    max_steps: int,
+    seed: int | None = None,
+    thresholds: tuple[float, ...] = (0.85, 0.95),
+    record: bool = False,
+    render: bool = False,
+) -> EpisodeResult:
+    """Reset ``env`` to ``config`` and run ``policy`` until success or ``max_steps`` steps.
+
+    ``policy`` has ``reset(seed)`` and ``act(obs)`` returning one target ``[2]`` or a chunk ``[H, 2]``; a chunk is
+    executed open loop and the policy is asked again when it runs out. The episode ends on ``env``'s success
+    (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were first reached.
+    """
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    obs, info = env.reset(options={"config": config})
+    policy.reset(seed)
+    log = {k: [] for k in (*RECORDED_FIELDS, "action")} if record else None
+    frames = [env.render()] if render else None
+    first = {th: None for th in thresholds}
+    best, chunk, terminated = info["coverage"], [], False
+    start = time.perf_counter()
+    for step in range(max_steps):
+        if not chunk:
+            chunk = list(np.atleast_2d(np.asarray(policy.act(obs), dtype=np.float64)))
+        action = chunk.pop(0)
+        if log is not None:
+            for k in RECORDED_FIELDS:
+                log[k].append(obs[k])
+            log["action"].append(action)
+        obs, _, terminated, _, info = env.step(action)
+        if frames is not None:
+            frames.append(env.render())
+        best = max(best, info["coverage"])
+        for th in thresholds:
+            if first[th] is None and info["coverage"] >= th:
+                first[th] = step + 1
+        if terminated:
+            break
+    episode = {k: np.asarray(v, dtype=np.float32) for k, v in log.items()} if log is not None else None
+    return EpisodeResult(
+        success=bool(terminated),
+        coverage=float(info["coverage"]),
+        max_coverage=float(best),
+        steps=step + 1,
+        seconds=time.perf_counter() - start,
+        first_step=first,
+        episode=episode,
+        frames=frames,
+    )
