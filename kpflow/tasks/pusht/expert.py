@@ -29,6 +29,7 @@ ANGLES = np.deg2rad([-35.0, 0.0, 35.0])
 ENTRY_SPEED = 3.0  # px per step when the agent reaches the push line
 BACKOFF = 20.0  # the push line starts this far behind the contact point
 ROUTE_PAD = AGENT_RADIUS + 6.0
+MAX_ROUTE_TRIES = 12  # candidates, best first, tried for a route before giving up on a decision
 
 
 def _contacts(spacing: float = 15.0) -> tuple[np.ndarray, np.ndarray]:
@@ -171,7 +172,7 @@ class PushTExpert:
         rot = np.array([[c, -s], [s, c]])
         points, normals = CONTACTS @ rot.T + block[:2], NORMALS @ rot.T
 
-        best = Plan()
+        candidates = []  # (score, index, Plan) of every push that improves on the current pose
         lo, hi = 0.0, float(self.workspace.size)
         for point, normal in zip(points, normals):
             for angle in ANGLES:
@@ -185,25 +186,24 @@ class PushTExpert:
                     continue  # the straight push line runs into another part of the T
                 charge = self.travel_cost * float(np.linalg.norm(entry - agent))
                 for length in lengths:
-                    if charge >= best.cost:
-                        continue
                     end = point + d * (length - AGENT_RADIUS)
                     targets = retime(np.stack([entry, end]), self.push_speed, self.accel, ENTRY_SPEED, 0.0)
                     targets = np.concatenate([targets, targets[-1:], targets[-1:]])  # settle
                     poses = self._simulate(entry, d, block, targets)
                     after = keypoint_cost(poses[-1], goal_kp)
-                    if after < now - 0.02 and after + charge < best.cost:
-                        best = Plan(list(targets), list(poses), after + charge, entry, d)
-        if not best.targets:
-            self._stalls += 1
-            return self._wander(agent, route_obstacle) if self._stalls > 1 else Plan()
-        self._stalls = 0
-        route = self._route(agent, best.entry, best.direction, route_obstacle)
-        if route is None:
-            self._stalls += 1
-            return Plan()
-        approach = retime(route, self.cruise, self.accel, float(np.linalg.norm(self._agent_vel)) * DT * SUBSTEPS, ENTRY_SPEED)
-        return Plan(list(approach) + best.targets, [None] * len(approach) + best.predicted, best.cost)
+                    if after < now - 0.02:
+                        plan = Plan(list(targets), list(poses), after + charge, entry, d)
+                        candidates.append((plan.cost, len(candidates), plan))
+        # The best push whose entry the agent can reach (a block against a wall hides some entries).
+        for _, _, best in sorted(candidates, key=lambda c: c[:2])[:MAX_ROUTE_TRIES]:
+            route = self._route(agent, best.entry, best.direction, route_obstacle)
+            if route is not None:
+                self._stalls = 0
+                v0 = float(np.linalg.norm(self._agent_vel)) * DT * SUBSTEPS
+                approach = retime(route, self.cruise, self.accel, v0, ENTRY_SPEED)
+                return Plan(list(approach) + best.targets, [None] * len(approach) + best.predicted, best.cost)
+        self._stalls += 1
+        return self._wander(agent, route_obstacle) if self._stalls > 1 else Plan()
 
     def _simulate(self, entry: np.ndarray, d: np.ndarray, block: np.ndarray, targets: np.ndarray) -> np.ndarray:
         """Block poses after each target, starting from the steady state of tracking the entry speed along ``d``."""
