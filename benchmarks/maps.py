@@ -52,7 +52,6 @@ import math
 import platform
 import pstats
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -70,6 +69,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # for `import baseline
 
 import baselines  # noqa: E402
 from kpflow.maps import AffineMap, EnsembleMap, FlowMap, GPMap, ILWRMap, MLPMap  # noqa: E402
+from kpflow.utils.io import write_text  # noqa: E402
 
 WORKSPACE = 512.0  # px
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -401,20 +401,6 @@ def config(quick: bool) -> dict:
     )
 
 
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smoke test: fewer repetitions and sizes (< 60 s)")
@@ -468,7 +454,7 @@ def main(argv=None) -> None:
                     f"the CPUs and timings are noisier)_")
     text = "\n\n".join(sections) + "\n"
     print(text)
-    write_atomic(args.out, text)
+    write_text(args.out, text)
     log(f"wrote {args.out}")
 
 

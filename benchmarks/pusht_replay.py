@@ -110,7 +110,6 @@ def main(argv=None) -> int:
     text = f"{head}\n\n{replay_tables(results)}\n\n_total run time {time.perf_counter() - t_start:.0f} s_\n"
     print(text)
     write_text(args.out, text)
-    os.chmod(args.out, 0o644)  # the temporary file it was renamed from was 0600
     log(f"wrote {args.out}")
     return 0
 

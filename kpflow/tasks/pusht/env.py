@@ -15,6 +15,12 @@ from .workspace import get_workspace
 _BODY_POINTS = np.concatenate([T_KEYPOINTS, OUTLINE])  # one transform gives keypoints and outline
 
 
+def _unit_turn(angle: float) -> float:
+    """``angle`` in [0, 2 pi) like the standard state (``%`` alone returns 2 pi for tiny negative angles)."""
+    a = angle % (2 * np.pi)
+    return 0.0 if a >= 2 * np.pi else a
+
+
 class PushTEnv(gym.Env):
     """Push a T-shaped block onto a goal pose with a circular agent driven by absolute target positions.
 
@@ -55,25 +61,26 @@ class PushTEnv(gym.Env):
         self.max_steps = max_steps
         self.physically_correct = physically_correct
         self.render_size, self.render_keypoints, self.render_mode = render_size, render_keypoints, render_mode
-        self.workspace = get_workspace("standard" if split == "in_distribution" else "large")
-        self._build(self.workspace)
+        self._build(get_workspace("standard" if split == "in_distribution" else "large"))
         self.goal_pose = np.array(FIXED_GOAL)
-        s = float(self.workspace.size)
+        self.n_steps: int | None = None  # None until the first reset
+        self._last_target = None
+
+    def _build(self, workspace) -> None:
+        """Physics and spaces for ``workspace`` (a reset to a configuration of another workspace rebuilds them)."""
+        self.workspace = workspace
+        self.physics = PushTPhysics(workspace, self.physically_correct)
+        s = float(workspace.size)
+        pose = spaces.Box(np.array([-s, -s, 0.0]), np.array([2 * s, 2 * s, 2 * np.pi]), dtype=np.float64)
         self.action_space = spaces.Box(0.0, s, shape=(2,), dtype=np.float64)
         self.observation_space = spaces.Dict(
             {
                 "keypoints": spaces.Box(-s, 2 * s, shape=(N_KEYPOINTS, 2), dtype=np.float64),
                 "agent_pos": spaces.Box(-s, 2 * s, shape=(2,), dtype=np.float64),
-                "block_pose": spaces.Box(np.array([-s, -s, 0.0]), np.array([2 * s, 2 * s, 2 * np.pi]), dtype=np.float64),
-                "goal_pose": spaces.Box(np.array([-s, -s, 0.0]), np.array([2 * s, 2 * s, 2 * np.pi]), dtype=np.float64),
+                "block_pose": pose,
+                "goal_pose": pose,
             }
         )
-        self.n_steps: int | None = None  # None until the first reset
-        self._last_target = None
-
-    def _build(self, workspace) -> None:
-        self.workspace = workspace
-        self.physics = PushTPhysics(workspace, self.physically_correct)
 
     # ------------------------------------------------------------------------------------------------ reset
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -125,9 +132,9 @@ class PushTEnv(gym.Env):
         pose = self.physics.block_pose
         points = to_world(pose, _BODY_POINTS)
         cov = outline_coverage(points[len(T_KEYPOINTS) :], self._goal_polygon)
-        pose[2] %= 2 * np.pi
+        pose[2] = _unit_turn(pose[2])
         goal = self.goal_pose.copy()
-        goal[2] %= 2 * np.pi
+        goal[2] = _unit_turn(goal[2])
         obs = {
             "keypoints": np.concatenate([points[: len(T_KEYPOINTS)], self._goal_keypoints, agent[None]]),
             "agent_pos": agent,

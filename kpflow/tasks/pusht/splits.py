@@ -95,6 +95,8 @@ def split_config(split: str, i: int, seed: int = 0, goal: str = "random") -> Con
 
 def make_split(split: str, n: int = 200, seed: int = 0, goal: str = "random") -> list[Config]:
     """The first ``n`` configurations of ``split`` for ``seed``; configuration ``i`` is the same for every ``n``."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
     return [split_config(split, i, seed, goal) for i in range(n)]
