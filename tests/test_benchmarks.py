@@ -18,3 +18,18 @@ def test_maps_benchmark_quick_writes_its_tables(tmp_path):
     for heading in ("## 1.", "## 2.", "## 3.", "targets"):
         assert heading in text
     assert "ILWRMap" in text and "sklearn GP" in text
+
+
+@pytest.mark.slow
+def test_pusht_benchmarks_write_their_tables(tmp_path):
+    runs = {
+        "pusht_env.md": ["benchmarks/pusht_env.py", "--steps", "300", "--repeats", "1"],
+        "pusht_expert.md": ["benchmarks/pusht_expert.py", "--n", "2", "--workers", "1", "--collect", "2"],
+    }
+    for name, cmd in runs.items():
+        out = tmp_path / name
+        done = subprocess.run([sys.executable, *cmd, "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert "| " in out.read_text() and "steps" in out.read_text()
+    assert "kpflow" in (tmp_path / "pusht_env.md").read_text()
+    assert "object outside training region" in (tmp_path / "pusht_expert.md").read_text()
