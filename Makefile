@@ -27,6 +27,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/maps.py
+	$(BIN)/python benchmarks/pusht_env.py
+	$(BIN)/python benchmarks/pusht_replay.py
+	$(BIN)/python benchmarks/pusht_expert.py
 
 clean:
 	rm -rf $(VENV) outputs multirun
