@@ -62,15 +62,20 @@ class ChunkDataset(Dataset):
     def __len__(self) -> int:
         return len(self._row)
 
+    def arrays(self, items: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Observations ``[n, ...]``, action chunks ``[n, H, A]`` and masks ``[n, H]`` of ``items`` (all by default)."""
+        row, end = self._row[items], self._end[items]
+        rows = row[..., None] + np.arange(self.horizon)
+        return self.obs[row], self.actions[np.minimum(rows, end[..., None] - 1)], rows < end[..., None]
+
     def __getitem__(self, k: int) -> dict[str, torch.Tensor | int]:
         if not -len(self) <= k < len(self):
             raise IndexError(f"item {k} out of range for {len(self)} items")
-        row, end = int(self._row[k]), int(self._end[k])
-        rows = np.arange(row, row + self.horizon)
+        obs, actions, mask = self.arrays(k)
         return {
-            "obs": torch.from_numpy(self.obs[row].copy()),
-            "actions": torch.from_numpy(self.actions[np.minimum(rows, end - 1)]),
-            "mask": torch.from_numpy(rows < end),
+            "obs": torch.from_numpy(obs.copy()),
+            "actions": torch.from_numpy(actions),
+            "mask": torch.from_numpy(mask),
             "episode": int(self._episode[k]),
             "t": int(self._t[k]),
         }

@@ -1,0 +1,77 @@
+"""Demonstrated states and their action chunks, searchable by weighted keypoint distance.
+
+The distance between two keypoint sets ``p, q [K, D]`` is ``d(p, q) = sum_k w_k |p_k - q_k|^2`` with one weight per
+keypoint (Push-T: one for the block's 12, one for the goal's 12, one for the agent). Scaling each keypoint by
+``sqrt(w_k)`` turns it into a squared Euclidean distance between flat feature vectors ``f``, and
+``|f - g|^2 = |f|^2 - 2 f.g + |g|^2`` makes a query one matrix-vector product over all sources (BLAS, float32).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..data.chunks import ChunkDataset
+from ..data.episode_store import EpisodeStore
+
+
+def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:
+    """Per-keypoint weights ``[25]`` for Push-T observations: block T (12), goal T (12), agent (1)."""
+    for name, w in (("block", block), ("goal", goal), ("agent", agent)):
+        if not np.isfinite(w) or w < 0:
+            raise ValueError(f"keypoint weight {name} must be finite and >= 0, got {w}")
+    return np.concatenate([np.full(12, block), np.full(12, goal), [agent]]).astype(np.float32)
+
+
+class SourceIndex:
+    """Source keypoint sets ``[N, K, D]`` with the action chunk ``[N, H, A]`` demonstrated from each.
+
+    :meth:`query` returns the index of the source nearest to a keypoint set under the weighted distance.
+    """
+
+    def __init__(self, keypoints: np.ndarray, chunks: np.ndarray, weights: np.ndarray | None = None):
+        keypoints = np.asarray(keypoints, dtype=np.float32)
+        chunks = np.asarray(chunks, dtype=np.float32)
+        if keypoints.ndim != 3 or chunks.ndim != 3 or len(keypoints) != len(chunks):
+            raise ValueError(f"need keypoints [N, K, D] and chunks [N, H, A]; got {keypoints.shape} and {chunks.shape}")
+        if len(keypoints) == 0:
+            raise ValueError("a source index needs at least one source")
+        if not (np.isfinite(keypoints).all() and np.isfinite(chunks).all()):
+            raise ValueError("source keypoints or chunks contain NaN or inf")
+        k = keypoints.shape[1]
+        weights = np.ones(k, np.float32) if weights is None else np.asarray(weights, np.float32)
+        if weights.shape != (k,):
+            raise ValueError(f"weights must have one entry per keypoint ({k}), got shape {weights.shape}")
+        self.keypoints, self.chunks, self.weights = keypoints, chunks, weights
+        self._scale = np.sqrt(weights)[:, None]
+        self._features = (keypoints * self._scale).reshape(len(keypoints), -1)
+        self._norms = np.einsum("nf,nf->n", self._features, self._features)
+
+    @classmethod
+    def from_store(
+        cls,
+        store: EpisodeStore,
+        horizon: int = 20,
+        weights: np.ndarray | None = None,
+        episodes=None,
+        obs_key: str = "keypoints",
+        action_key: str = "action",
+    ) -> "SourceIndex":
+        """Every step of the store's episodes (all by default) with its next ``horizon`` actions (padded at the end)."""
+        episodes = range(store.n_episodes) if episodes is None else episodes
+        keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key).arrays()
+        return cls(keypoints, chunks, weights)
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    def query(self, keypoints: np.ndarray) -> tuple[int, float]:
+        """Index of the nearest source to ``keypoints [K, D]`` and its weighted squared distance."""
+        q = np.asarray(keypoints, dtype=np.float32)
+        if q.shape != self.keypoints.shape[1:]:
+            raise ValueError(f"query keypoints must have shape {self.keypoints.shape[1:]}, got {q.shape}")
+        if not np.isfinite(q).all():
+            raise ValueError("query keypoints contain NaN or inf")
+        f = (q * self._scale).reshape(-1)
+        d = self._norms - 2.0 * (self._features @ f) + f @ f
+        i = int(np.argmin(d))
+        return i, float(max(d[i], 0.0))

@@ -1,0 +1,90 @@
+"""Nearest-neighbour and policy-transportation policies on Push-T: source search, transport, replays."""
+
+import numpy as np
+import pytest
+
+from kpflow.data.chunks import ChunkDataset
+from kpflow.data.collection import collect_pusht
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.maps import AffineMap
+from kpflow.policies.nearest import NearestNeighbourPolicy
+from kpflow.policies.protocol import Policy
+from kpflow.policies.source_index import SourceIndex, pusht_weights
+from kpflow.policies.transportation import TransportationPolicy
+from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.rollout import run_episode
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    path = tmp_path_factory.mktemp("demos") / "demos.zarr"
+    collect_pusht(path, 3, workers=1, progress=False)
+    return EpisodeStore(path)
+
+
+def test_query_is_the_weighted_argmin():
+    rng = np.random.default_rng(0)
+    keypoints = rng.uniform(0, 512, (500, 25, 2))
+    chunks = rng.uniform(0, 512, (500, 20, 2))
+    w = pusht_weights(block=2.0, goal=0.5, agent=3.0)
+    index = SourceIndex(keypoints, chunks, w)
+    for _ in range(20):
+        q = rng.uniform(0, 512, (25, 2))
+        brute = (w[:, None] * (keypoints - q) ** 2).sum((1, 2))
+        i, d = index.query(q)
+        assert i == int(np.argmin(brute)) and np.isclose(d, brute.min(), rtol=1e-3)
+    assert index.query(keypoints[7])[0] == 7
+
+
+def test_index_validates_its_input():
+    kp, ch = np.zeros((3, 25, 2)), np.zeros((3, 20, 2))
+    kp[:, :, 0] = np.arange(3)[:, None]
+    with pytest.raises(ValueError, match="shape"):
+        SourceIndex(kp, ch).query(np.zeros((24, 2)))
+    with pytest.raises(ValueError, match="NaN"):
+        SourceIndex(kp, ch).query(np.full((25, 2), np.nan))
+    with pytest.raises(ValueError, match="one entry per keypoint"):
+        SourceIndex(kp, ch, np.ones(3))
+    with pytest.raises(ValueError, match="agent"):
+        pusht_weights(agent=-1.0)
+    with pytest.raises(ValueError, match="at least one"):
+        SourceIndex(kp[:0], ch[:0])
+
+
+def test_index_from_store_matches_the_chunk_dataset(demos):
+    index = SourceIndex.from_store(demos, horizon=20)
+    data = ChunkDataset(demos, range(len(demos)), 20)
+    assert len(index) == len(data) == demos.n_steps
+    for k in (0, 57, len(data) - 1):
+        item = data[k]
+        np.testing.assert_array_equal(index.keypoints[k], item["obs"].numpy())
+        np.testing.assert_array_equal(index.chunks[k], item["actions"].numpy())
+
+
+def test_transport_with_an_identity_or_rigid_scene_change(demos):
+    index = SourceIndex.from_store(demos, horizon=20)
+    policy = TransportationPolicy(index, execute=20)
+    assert isinstance(policy, Policy)
+    obs = {"keypoints": index.keypoints[40].astype(np.float64)}
+    np.testing.assert_allclose(policy.act(obs), index.chunks[40], atol=1e-3)  # identity map
+    c, s = np.cos(0.4), np.sin(0.4)
+    rot, shift = np.array([[c, -s], [s, c]]), np.array([30.0, -20.0])
+    moved = {"keypoints": index.keypoints[40] @ rot.T + shift}
+    one = SourceIndex(index.keypoints[40:41], index.chunks[40:41])  # the only source: the moved scene's original
+    for make_map in (AffineMap, None):  # rigid fit, and ILWR (rigid alignment, then nothing left to deform)
+        policy = TransportationPolicy(one, **({"make_map": make_map} if make_map else {}), execute=20)
+        np.testing.assert_allclose(policy.act(moved), index.chunks[40] @ rot.T + shift, atol=1e-3)
+
+
+@pytest.mark.parametrize("make", [NearestNeighbourPolicy, TransportationPolicy])
+def test_policies_replay_a_demonstration_from_its_own_start(demos, make):
+    """From a demonstrated configuration every query finds the demonstration itself, so the episode succeeds."""
+    index = SourceIndex.from_store(demos, horizon=20)
+    policy = make(index, execute=20)
+    config = split_config("in_distribution", demos.episode_attrs(1)["config_index"])
+    result = run_episode(PushTEnv(), policy, config, 600)
+    assert result.success
+    chunk = policy.act({"keypoints": index.keypoints[0].astype(np.float64)})
+    assert chunk.shape == (20, 2)
+    with pytest.raises(ValueError, match="execute"):
+        make(index, execute=21)
