@@ -9,7 +9,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.maps import AffineMap
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.policies.protocol import Policy
-from kpflow.policies.source_index import SourceIndex, pusht_weights
+from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transportation import TransportationPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.rollout import run_episode
@@ -34,6 +34,18 @@ def test_query_is_the_weighted_argmin():
         i, d = index.query(q)
         assert i == int(np.argmin(brute)) and np.isclose(d, brute.min(), rtol=1e-3)
     assert index.query(keypoints[7])[0] == 7
+
+
+def test_block_frame_search_ignores_rigid_motions_of_the_whole_scene(demos):
+    index = SourceIndex.from_store(demos, horizon=20, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
+    c, s = np.cos(1.1), np.sin(1.1)
+    rot, shift = np.array([[c, -s], [s, c]]), np.array([300.0, -80.0])
+    for k in (3, 90, 250):
+        moved = index.keypoints[k] @ rot.T + shift
+        i, d = index.query(moved)
+        assert i == k and d < 5.0  # float32 norms: |f|^2 ~ 1e7, so the distance carries ~1 px^2 of rounding
+    with pytest.raises(ValueError, match="reference"):
+        SourceIndex(index.keypoints, index.chunks, reference=(0,))
 
 
 def test_index_validates_its_input():

@@ -4,14 +4,23 @@ The distance between two keypoint sets ``p, q [K, D]`` is ``d(p, q) = sum_k w_k 
 keypoint (Push-T: one for the block's 12, one for the goal's 12, one for the agent). Scaling each keypoint by
 ``sqrt(w_k)`` turns it into a squared Euclidean distance between flat feature vectors ``f``, and
 ``|f - g|^2 = |f|^2 - 2 f.g + |g|^2`` makes a query one matrix-vector product over all sources (BLAS, float32).
+
+With ``reference`` keypoints (Push-T: the block's 12) every set is first moved rigidly so that its reference
+keypoints best match (Kabsch) those of the first source: configurations are then compared by where things are
+relative to the object, whatever the object's pose in the workspace. That is what makes a demonstrated chunk
+transportable to a block somewhere else: the map takes care of the rigid motion.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from ..data.chunks import ChunkDataset
 from ..data.episode_store import EpisodeStore
+from ..maps.affine import fit_affine
+
+PUSHT_BLOCK = tuple(range(12))  # the block's keypoints in a Push-T observation
 
 
 def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:
@@ -28,7 +37,13 @@ class SourceIndex:
     :meth:`query` returns the index of the source nearest to a keypoint set under the weighted distance.
     """
 
-    def __init__(self, keypoints: np.ndarray, chunks: np.ndarray, weights: np.ndarray | None = None):
+    def __init__(
+        self,
+        keypoints: np.ndarray,
+        chunks: np.ndarray,
+        weights: np.ndarray | None = None,
+        reference: tuple[int, ...] | None = None,
+    ):
         keypoints = np.asarray(keypoints, dtype=np.float32)
         chunks = np.asarray(chunks, dtype=np.float32)
         if keypoints.ndim != 3 or chunks.ndim != 3 or len(keypoints) != len(chunks):
@@ -42,8 +57,12 @@ class SourceIndex:
         if weights.shape != (k,):
             raise ValueError(f"weights must have one entry per keypoint ({k}), got shape {weights.shape}")
         self.keypoints, self.chunks, self.weights = keypoints, chunks, weights
+        self.reference = None if reference is None else list(reference)
+        if self.reference is not None and not (len(self.reference) >= 2 and all(0 <= r < k for r in self.reference)):
+            raise ValueError(f"reference must list at least 2 keypoint indices in 0..{k - 1}, got {reference}")
+        self._template = None if self.reference is None else keypoints[0, self.reference].astype(np.float64)
         self._scale = np.sqrt(weights)[:, None]
-        self._features = (keypoints * self._scale).reshape(len(keypoints), -1)
+        self._features = (self._canonical(keypoints) * self._scale).reshape(len(keypoints), -1)
         self._norms = np.einsum("nf,nf->n", self._features, self._features)
 
     @classmethod
@@ -52,6 +71,7 @@ class SourceIndex:
         store: EpisodeStore,
         horizon: int = 20,
         weights: np.ndarray | None = None,
+        reference: tuple[int, ...] | None = None,
         episodes=None,
         obs_key: str = "keypoints",
         action_key: str = "action",
@@ -59,7 +79,16 @@ class SourceIndex:
         """Every step of the store's episodes (all by default) with its next ``horizon`` actions (padded at the end)."""
         episodes = range(store.n_episodes) if episodes is None else episodes
         keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key).arrays()
-        return cls(keypoints, chunks, weights)
+        return cls(keypoints, chunks, weights, reference)
+
+    def _canonical(self, keypoints: np.ndarray) -> np.ndarray:
+        """Keypoint sets ``[B, K, D]`` moved rigidly onto the template's reference pose (unchanged without one)."""
+        if self.reference is None:
+            return keypoints
+        x = torch.from_numpy(keypoints.astype(np.float64))
+        template = torch.from_numpy(self._template).expand(len(x), *self._template.shape)
+        a, t = fit_affine(x[:, self.reference], template, "rigid")
+        return (x @ a.transpose(1, 2) + t[:, None]).numpy().astype(np.float32)
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -71,7 +100,7 @@ class SourceIndex:
             raise ValueError(f"query keypoints must have shape {self.keypoints.shape[1:]}, got {q.shape}")
         if not np.isfinite(q).all():
             raise ValueError("query keypoints contain NaN or inf")
-        f = (q * self._scale).reshape(-1)
+        f = (self._canonical(q[None])[0] * self._scale).reshape(-1)
         d = self._norms - 2.0 * (self._features @ f) + f @ f
         i = int(np.argmin(d))
         return i, float(max(d[i], 0.0))
