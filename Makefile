@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python evaluate.py experiment=frames
+	$(BIN)/python evaluate.py experiment=pusht_demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

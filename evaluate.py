@@ -1,5 +1,6 @@
-"""Evaluate: ``python evaluate.py experiment=frames map=gp``. Builds the map factory and the experiment from
-``conf/``, runs it, writes the resolved config, results and plots under the run's output folder."""
+"""Evaluate: ``python evaluate.py policy=transport split=all`` (Push-T) or ``python evaluate.py experiment=frames``.
+Builds the experiment (and what it needs: policy, data, map) from ``conf/``, runs it, and writes the resolved
+config, results, plots and videos under the run's output folder."""
 
 import hydra
 from hydra.utils import instantiate
@@ -13,10 +14,12 @@ def main(cfg: DictConfig) -> dict:
     out = start_run(cfg)
     loggers = make_loggers(cfg)
     run = instantiate(cfg.experiment)
-    results = run(make_map=instantiate(cfg.map), output_dir=out, seed=cfg.seed)
+    results = run(output_dir=out, seed=cfg.seed)
     log_metrics(loggers, results["metrics"])
     print((out / "results.md").read_text())
     print(f"results: {out / 'results.md'}  plots: {sorted(str(p) for p in out.glob('*.png'))}")
+    if videos := sorted(str(p) for p in out.glob("*.mp4")):
+        print(f"videos: {videos}")
     return results
 
 

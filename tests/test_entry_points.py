@@ -45,7 +45,7 @@ def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
 
 def test_same_seed_same_numbers(tmp_path):
     def run(d):
-        cmd = [sys.executable, "evaluate.py", "map=gp", "logger=none", "experiment.n_configs=2", "experiment.n_points=50", f"hydra.run.dir={d}"]
+        cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=gp", "logger=none", "experiment.n_configs=2", "experiment.n_points=50", f"hydra.run.dir={d}"]
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, timeout=300)
         return json.loads((d / "results.json").read_text())
 
@@ -54,7 +54,7 @@ def test_same_seed_same_numbers(tmp_path):
 
 def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "-m", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
+        sys.executable, "evaluate.py", "-m", "experiment=frames", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
         "experiment.n_points=40", f"hydra.sweep.dir={tmp_path}",
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -62,3 +62,22 @@ def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     targets = sorted(yaml.safe_load((tmp_path / str(k) / "config.yaml").read_text())["map"]["_target_"] for k in (0, 1))
     assert targets == ["kpflow.maps.AffineMap", "kpflow.maps.ILWRMap"]
     assert all((tmp_path / str(k) / "results.json").exists() for k in (0, 1))
+
+
+def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
+    cmd = [
+        sys.executable, "evaluate.py", "policy=nearest", "split=all", "n_configs=2", "workers=2", "logger=csv",
+        "data.n_episodes=2", f"data.path={tmp_path / 'demos.zarr'}", "experiment.max_steps=60", f"hydra.run.dir={tmp_path / 'run'}",
+    ]  # fmt: skip
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = tmp_path / "run"
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    assert cfg["policy"]["_target_"] == "kpflow.policies.build.nearest" and cfg["split"] == "all"
+    results = json.loads((run / "results.json").read_text())
+    assert set(results["summary"]) == {"in_distribution", "robot_ood", "object_ood"} and len(results["episodes"]) == 6
+    for s in results["summary"].values():
+        lo, hi = s["ci_085"]
+        assert 0.0 <= lo <= s["success_085"] <= hi <= 1.0 and s["latency_ms"] > 0
+    assert "| nearest | robot_ood | 2 |" in (run / "results.md").read_text()
+    assert (run / "success.png").stat().st_size > 0 and list(run.glob("*.mp4"))

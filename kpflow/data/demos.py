@@ -1,0 +1,51 @@
+"""Expert demonstrations on disk, collected on first use: what ``data=pusht_expert`` points at."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .chunks import ChunkDataModule
+from .collection import collect_pusht
+from .episode_store import EpisodeStore
+
+
+def ensure_pusht_demos(
+    path: str | os.PathLike,
+    n_episodes: int = 200,
+    seed: int = 0,
+    workers: int = 2,
+    split: str = "in_distribution",
+    goal: str = "random",
+    max_steps: int = 600,
+) -> EpisodeStore:
+    """The expert store at ``path``, collected first when it does not exist yet (read-only once there).
+
+    An existing store is reused only if it was collected with the same split, goal and seed and holds
+    ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path).
+    """
+    path = Path(path)
+    if not (path / "meta" / "episode_ends").exists():
+        collect_pusht(path, n_episodes, split=split, goal=goal, seed=seed, max_steps=max_steps, workers=workers)
+    store = EpisodeStore(path)
+    want = {"split": split, "goal": goal, "seed": seed}
+    have = {k: store.attrs.get(k) for k in want}
+    if have != want or len(store) != n_episodes:
+        raise ValueError(
+            f"{path} holds {len(store)} episodes collected with {have}, but {n_episodes} with {want} were asked for"
+        )
+    return store
+
+
+def pusht_expert_datamodule(
+    path: str,
+    n_episodes: int = 200,
+    seed: int = 0,
+    workers: int = 2,
+    horizon: int = 20,
+    batch_size: int = 256,
+    val_fraction: float = 0.1,
+) -> ChunkDataModule:
+    """Chunks (keypoints -> next ``horizon`` actions) of expert demonstrations, collected if missing."""
+    ensure_pusht_demos(path, n_episodes, seed, workers)
+    return ChunkDataModule(path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed)

@@ -1,0 +1,37 @@
+"""Policies built from configuration (``conf/policy/*.yaml``): plain functions that Hydra instantiates."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ..data.demos import ensure_pusht_demos
+from ..maps import ILWRMap
+from ..maps.base import TransportMap
+from .nearest import NearestNeighbourPolicy
+from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from .transportation import TransportationPolicy
+
+FRAMES = {"world": None, "block": PUSHT_BLOCK}
+
+
+def pusht_index(demos: dict, horizon: int = 20, weights: dict | None = None, frame: str = "block") -> SourceIndex:
+    """A :class:`SourceIndex` over every step of the expert demonstrations described by ``demos``."""
+    if frame not in FRAMES:
+        raise ValueError(f"unknown search frame {frame!r}; choose one of {sorted(FRAMES)}")
+    store = ensure_pusht_demos(**demos)
+    return SourceIndex.from_store(store, horizon, pusht_weights(**(weights or {})), FRAMES[frame])
+
+
+def nearest(demos: dict, horizon: int = 20, execute: int = 8, weights: dict | None = None, frame: str = "block"):
+    return NearestNeighbourPolicy(pusht_index(demos, horizon, weights, frame), execute)
+
+
+def transportation(
+    demos: dict,
+    make_map: Callable[[], TransportMap] = ILWRMap,
+    horizon: int = 20,
+    execute: int = 8,
+    weights: dict | None = None,
+    frame: str = "block",
+):
+    return TransportationPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute)
