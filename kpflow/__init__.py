@@ -5,3 +5,15 @@ Fit a smooth map phi from the keypoints of a demonstration's scene to those of a
 """
 
 __version__ = "0.1.0"
+
+
+def load_policy(path, steps: int = 10, execute: int = 8):
+    """A ready K-CFM policy (``reset(seed)``, ``act(obs) -> [execute, 2]``) from a Lightning checkpoint, on the CPU.
+
+    A checkpoint trained on a GPU loads too; a missing file raises ``FileNotFoundError`` and a corrupt one a
+    ``ValueError`` naming the file. Wrap it in :class:`kpflow.policies.transported_kcfm.TransportedKCFMPolicy` for
+    online transport.
+    """
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+
+    return KCFMPolicy.from_checkpoint(path, steps=steps, execute=execute)

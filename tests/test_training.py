@@ -58,3 +58,37 @@ def test_bad_data_config_is_a_clear_error():
 
     with pytest.raises(ValueError, match="target must index"):
         TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)
+
+
+def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
+    import json
+
+    import numpy as np
+
+    import kpflow
+    from kpflow.tasks.pusht import PushTEnv, split_config
+
+    root = Path(__file__).resolve().parents[1]
+    demos = f"data.path={tmp_path / 'demos.zarr'}"
+    train = [sys.executable, "train.py", "model=kcfm", "data=pusht_expert", "data.n_episodes=2", "data.workers=1", demos,
+             "data.batch_size=64", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    first_step = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 2 * first_step  # continued
+
+    policy = kpflow.load_policy(last, steps=4, execute=8)
+    obs, _ = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})
+    policy.reset(0)
+    a = policy.act(obs)
+    policy.reset(0)
+    assert a.shape == (8, 2) and np.isfinite(a).all() and np.array_equal(a, policy.act(obs))
+
+    evaluate = [sys.executable, "evaluate.py", "policy=kcfm", f"policy.checkpoint={last}", "policy.steps=2", "split=in_distribution",
+                "n_configs=1", "workers=1", "experiment.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
+    done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"]["in_distribution"]["episodes"] == 1

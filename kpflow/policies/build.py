@@ -35,3 +35,26 @@ def transportation(
     frame: str = "block",
 ):
     return TransportationPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute)
+
+
+def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):
+    from .kcfm_policy import KCFMPolicy
+
+    return KCFMPolicy.from_checkpoint(checkpoint, steps, execute)
+
+
+def transported_kcfm(
+    checkpoint: str,
+    demos: dict,
+    make_map: Callable[[], TransportMap] = ILWRMap,
+    steps: int = 10,
+    execute: int = 8,
+    weights: dict | None = None,
+    frame: str = "block",
+):
+    from .kcfm_policy import KCFMPolicy
+    from .transported_kcfm import TransportedKCFMPolicy
+
+    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model
+    index = pusht_index(demos, model.hparams.horizon, weights, frame)
+    return TransportedKCFMPolicy(model, index, make_map, steps, execute)
