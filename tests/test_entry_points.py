@@ -81,3 +81,20 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
         assert 0.0 <= lo <= s["success_085"] <= hi <= 1.0 and s["latency_ms"] > 0
     assert "| nearest | robot_ood | 2 |" in (run / "results.md").read_text()
     assert (run / "success.png").stat().st_size > 0 and list(run.glob("*.mp4"))
+
+
+def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
+    cmd = [
+        sys.executable, "evaluate.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "policy=nearest,transport",
+        "split=in_distribution", "n_configs=2", "workers=1", "logger=none", "data.n_episodes=2", "data.workers=1",
+        f"data.path={tmp_path / 'demos.zarr'}", "experiment.max_steps=30", "experiment.videos=0", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+    ]  # fmt: skip
+    from kpflow.data.collection import collect_pusht
+
+    collect_pusht(tmp_path / "demos.zarr", 2, workers=1, progress=False)  # both jobs then read the same store
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    table = (tmp_path / "sweep" / "table.md").read_text().splitlines()
+    assert sum(line.startswith("| policy ") for line in table) == 1  # one header
+    assert any(line.startswith("| nearest | in_distribution | 2 |") for line in table)
+    assert any(line.startswith("| transport | in_distribution | 2 |") for line in table)
