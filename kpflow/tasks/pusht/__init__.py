@@ -6,6 +6,10 @@
 * :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it.
 * :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment.
 * :mod:`.render` -- RGB frames and videos.
+* :mod:`.routing` -- agent paths around the block, retimed into speed-bounded targets.
+* :mod:`.expert` -- :class:`~.expert.PushTExpert`, the scripted demonstrator.
+* :mod:`.rollout` -- one episode with any policy, recorded in the Diffusion Policy convention.
+* :mod:`.teleop` -- keyboard teleoperation (pygame, optional).
 """
 
 from .env import PushTEnv
