@@ -85,17 +85,17 @@ def main(argv=None) -> str:
     queries = [env.reset(options={"config": split_config("in_distribution", 20_000 + i)})[0] for i in range(args.reps)]
     query_kps = [q["keypoints"] for q in queries]
 
-    features = index._canonical(keypoints) * np.sqrt(weights)[:, None]
+    features = index.canonical(keypoints) * np.sqrt(weights)[:, None]
     brute = NearestNeighbors(n_neighbors=1, algorithm="brute").fit(features.reshape(len(features), -1))
 
     def sklearn_query(q):
-        f = index._canonical(np.asarray(q, np.float32)[None]) * np.sqrt(weights)[:, None]
+        f = index.canonical(np.asarray(q, np.float32)[None]) * np.sqrt(weights)[:, None]
         return brute.kneighbors(f.reshape(1, -1), return_distance=False)
 
     search = median_ms(index.query, query_kps)
     baseline = median_ms(sklearn_query, query_kps)
     def weighted(i, q):  # the weighted squared distance of source i to q, in float64
-        f = index._canonical(np.asarray(q, np.float32)[None])[0]
+        f = index.canonical(np.asarray(q, np.float32)[None])[0]
         return float((weights[:, None] * (features[i] / np.sqrt(weights)[:, None] - f) ** 2).sum())
 
     agree = np.mean([np.isclose(weighted(index.query(q)[0], q), weighted(int(sklearn_query(q)[0, 0]), q), rtol=1e-3)
@@ -119,7 +119,7 @@ def main(argv=None) -> str:
         f"| K-CFM chunk, 1 Euler step | {kcfm1:.2f} | - | - | - |",
         f"| K-CFM chunk, 10 Euler steps | {kcfm10:.2f} | - | - | <= 10 ms: {verdict(kcfm10 <= 10)} |",
         "",
-        f"The two searches return equally near sources (distances equal to 0.1%) in {100 * agree:.0f}% of 50 queries. K-CFM: {sum(p.numel() for p in model.net.parameters()):,}"
+        f"The two searches return equally near sources (distances equal to 0.1%) in {100 * agree:.0f}% of {min(50, len(query_kps))} queries. K-CFM: {sum(p.numel() for p in model.net.parameters()):,}"
         f" parameters, channels {tuple(model.hparams.down_dims)}.",
         "",
         f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread.",

@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import torch
 
 
@@ -31,3 +32,30 @@ def grid(d: int, lo: float = -1.0, hi: float = 2.0, n: int = 12, dtype=torch.flo
     """A grid three times the [0, 1]^d keypoint extent."""
     axes = [torch.linspace(lo, hi, n, dtype=dtype)] * d
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
+
+
+WALK_RATE, WALK_START, WALK_LEN, WALK_EPISODES = 0.1, 200.0, 20, 8
+
+
+def walk_to_block_store(path) -> None:
+    """Push-T-shaped episodes where the agent walks in a straight line to the block's centre, covering the share
+    ``WALK_RATE`` of the remaining distance each step: the action chunk
+    ``a[t+k] = centre + (1 - WALK_RATE)^(k+1) (agent_t - centre)`` (absolute targets) is a deterministic (even
+    linear) function of the keypoints, and moving the whole scene rigidly moves the chunk the same way."""
+    from kpflow.data.episode_store import EpisodeStore
+    from kpflow.tasks.pusht.geometry import observation_keypoints, t_keypoints
+
+    rng = np.random.default_rng(0)
+    store = EpisodeStore(path, mode="a")
+    for _ in range(WALK_EPISODES):
+        block = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
+        goal = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
+        centre = t_keypoints(block).mean(0)
+        angle = rng.uniform(0, 2 * np.pi)
+        agent = centre + WALK_START * np.array([np.cos(angle), np.sin(angle)])
+        keypoints, actions = [], []
+        for _ in range(WALK_LEN):
+            keypoints.append(observation_keypoints(block, goal, agent))
+            agent = agent + WALK_RATE * (centre - agent)
+            actions.append(agent.copy())
+        store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})

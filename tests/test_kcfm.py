@@ -13,6 +13,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.policies.kcfm import KCFM, MAX_STEPS, fill_padding, goal_pose, interpolate, masked_mse, target_velocity
 from kpflow.policies.unet1d import ConditionalUnet1D
 from kpflow.tasks.pusht.geometry import observation_keypoints, t_keypoints
+from tests.helpers import walk_to_block_store
 
 # ------------------------------------------------------------------------------------------------ U-Net
 
@@ -175,27 +176,7 @@ def test_sample_validates_steps_and_keypoints():
 
 # ------------------------------------------------------------------------------------- training end to end
 
-RATE, START_DIST, EPISODE_LEN, N_EPISODES, H = 0.1, 200.0, 20, 8, 8
-
-
-def _make_store(path) -> None:
-    """Episodes where the agent walks in a straight line to the block's centre, covering the share RATE of the
-    remaining distance each step: the action chunk ``a[t+k] = centre + (1 - RATE)^(k+1) (agent_t - centre)``
-    (absolute targets) is a deterministic (even linear) function of the keypoints."""
-    rng = np.random.default_rng(0)
-    store = EpisodeStore(path, mode="a")
-    for _ in range(N_EPISODES):
-        block = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
-        goal = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
-        centre = t_keypoints(block).mean(0)
-        angle = rng.uniform(0, 2 * np.pi)
-        agent = centre + START_DIST * np.array([np.cos(angle), np.sin(angle)])
-        keypoints, actions = [], []
-        for _ in range(EPISODE_LEN):
-            keypoints.append(observation_keypoints(block, goal, agent))
-            agent = agent + RATE * (centre - agent)
-            actions.append(agent.copy())
-        store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})
+H = 8
 
 
 def _trainer(tmp_path, max_steps: int) -> lightning.Trainer:
@@ -213,7 +194,7 @@ def _trainer(tmp_path, max_steps: int) -> lightning.Trainer:
 
 def test_train_sample_checkpoint_reload_and_resume(tmp_path):
     path = tmp_path / "demos.zarr"
-    _make_store(path)
+    walk_to_block_store(path)
     lightning.seed_everything(0, verbose=False)
     model = KCFM(horizon=H, lr=3e-3)
     datamodule = ChunkDataModule(path, horizon=H, batch_size=64)

@@ -19,9 +19,9 @@ from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.protocol import Policy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-from kpflow.tasks.pusht.geometry import observation_keypoints, t_keypoints
+from tests.helpers import walk_to_block_store
 
-RATE, START_DIST, EPISODE_LEN, N_EPISODES, H = 0.1, 200.0, 20, 8, 8
+H = 8
 
 
 def _rigid(angle: float, shift) -> tuple[np.ndarray, np.ndarray]:
@@ -31,24 +31,9 @@ def _rigid(angle: float, shift) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def store_path(tmp_path_factory):
-    """Episodes where the agent walks straight to the block's centre, covering the share RATE of the remaining
-    distance each step (as in test_kcfm): the chunk of absolute targets is a deterministic function of the keypoints,
-    and moving the whole scene rigidly moves the chunk the same way."""
+    """Episodes where the agent walks straight to the block's centre, as in test_kcfm (tests.helpers.walk_to_block_store)."""
     path = tmp_path_factory.mktemp("kcfm_demos") / "demos.zarr"
-    rng = np.random.default_rng(0)
-    store = EpisodeStore(path, mode="a")
-    for _ in range(N_EPISODES):
-        block = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
-        goal = (*rng.uniform(150, 350, 2), rng.uniform(-np.pi, np.pi))
-        centre = t_keypoints(block).mean(0)
-        angle = rng.uniform(0, 2 * np.pi)
-        agent = centre + START_DIST * np.array([np.cos(angle), np.sin(angle)])
-        keypoints, actions = [], []
-        for _ in range(EPISODE_LEN):
-            keypoints.append(observation_keypoints(block, goal, agent))
-            agent = agent + RATE * (centre - agent)
-            actions.append(agent.copy())
-        store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})
+    walk_to_block_store(path)
     return path
 
 

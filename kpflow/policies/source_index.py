@@ -62,7 +62,7 @@ class SourceIndex:
             raise ValueError(f"reference must list at least 2 keypoint indices in 0..{k - 1}, got {reference}")
         self._template = None if self.reference is None else keypoints[0, self.reference].astype(np.float64)
         self._scale = np.sqrt(weights)[:, None]
-        self._features = (self._canonical(keypoints) * self._scale).reshape(len(keypoints), -1)
+        self._features = (self.canonical(keypoints) * self._scale).reshape(len(keypoints), -1)
         self._norms = np.einsum("nf,nf->n", self._features, self._features)
 
     @classmethod
@@ -81,7 +81,7 @@ class SourceIndex:
         keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key).arrays()
         return cls(keypoints, chunks, weights, reference)
 
-    def _canonical(self, keypoints: np.ndarray) -> np.ndarray:
+    def canonical(self, keypoints: np.ndarray) -> np.ndarray:
         """Keypoint sets ``[B, K, D]`` moved rigidly onto the template's reference pose (unchanged without one)."""
         if self.reference is None:
             return keypoints
@@ -100,7 +100,7 @@ class SourceIndex:
             raise ValueError(f"query keypoints must have shape {self.keypoints.shape[1:]}, got {q.shape}")
         if not np.isfinite(q).all():
             raise ValueError("query keypoints contain NaN or inf")
-        f = (self._canonical(q[None])[0] * self._scale).reshape(-1)
+        f = (self.canonical(q[None])[0] * self._scale).reshape(-1)
         d = self._norms - 2.0 * (self._features @ f) + f @ f
         i = int(np.argmin(d))
         return i, float(max(d[i], 0.0))
