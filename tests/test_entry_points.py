@@ -98,3 +98,25 @@ def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
     assert sum(line.startswith("| policy ") for line in table) == 1  # one header
     assert any(line.startswith("| nearest | in_distribution | 2 |") for line in table)
     assert any(line.startswith("| transport | in_distribution | 2 |") for line in table)
+
+
+def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
+    demos = tmp_path / "demos.zarr"
+    cmd = [
+        sys.executable, "-m", "kpflow.correct", "policy=nearest", "policy.relative=false", "rounds=2",
+        "episodes_per_round=2", "max_steps=80", "stuck_steps=10", "takeover_steps=20", "data.n_episodes=2",
+        "data.workers=1", f"data.path={demos}", f"hydra.run.dir={tmp_path / 'run'}",
+    ]  # fmt: skip
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    from kpflow.data.episode_store import EpisodeStore
+
+    run = tmp_path / "run"
+    original, grown = EpisodeStore(demos), EpisodeStore(run / "episodes.zarr")
+    assert len(original) == 2  # the demonstrations themselves are left alone
+    rounds = json.loads((run / "rounds.json").read_text())
+    assert rounds["start_steps"] == original.n_steps and [r["round"] for r in rounds["rounds"]] == [0, 1]
+    assert grown.n_steps == rounds["rounds"][-1]["dataset_steps"] > original.n_steps  # absolute replays get stuck
+    assert "| 1 | 2 |" in (run / "rounds.md").read_text() and (run / "rounds.png").stat().st_size > 0
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    assert cfg["policy"]["_target_"] == "kpflow.policies.build.nearest" and cfg["rounds"] == 2

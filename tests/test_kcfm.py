@@ -107,6 +107,29 @@ def test_padded_actions_do_not_change_the_loss(goal_frame):
     assert model.loss(batch, x0=x0, t=t).item() == reference
 
 
+@pytest.mark.parametrize("goal_frame", [False, True])
+def test_relative_actions_are_offsets_from_the_agent(goal_frame):
+    model = KCFM(horizon=8, goal_frame=goal_frame, relative=True)
+    batch = _chunk_batch()
+    kp, actions, mask = batch["obs"].double(), batch["actions"].double(), batch["mask"]
+    model.set_normalisation(kp, actions, mask)
+    frame = model.action_frame(kp)
+    torch.testing.assert_close(frame[1], kp[:, -1])  # the origin is the agent
+    x = model.normalise_actions(actions, frame)
+    assert x[mask].abs().max() <= 1.0 + 1e-6 and x[mask].min(0).values.allclose(torch.tensor(-1.0), atol=1e-5)
+    torch.testing.assert_close(model.denormalise_actions(x, frame).double(), actions, atol=1e-3, rtol=0)
+    # the statistics only count real steps: padded garbage does not change them
+    before = model.action_scale.clone()
+    model.set_normalisation(kp, torch.where(mask[..., None], actions, torch.tensor(1e4, dtype=torch.float64)), mask)
+    torch.testing.assert_close(model.action_scale, before)
+    moved = kp.clone()
+    moved[:, -1] += torch.tensor([30.0, -12.0], dtype=torch.float64)  # the agent elsewhere: the same offsets
+    shifted = model.denormalise_actions(x, model.action_frame(moved)).double()
+    torch.testing.assert_close(shifted - moved[:, None, -1], actions - kp[:, None, -1], atol=1e-3, rtol=0)
+    with pytest.raises(ValueError, match="2-D actions"):
+        KCFM(action_dim=3, relative=True)
+
+
 # ---------------------------------------------------------------------------------------------- goal frame
 
 

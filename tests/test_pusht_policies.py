@@ -88,6 +88,22 @@ def test_transport_with_an_identity_or_rigid_scene_change(demos):
         np.testing.assert_allclose(policy.act(moved), index.chunks[40] @ rot.T + shift, atol=1e-3)
 
 
+def test_relative_nearest_neighbour_replays_the_motion_from_the_observed_agent(demos):
+    index = SourceIndex.from_store(demos, horizon=20, reference=PUSHT_BLOCK)
+    source, chunk = index.keypoints[40].astype(np.float64), index.chunks[40].astype(np.float64)
+    plain = NearestNeighbourPolicy(SourceIndex(source[None], chunk[None]), execute=20, relative=True)
+    np.testing.assert_allclose(plain.act({"keypoints": source}), chunk, atol=1e-4)  # its own scene: the chunk itself
+    shifted = source.copy()
+    shifted[-1] += (7.0, -3.0)  # only the agent moved: the same motion, started from there
+    np.testing.assert_allclose(plain.act({"keypoints": shifted}), chunk + (7.0, -3.0), atol=1e-4)
+    c, s = np.cos(0.4), np.sin(0.4)
+    rot, shift = np.array([[c, -s], [s, c]]), np.array([30.0, -20.0])
+    moved = {"keypoints": source @ rot.T + shift}  # the whole scene moved: the motion turns with the block
+    framed = NearestNeighbourPolicy(SourceIndex(source[None], chunk[None], reference=PUSHT_BLOCK), 20, relative=True)
+    np.testing.assert_allclose(framed.act(moved), chunk @ rot.T + shift, atol=1e-3)
+    np.testing.assert_allclose(plain.act(moved), chunk - source[-1] + moved["keypoints"][-1], atol=1e-3)  # world frame
+
+
 @pytest.mark.parametrize("make", [NearestNeighbourPolicy, TransportationPolicy])
 def test_policies_replay_a_demonstration_from_its_own_start(demos, make):
     """From a demonstrated configuration every query finds the demonstration itself, so the episode succeeds."""
@@ -100,3 +116,28 @@ def test_policies_replay_a_demonstration_from_its_own_start(demos, make):
     assert chunk.shape == (20, 2)
     with pytest.raises(ValueError, match="execute"):
         make(index, execute=21)
+
+
+def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from kpflow.data.demos import ensure_pusht_demos
+
+    path = str(demos.path)
+    n = len(demos)
+    assert len(ensure_pusht_demos(path, n)) == n
+    with pytest.raises(ValueError, match=f"holds {n} episodes"):
+        ensure_pusht_demos(path, n + 1)
+    with pytest.raises(ValueError, match="seed"):
+        ensure_pusht_demos(path, n, seed=5)
+    assert len(ensure_pusht_demos(path, None)) == n  # any existing store, taken as it is
+    with pytest.raises(FileNotFoundError, match="n_episodes=null"):
+        ensure_pusht_demos(tmp_path / "missing.zarr", None)
+    # data=pusht_human reads whatever store is at data.path (here the expert demos) for any policy
+    with initialize_config_dir(str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=["data=pusht_human", f"data.path={path}", "policy=nearest", "logger=none"])
+    policy = instantiate(cfg.policy)
+    assert len(policy.index) == demos.n_steps

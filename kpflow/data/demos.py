@@ -1,4 +1,5 @@
-"""Expert demonstrations on disk, collected on first use: what ``data=pusht_expert`` points at."""
+"""Push-T demonstrations on disk: expert ones collected on first use (``data=pusht_expert``), or any existing store
+(``data=pusht_human``, a store grown by corrections)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from .episode_store import EpisodeStore
 
 def ensure_pusht_demos(
     path: str | os.PathLike,
-    n_episodes: int = 200,
+    n_episodes: int | None = 200,
     seed: int = 0,
     workers: int = 2,
     split: str = "in_distribution",
@@ -22,9 +23,18 @@ def ensure_pusht_demos(
     """The expert store at ``path``, collected first when it does not exist yet (read-only once there).
 
     An existing store is reused only if it was collected with the same split, goal and seed and holds
-    ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path).
+    ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path). With
+    ``n_episodes=None`` the store at ``path`` is taken as it is (one grown by corrections, or the imported human
+    dataset) and must exist.
     """
     path = Path(path)
+    if n_episodes is None:
+        if not (path / "meta" / "episode_ends").exists():
+            raise FileNotFoundError(
+                f"no episode store at {path}: with n_episodes=null the store must exist (collect it with "
+                "python -m kpflow.collect, or import the human dataset with python -m kpflow.data.pusht_import SRC DEST)"
+            )
+        return EpisodeStore(path)
     if not (path / "meta" / "episode_ends").exists():
         collect_pusht(path, n_episodes, split=split, goal=goal, seed=seed, max_steps=max_steps, workers=workers)
     store = EpisodeStore(path)
@@ -37,15 +47,16 @@ def ensure_pusht_demos(
     return store
 
 
-def pusht_expert_datamodule(
+def pusht_datamodule(
     path: str,
-    n_episodes: int = 200,
+    n_episodes: int | None = 200,
     seed: int = 0,
     workers: int = 2,
     horizon: int = 20,
     batch_size: int = 256,
     val_fraction: float = 0.1,
 ) -> ChunkDataModule:
-    """Chunks (keypoints -> next ``horizon`` actions) of expert demonstrations, collected if missing."""
+    """Chunks (keypoints -> next ``horizon`` actions) of the Push-T store at ``path`` (see :func:`ensure_pusht_demos`:
+    expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there)."""
     ensure_pusht_demos(path, n_episodes, seed, workers)
     return ChunkDataModule(path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Callable
 
 from ..data.demos import ensure_pusht_demos
-from ..maps import ILWRMap
+from ..maps import AffineMap, ILWRMap
 from ..maps.base import TransportMap
 from .nearest import NearestNeighbourPolicy
 from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
@@ -22,8 +22,15 @@ def pusht_index(demos: dict, horizon: int = 20, weights: dict | None = None, fra
     return SourceIndex.from_store(store, horizon, pusht_weights(**(weights or {})), FRAMES[frame])
 
 
-def nearest(demos: dict, horizon: int = 20, execute: int = 8, weights: dict | None = None, frame: str = "block"):
-    return NearestNeighbourPolicy(pusht_index(demos, horizon, weights, frame), execute)
+def nearest(
+    demos: dict,
+    horizon: int = 20,
+    execute: int = 8,
+    weights: dict | None = None,
+    frame: str = "block",
+    relative: bool = False,
+):
+    return NearestNeighbourPolicy(pusht_index(demos, horizon, weights, frame), execute, relative)
 
 
 def transportation(
@@ -46,7 +53,7 @@ def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):
 def transported_kcfm(
     checkpoint: str,
     demos: dict,
-    make_map: Callable[[], TransportMap] = ILWRMap,
+    make_map: Callable[[], TransportMap] = AffineMap,
     steps: int = 10,
     execute: int = 8,
     weights: dict | None = None,

@@ -15,8 +15,11 @@ Sampling solves ``dx/dt = v_theta(x, t, c)`` (Lipman et al. eq. 1) with ``steps`
 
 The velocity network is :class:`~kpflow.policies.unet1d.ConditionalUnet1D`; the condition ``c`` is the 25
 keypoints, flattened and standardised, optionally first expressed in the frame of the goal T (``goal_frame=True``:
-then the policy is equivariant to rotating and translating the whole scene by construction). Actions are scaled to
-[-1, 1] per dimension by their training min/max (as in Diffusion Policy). All statistics live in buffers and an
+then the policy is equivariant to rotating and translating the whole scene by construction). Actions are expressed
+in the *action frame* of their observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a
+chunk is then the agent's offsets from where it stands, so its first targets start next to the agent whatever the
+scene), and scaled to [-1, 1] per dimension by their training min/max over every step of the chunks (as in
+Diffusion Policy). All statistics live in buffers and an
 exponential moving average of the weights is kept beside them, so a checkpoint is all a deployment needs:
 ``load_checkpoint(KCFM, path).sample(keypoints)``.
 """
@@ -138,6 +141,8 @@ class KCFM(lightning.LightningModule):
         goal_frame: express keypoints and actions in the frame of the goal T (keypoints 12..23), fitted by
             :func:`goal_pose`; predictions are mapped back to the world. Needs the Push-T layout (25 keypoints,
             2-D actions).
+        relative: predict actions as offsets from the agent, the last keypoint (in the goal's axes with
+            ``goal_frame``). Needs 2-D actions.
         down_dims, kernel_size, n_groups, time_dim: the :class:`~kpflow.policies.unet1d.ConditionalUnet1D`.
         lr, weight_decay: AdamW.
         lr_schedule: ``"cosine"`` (to 0 over the trainer's ``estimated_stepping_batches``) or ``"constant"``.
@@ -152,6 +157,7 @@ class KCFM(lightning.LightningModule):
         n_keypoints: int = N_KEYPOINTS,
         action_dim: int = 2,
         goal_frame: bool = False,
+        relative: bool = False,
         down_dims: Sequence[int] = (32, 64),
         kernel_size: int = 5,
         n_groups: int = 8,
@@ -167,6 +173,8 @@ class KCFM(lightning.LightningModule):
             raise ValueError(f"need horizon, n_keypoints, action_dim >= 1; got {horizon}, {n_keypoints}, {action_dim}")
         if goal_frame and (n_keypoints != N_KEYPOINTS or action_dim != 2):
             raise ValueError(f"goal_frame needs the Push-T layout ({N_KEYPOINTS} keypoints, 2-D actions); got {n_keypoints}, {action_dim}")
+        if relative and action_dim != 2:
+            raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}; got {lr_schedule!r}")
         if not 0.0 <= ema_decay < 1.0:
@@ -184,29 +192,39 @@ class KCFM(lightning.LightningModule):
 
     # ------------------------------------------------------------------------------------ normalisation
 
-    def set_normalisation(self, keypoints, actions) -> None:
-        """Fit the statistics to world-frame ``keypoints [N, K, 2]`` and their actions ``[N, A]`` (same rows).
+    def set_normalisation(self, keypoints, chunks, mask=None) -> None:
+        """Fit the statistics to world-frame ``keypoints [N, K, 2]`` and their action ``chunks [N, H, A]`` (or single
+        actions ``[N, A]``), counting only the steps where ``mask [N, H]`` is true (all when None).
 
         Keypoints (in the goal frame if ``goal_frame``) are standardised per coordinate; a coordinate with a spread
-        under 1e-3 px is only centred. Actions (in the frame of their row's goal) are mapped to [-1, 1] per
-        dimension by their min/max.
+        under 1e-3 px is only centred. Actions (in their row's action frame, see :meth:`action_frame`) are mapped
+        to [-1, 1] per dimension by their min/max.
         """
-        kp, act = _float64(keypoints), _float64(actions)
+        kp, act = _float64(keypoints), _float64(chunks)
         k, a = self.hparams.n_keypoints, self.hparams.action_dim
-        if kp.ndim != 3 or kp.shape[1:] != (k, 2) or act.shape != (len(kp), a) or len(kp) == 0:
+        if act.ndim == 2:
+            act = act[:, None]
+        if kp.ndim != 3 or kp.shape[1:] != (k, 2) or act.ndim != 3 or act.shape[::2] != (len(kp), a) or len(kp) == 0:
             raise ValueError(
-                f"need keypoints [N, {k}, 2] and actions [N, {a}] with N >= 1; got {tuple(kp.shape)} and {tuple(act.shape)}"
+                f"need keypoints [N, {k}, 2] and actions [N, {a}] or [N, H, {a}] with N >= 1; "
+                f"got {tuple(kp.shape)} and {tuple(_float64(chunks).shape)}"
             )
+        mask = torch.ones(act.shape[:2], dtype=torch.bool) if mask is None else torch.as_tensor(np.asarray(mask)).bool()
+        if mask.shape != act.shape[:2] or not mask.any():
+            raise ValueError(f"mask must be [N, H] = {tuple(act.shape[:2])} with a true entry; got {tuple(mask.shape)}")
         for name, x in (("keypoints", kp), ("actions", act)):
             bad = ~torch.isfinite(x).reshape(len(x), -1).all(-1)
             if bad.any():
                 raise ValueError(f"training {name} contain NaN or inf (rows {torch.nonzero(bad).flatten()[:10].tolist()})")
+        frame = self.action_frame(kp)
+        if frame is not None:
+            act = to_frame(act, *frame)
         if self.hparams.goal_frame:
-            frame = goal_pose(kp[:, GOAL_SLICE])
-            kp, act = to_frame(kp, *frame), to_frame(act[:, None], *frame)[:, 0]
+            kp = to_frame(kp, *goal_pose(kp[:, GOAL_SLICE]))
         flat = kp.reshape(len(kp), -1)
         std = flat.std(0, unbiased=False)
-        lo, hi = act.min(0).values, act.max(0).values
+        real = act[mask]
+        lo, hi = real.min(0).values, real.max(0).values
         half = (hi - lo) / 2
         with torch.no_grad():
             self.kp_mean.copy_(flat.mean(0))
@@ -227,21 +245,34 @@ class KCFM(lightning.LightningModule):
             )
         if getattr(ds, "horizon", self.hparams.horizon) != self.hparams.horizon:
             raise ValueError(f"the data's chunk horizon {ds.horizon} differs from the model's horizon={self.hparams.horizon}")
-        obs, chunks, _ = ds.arrays()  # one row per step of the training episodes only
-        self.set_normalisation(obs, chunks[:, 0])
+        obs, chunks, mask = ds.arrays()  # one row per step of the training episodes only
+        self.set_normalisation(obs, chunks, mask)
 
-    def _condition(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
-        """Condition ``c [B, 2K]`` (float32) of world keypoints ``[B, K, 2]``, and the goal frame (None without)."""
+    def _condition(self, keypoints: torch.Tensor) -> torch.Tensor:
+        """Condition ``c [B, 2K]`` (float32) of world keypoints ``[B, K, 2]``: in the goal frame if ``goal_frame``."""
         kp = keypoints.to(torch.float64)
-        frame = None
         if self.hparams.goal_frame:
-            frame = goal_pose(kp[:, GOAL_SLICE])
-            kp = to_frame(kp, *frame)
-        c = (kp.flatten(1) - self.kp_mean.double()) / self.kp_std.double()
-        return c.float(), frame
+            kp = to_frame(kp, *goal_pose(kp[:, GOAL_SLICE]))
+        return ((kp.flatten(1) - self.kp_mean.double()) / self.kp_std.double()).float()
+
+    def action_frame(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The rigid frame ``(R [B, 2, 2], p [B, 2])`` that actions are predicted in, for keypoints ``[B, K, 2]``.
+
+        ``R`` is the goal's rotation with ``goal_frame`` (else the identity), ``p`` the agent (the last keypoint) with
+        ``relative`` (else the goal's origin, or 0). None when both are off: actions stay in world coordinates.
+        """
+        hp = self.hparams
+        if not (hp.goal_frame or hp.relative):
+            return None
+        kp = keypoints.to(torch.float64)
+        if hp.goal_frame:
+            rot, origin = goal_pose(kp[:, GOAL_SLICE])
+        else:
+            rot, origin = torch.eye(2, dtype=kp.dtype, device=kp.device).expand(len(kp), 2, 2), torch.zeros_like(kp[:, 0])
+        return rot, kp[:, -1] if hp.relative else origin
 
     def normalise_actions(self, actions: torch.Tensor, frame=None) -> torch.Tensor:
-        """World actions ``[B, H, A]`` to the network's space: into the goal ``frame`` (if given), then to [-1, 1]."""
+        """World actions ``[B, H, A]`` to the network's space: into the action ``frame`` (if given), then to [-1, 1]."""
         a = actions.to(torch.float64)
         if frame is not None:
             a = to_frame(a, *frame)
@@ -286,8 +317,8 @@ class KCFM(lightning.LightningModule):
                 f"batch must hold obs [B, {k}, 2], actions [B, {h}, {a}] and mask [B, {h}]; "
                 f"got {tuple(kp.shape)}, {tuple(actions.shape)}, {tuple(mask.shape)}"
             )
-        c, frame = self._condition(kp)
-        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), frame)
+        c = self._condition(kp)
+        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(kp))
         x0 = self._randn(x1.shape, generator) if x0 is None else x0
         t = self._rand(b, generator) if t is None else t
         net = self.net if net is None else net
@@ -369,7 +400,7 @@ class KCFM(lightning.LightningModule):
         if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
             raise ValueError(f"steps must be an integer in 1..{MAX_STEPS}; got {steps!r}")
         kp = self._check_keypoints(keypoints)
-        c, frame = self._condition(kp)
+        c, frame = self._condition(kp), self.action_frame(kp)
         b = len(kp)
         x = self._randn((b, self.hparams.horizon, self.hparams.action_dim), generator)
         dt = 1.0 / int(steps)

@@ -3,7 +3,7 @@
 At every decision, with ``x = T`` the observed keypoints:
 
 1. ``S``: the nearest configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data);
-2. ``phi``: a diffeomorphic keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default);
+2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (rigid by default, see below);
 3. ``phi^-1(T)``: the observation pulled back next to ``S``, a configuration the K-CFM has seen. All 25 observed
    keypoints are pulled back rather than ``S`` itself being used: where the map reproduces ``phi(S) = T`` exactly the
    two agree, and whatever the map leaves unfitted (its residual; the agent's own offset, for a map that fits the
@@ -22,6 +22,14 @@ This addresses the failure modes of its two ingredients:
 
 Here the K-CFM is only ever queried next to its training data, and the chunk that the map carries is not one
 stored demonstration but the K-CFM's prediction at that configuration, which draws on all the training data.
+
+Which map: a K-CFM chunk is a sample, some 17 px (median, over its first 8 targets) from the chunk demonstrated
+at the same configuration, and a map that is exact at 25 keypoints may stretch space between them. Measured on
+120 held-out expert states (``phi`` fitted from the nearest of 180 training episodes), the transported chunk's
+median / p90 error against the demonstrated one was 47 / 186 px with ILWR, 27 / 348 px with the GP map and
+19 / 41 px with a rigid map, against 18 / 39 px for the K-CFM queried at the observation itself. Closed loop on 20
+configurations per split, ILWR gave 0 / 0 / 0% and the rigid map 85 / 95 / 20%. Hence ``AffineMap("rigid")`` is the
+default; any map with an inverse can be passed.
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..maps import ILWRMap
+from ..maps import AffineMap
 from ..maps.base import TransportMap
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
@@ -46,7 +54,7 @@ class TransportedKCFMPolicy:
         model: a trained K-CFM.
         index: its training configurations (e.g. ``SourceIndex.from_store(store, episodes=train_episodes,
             reference=PUSHT_BLOCK)``); only their keypoints are used.
-        make_map: builds an unfitted map with an inverse (``ILWRMap``: exact inverse, rigid alignment first).
+        make_map: builds an unfitted map with an inverse (default ``AffineMap``, rigid: module docstring).
         steps: Euler steps of the flow.
         execute: how many actions of the chunk :meth:`act` returns.
 
@@ -58,7 +66,7 @@ class TransportedKCFMPolicy:
         self,
         model: KCFM,
         index: SourceIndex,
-        make_map: Callable[[], TransportMap] = ILWRMap,
+        make_map: Callable[[], TransportMap] = AffineMap,
         steps: int = 10,
         execute: int = 8,
     ) -> None:
@@ -76,7 +84,7 @@ class TransportedKCFMPolicy:
         cls,
         path: str | Path,
         index: SourceIndex,
-        make_map: Callable[[], TransportMap] = ILWRMap,
+        make_map: Callable[[], TransportMap] = AffineMap,
         steps: int = 10,
         execute: int = 8,
     ) -> "TransportedKCFMPolicy":

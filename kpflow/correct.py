@@ -1,0 +1,99 @@
+"""Interactive corrections: ``python -m kpflow.correct policy=transport data.n_episodes=35 rounds=3``.
+
+Copies the demonstrations (``data``) into the run's output folder, then grows that copy round by round with the
+scripted expert's takeovers where the policy (``policy``, rebuilt from the grown store each round) gets stuck or
+leaves the training region (:func:`~kpflow.data.corrections.collect_corrections`). Writes ``episodes.zarr``,
+``rounds.json``, ``rounds.md`` (dataset size and success per round) and ``rounds.png`` beside the resolved config.
+Train on the result with ``python train.py model=kcfm data.path=<run>/episodes.zarr data.n_episodes=null``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from kpflow.data.corrections import collect_corrections
+from kpflow.data.demos import ensure_pusht_demos
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.eval import plots
+from kpflow.utils.io import save_figure, write_json, write_text
+from kpflow.utils.run import start_run
+
+
+def copy_store(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
+    """Copy an episode store folder to ``dest`` through a temporary sibling folder and a rename (``dest`` must not exist)."""
+    dest = Path(dest)
+    if dest.exists():
+        raise FileExistsError(f"{dest} exists already; corrections grow a fresh copy")
+    tmp = dest.with_name(f".{dest.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    os.replace(tmp, dest)
+    return dest
+
+
+def rounds_table(reports: list[dict], start_steps: int) -> str:
+    """Markdown table: one row per round with the policy's success (no takeover) and the dataset size after it."""
+    lines = [
+        "| round | episodes | policy alone succeeded | with takeovers | takeovers | expert steps added | dataset chunks |",
+        "|---|---|---|---|---|---|---|",
+        f"| start | | | | | | {start_steps} |",
+    ]
+    for r in reports:
+        n = r["episodes"]
+        lines.append(
+            f"| {r['round']} | {n} | {r['policy_successes']}/{n} ({100 * r['policy_successes'] / n:.1f}%) "
+            f"| {r['successes']}/{n} | {r['takeovers']} | {r['chunks_added']} | {r['dataset_steps']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _plot(reports: list[dict], start_steps: int, path: Path) -> None:
+    """Dataset size (chunks) and the policy's success without takeovers, per round."""
+    fig, axes = plots.new_figure(1, 2, size=3.6)
+    ax, bx = axes[0]
+    rounds = [r["round"] for r in reports]
+    for a in (ax, bx):
+        a.set_aspect("auto")
+        a.set_xlabel("correction round")
+    ax.plot([rounds[0] - 1, *rounds], [start_steps, *(r["dataset_steps"] for r in reports)], "o-")
+    ax.set_ylabel("dataset size (chunks)")
+    bx.plot(rounds, [100 * r["policy_successes"] / r["episodes"] for r in reports], "o-", label="policy alone")
+    bx.plot(rounds, [100 * r["successes"] / r["episodes"] for r in reports], "s--", label="with takeovers")
+    bx.set_ylim(0, 105)
+    bx.set_ylabel("success (%)")
+    bx.legend(loc="lower right")
+    save_figure(fig, path, dpi=110)
+    plots.close(fig)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="correct")
+def main(cfg: DictConfig) -> list[dict]:
+    out = start_run(cfg)
+    demos = {k: cfg.data[k] for k in ("path", "n_episodes", "seed", "workers")}
+    start_steps = ensure_pusht_demos(**demos).n_steps
+    store_path = copy_store(demos["path"], out / "episodes.zarr")
+
+    def make_policy(store: EpisodeStore):
+        return instantiate(cfg.policy, demos={**demos, "path": str(store_path), "n_episodes": len(store)})
+
+    reports = collect_corrections(
+        store_path, make_policy, cfg.rounds, cfg.episodes_per_round, cfg.split, cfg.goal, cfg.seed,
+        cfg.max_steps, cfg.stuck_steps, cfg.takeover_steps,
+    )
+    write_json(out / "rounds.json", {"start_steps": start_steps, "rounds": reports})
+    table = rounds_table(reports, start_steps)
+    write_text(out / "rounds.md", table)
+    _plot(reports, start_steps, out / "rounds.png")
+    print(table)
+    print(f"corrected store: {store_path}  table: {out / 'rounds.md'}  plot: {out / 'rounds.png'}")
+    return reports
+
+
+if __name__ == "__main__":
+    main()
