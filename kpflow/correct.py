@@ -2,7 +2,11 @@
 
 Copies the demonstrations (``data``) into the run's output folder, then grows that copy round by round with the
 scripted expert's takeovers where the policy (``policy``, rebuilt from the grown store each round) gets stuck or
-leaves the training region (:func:`~kpflow.data.corrections.collect_corrections`). Writes ``episodes.zarr``,
+leaves the training region (:func:`~kpflow.data.corrections.collect_corrections`). Before the first round and
+after each, the policy is evaluated on ``eval_configs`` fixed configurations of ``split`` (those of
+``evaluate.py``, disjoint from the corrected ones). A learned policy
+(``policy=kcfm policy.checkpoint=...``) is not retrained between rounds: alternate ``correct`` (with
+``data.path=<last run>/episodes.zarr data.n_episodes=null``) and ``train.py`` for DAgger rounds. Writes ``episodes.zarr``,
 ``rounds.json``, ``rounds.md`` (dataset size and success per round) and ``rounds.png`` beside the resolved config.
 Train on the result with ``python train.py model=kcfm data.path=<run>/episodes.zarr data.n_episodes=null``.
 """
@@ -21,6 +25,7 @@ from kpflow.data.corrections import collect_corrections
 from kpflow.data.demos import ensure_pusht_demos
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval import plots
+from kpflow.eval.pusht_experiment import run_pusht_experiment
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.run import start_run
 
@@ -37,24 +42,34 @@ def copy_store(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
     return dest
 
 
-def rounds_table(reports: list[dict], start_steps: int) -> str:
-    """Markdown table: one row per round with the policy's success (no takeover) and the dataset size after it."""
+def rounds_table(reports: list[dict], start_steps: int, evals: list[dict | None]) -> str:
+    """Markdown table: the dataset size after each round, how the policy did on that round's corrected episodes (no
+    takeover needed) and, when measured, its success on fixed evaluation configurations (``evals[0]``: before any
+    correction, ``evals[r + 1]``: after round ``r``)."""
+
+    def measured(e: dict | None) -> str:
+        if e is None:
+            return "-"
+        lo, hi = e["ci_085"]
+        return f"{100 * e['success_085']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}] of {e['episodes']}"
+
     lines = [
-        "| round | episodes | policy alone succeeded | with takeovers | takeovers | expert steps added | dataset chunks |",
-        "|---|---|---|---|---|---|---|",
-        f"| start | | | | | | {start_steps} |",
+        "| round | episodes | policy alone succeeded | with takeovers | takeovers | expert steps added | dataset chunks "
+        "| evaluation success @0.85 [95% CI] |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| start | | | | | | {start_steps} | {measured(evals[0])} |",
     ]
-    for r in reports:
+    for r, e in zip(reports, evals[1:]):
         n = r["episodes"]
         lines.append(
             f"| {r['round']} | {n} | {r['policy_successes']}/{n} ({100 * r['policy_successes'] / n:.1f}%) "
-            f"| {r['successes']}/{n} | {r['takeovers']} | {r['chunks_added']} | {r['dataset_steps']} |"
+            f"| {r['successes']}/{n} | {r['takeovers']} | {r['chunks_added']} | {r['dataset_steps']} | {measured(e)} |"
         )
     return "\n".join(lines) + "\n"
 
 
-def _plot(reports: list[dict], start_steps: int, path: Path) -> None:
-    """Dataset size (chunks) and the policy's success without takeovers, per round."""
+def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path: Path) -> None:
+    """Dataset size (chunks) and the policy's success per round."""
     fig, axes = plots.new_figure(1, 2, size=3.6)
     ax, bx = axes[0]
     rounds = [r["round"] for r in reports]
@@ -65,6 +80,8 @@ def _plot(reports: list[dict], start_steps: int, path: Path) -> None:
     ax.set_ylabel("dataset size (chunks)")
     bx.plot(rounds, [100 * r["policy_successes"] / r["episodes"] for r in reports], "o-", label="policy alone")
     bx.plot(rounds, [100 * r["successes"] / r["episodes"] for r in reports], "s--", label="with takeovers")
+    if evals[0] is not None:
+        bx.plot([rounds[0] - 1, *rounds], [100 * e["success_085"] for e in evals], "^-", label="evaluation @0.85")
     bx.set_ylim(0, 105)
     bx.set_ylabel("success (%)")
     bx.legend(loc="lower right")
@@ -79,17 +96,34 @@ def main(cfg: DictConfig) -> list[dict]:
     start_steps = ensure_pusht_demos(**demos).n_steps
     store_path = copy_store(demos["path"], out / "episodes.zarr")
 
+    rebuilt = "demos" in cfg.policy  # an index policy learns from the grown store; a checkpoint stays the same
+
     def make_policy(store: EpisodeStore):
+        if not rebuilt:
+            return instantiate(cfg.policy)
         return instantiate(cfg.policy, demos={**demos, "path": str(store_path), "n_episodes": len(store)})
 
-    reports = collect_corrections(
-        store_path, make_policy, cfg.rounds, cfg.episodes_per_round, cfg.split, cfg.goal, cfg.seed,
-        cfg.max_steps, cfg.stuck_steps, cfg.takeover_steps,
-    )
-    write_json(out / "rounds.json", {"start_steps": start_steps, "rounds": reports})
-    table = rounds_table(reports, start_steps)
+    def evaluate(label: str) -> dict | None:
+        if not (cfg.eval_configs and rebuilt):
+            return None
+        policy = make_policy(EpisodeStore(store_path))
+        results = run_pusht_experiment(
+            policy, out / f"eval_{label}", cfg.seed, label, cfg.split, cfg.eval_configs, max_steps=cfg.eval_max_steps,
+            workers=cfg.workers, videos=0,
+        )
+        return results["summary"][cfg.split]
+
+    reports, evals = [], [evaluate("start")]
+    for _ in range(cfg.rounds):
+        reports += collect_corrections(
+            store_path, make_policy, 1, cfg.episodes_per_round, cfg.split, cfg.goal, cfg.seed,
+            cfg.max_steps, cfg.stuck_steps, cfg.takeover_steps,
+        )
+        evals.append(evaluate(f"round{reports[-1]['round']}"))
+    write_json(out / "rounds.json", {"start_steps": start_steps, "rounds": reports, "evaluations": evals})
+    table = rounds_table(reports, start_steps, evals)
     write_text(out / "rounds.md", table)
-    _plot(reports, start_steps, out / "rounds.png")
+    _plot(reports, start_steps, evals, out / "rounds.png")
     print(table)
     print(f"corrected store: {store_path}  table: {out / 'rounds.md'}  plot: {out / 'rounds.png'}")
     return reports

@@ -105,7 +105,8 @@ def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     cmd = [
         sys.executable, "-m", "kpflow.correct", "policy=nearest", "policy.relative=false", "rounds=2",
         "episodes_per_round=2", "max_steps=80", "stuck_steps=10", "takeover_steps=20", "data.n_episodes=2",
-        "data.workers=1", f"data.path={demos}", f"hydra.run.dir={tmp_path / 'run'}",
+        "data.workers=1", f"data.path={demos}", "eval_configs=2", "eval_max_steps=30", "workers=1",
+        f"hydra.run.dir={tmp_path / 'run'}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -117,6 +118,8 @@ def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     rounds = json.loads((run / "rounds.json").read_text())
     assert rounds["start_steps"] == original.n_steps and [r["round"] for r in rounds["rounds"]] == [0, 1]
     assert grown.n_steps == rounds["rounds"][-1]["dataset_steps"] > original.n_steps  # absolute replays get stuck
+    assert [e["episodes"] for e in rounds["evaluations"]] == [2, 2, 2]  # before, after round 0, after round 1
+    assert (run / "eval_round1" / "results.json").exists()
     assert "| 1 | 2 |" in (run / "rounds.md").read_text() and (run / "rounds.png").stat().st_size > 0
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     assert cfg["policy"]["_target_"] == "kpflow.policies.build.nearest" and cfg["rounds"] == 2

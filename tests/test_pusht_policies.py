@@ -141,3 +141,29 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
         cfg = compose("evaluate", overrides=["data=pusht_human", f"data.path={path}", "policy=nearest", "logger=none"])
     policy = instantiate(cfg.policy)
     assert len(policy.index) == demos.n_steps
+
+
+def test_standard_protocol_is_diffusion_policys(tmp_path):
+    """split=standard: 50 episodes of 300 steps with the goal fixed at (256, 256, pi/4), whatever n_configs and
+    max_steps say; score = mean of min(max coverage / 0.95, 1)."""
+    from kpflow.eval.pusht_experiment import run_pusht_experiment
+    from kpflow.tasks.pusht.geometry import coverage
+
+    class HoldStill:
+        def reset(self, seed=None):
+            pass
+
+        def act(self, obs):
+            return np.asarray(obs["agent_pos"], float)[None]
+
+    results = run_pusht_experiment(
+        HoldStill(), tmp_path, split="standard", n_configs=3, max_steps=1200, workers=2, videos=0, progress=False
+    )
+    episodes = results["episodes"]
+    assert len(episodes) == 50 and all(e["steps"] == 300 for e in episodes)
+    for e in episodes[:5]:
+        config = split_config("in_distribution", e["config_index"], goal="fixed")
+        assert config.goal_pose == pytest.approx((256.0, 256.0, np.pi / 4))
+        assert e["max_coverage"] == pytest.approx(coverage(config.block_pose, config.goal_pose), abs=1e-6)
+    score = np.mean([min(e["max_coverage"] / 0.95, 1.0) for e in episodes])
+    assert results["summary"]["standard"]["score"] == pytest.approx(score)

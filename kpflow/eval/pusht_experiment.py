@@ -4,7 +4,8 @@ Each split's configurations are the seeded :func:`~kpflow.tasks.pusht.splits.spl
 ``first_config`` on, so evaluation configurations differ from the demonstrations' 0, 1, 2, ...). An episode runs
 until coverage 0.95 or ``max_steps``; success at 0.85 means coverage reached 0.85 within the limit (the episode
 would have ended there at that threshold). The ``standard`` protocol is Diffusion Policy's: the fixed goal, 50
-seeds, score = mean over episodes of min(max coverage / 0.95, 1).
+seeds, 300 steps per episode (its ``max_steps``, whatever ``max_steps`` says), score = mean over episodes of
+min(max coverage / 0.95, 1).
 """
 
 from __future__ import annotations
@@ -26,6 +27,11 @@ from kpflow.utils.io import save_figure, write_json, write_text
 
 THRESHOLDS = (0.85, 0.95)
 PROTOCOLS = (*SPLITS, "standard")
+STANDARD_EPISODES, STANDARD_MAX_STEPS = 50, 300  # Diffusion Policy's Push-T evaluation (n_test, max_steps)
+
+
+def _max_steps(protocol: str, max_steps: int) -> int:
+    return STANDARD_MAX_STEPS if protocol == "standard" else max_steps
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -152,7 +158,7 @@ def _videos(policy, episodes: list[dict], seed: int, max_steps: int, per_kind: i
             for e in chosen[:per_kind]:
                 config = _configuration(protocol, e["config_index"], seed)
                 env = PushTEnv(split="in_distribution" if protocol == "standard" else protocol, render_size=256)
-                result = run_episode(env, policy, config, max_steps, seed=e["config_index"], render=True)
+                result = run_episode(env, policy, config, _max_steps(protocol, max_steps), seed=e["config_index"], render=True)
                 paths.append(str(write_video(result.frames, out / f"{protocol}_{kind}_{e['config_index']:04d}.mp4")))
     return paths
 
@@ -185,9 +191,9 @@ def run_pusht_experiment(
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [
-        (p, first_config + i, seed, max_steps)
+        (p, first_config + i, seed, _max_steps(p, max_steps))
         for p in protocols
-        for i in range(50 if p == "standard" else n_configs)
+        for i in range(STANDARD_EPISODES if p == "standard" else n_configs)
     ]
     _POLICY = policy
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
