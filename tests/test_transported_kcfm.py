@@ -215,3 +215,28 @@ def test_transport_keeps_a_trained_kcfm_accurate_on_a_moved_scene(trained, index
     assert med["transported"] == pytest.approx(med["in_dist"], abs=1e-2), med  # the same chunks, moved rigidly
     # measured: 28.1 px mean chunk error in distribution and transported, 421 px for the plain K-CFM on the moved scenes
     assert med["transported"] < 40.0 and med["transported"] < 0.25 * med["plain"], med
+
+
+def test_the_kcfm_sees_the_source_scene_with_the_robot_pulled_back(untrained, index):
+    """pull_back="agent": block and goal are the source's exactly, the agent is phi^-1(observed agent);
+    pull_back="all": every observed keypoint goes through phi^-1."""
+    source = index.keypoints[30].astype(np.float64)
+    observed = source.copy()
+    observed[:24] += np.random.default_rng(0).normal(0.0, 3.0, (24, 2))  # the scene a little off the source
+    observed[-1] += (6.0, -4.0)
+    agent = TransportedKCFMPolicy(untrained, index, execute=H)
+    agent.reset(0)
+    agent.act(_obs(observed))
+    i = agent.last_source
+    np.testing.assert_array_equal(agent.last_pullback[:-1], index.keypoints[i, :-1].astype(np.float64))
+    with torch.no_grad():
+        back = agent.last_map.inverse(torch.from_numpy(observed[-1:]))[0].numpy()
+    np.testing.assert_allclose(agent.last_pullback[-1], back, atol=1e-9)
+    every = TransportedKCFMPolicy(untrained, index, execute=H, pull_back="all")
+    every.reset(0)
+    every.act(_obs(observed))
+    with torch.no_grad():
+        back = every.last_map.inverse(torch.from_numpy(observed)).numpy()
+    np.testing.assert_allclose(every.last_pullback, back, atol=1e-9)
+    with pytest.raises(ValueError, match="pull_back"):
+        TransportedKCFMPolicy(untrained, index, pull_back="scene")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Callable
 
 from ..data.demos import ensure_pusht_demos
-from ..maps import AffineMap, ILWRMap
+from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .nearest import NearestNeighbourPolicy
 from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
@@ -53,15 +53,16 @@ def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):
 def transported_kcfm(
     checkpoint: str,
     demos: dict,
-    make_map: Callable[[], TransportMap] = AffineMap,
+    make_map: Callable[[], TransportMap] = ILWRMap,
     steps: int = 10,
     execute: int = 8,
     weights: dict | None = None,
     frame: str = "block",
+    pull_back: str = "agent",
 ):
     from .kcfm_policy import KCFMPolicy
     from .transported_kcfm import TransportedKCFMPolicy
 
     model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model
     index = pusht_index(demos, model.hparams.horizon, weights, frame)
-    return TransportedKCFMPolicy(model, index, make_map, steps, execute)
+    return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back)

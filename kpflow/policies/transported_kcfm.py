@@ -1,13 +1,12 @@
 """Online transport of a K-CFM policy (the paper's Eq. 5): ``a = phi(f(phi^-1(x)))``.
 
-At every decision, with ``x = T`` the observed keypoints:
+At every decision, with ``T`` the observed keypoints and ``x`` the robot's state (the agent, T's last keypoint):
 
 1. ``S``: the nearest configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data);
-2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (rigid by default, see below);
-3. ``phi^-1(T)``: the observation pulled back next to ``S``, a configuration the K-CFM has seen. All 25 observed
-   keypoints are pulled back rather than ``S`` itself being used: where the map reproduces ``phi(S) = T`` exactly the
-   two agree, and whatever the map leaves unfitted (its residual; the agent's own offset, for a map that fits the
-   agent keypoint loosely) stays in the K-CFM's input, so the agent keeps its place relative to the scene;
+2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default);
+3. ``phi^-1(x)``: the robot pulled back into the source scene. The K-CFM's input is ``S`` with its agent replaced
+   by ``phi^-1(x)`` (``pull_back="agent"``): a scene it was trained on, exactly, with the robot where the map puts
+   it. ``pull_back="all"`` pulls all 25 observed keypoints back instead;
 4. ``f``: the K-CFM samples a chunk of absolute targets there;
 5. ``phi``: the chunk is pushed forward into the observed scene.
 
@@ -20,16 +19,14 @@ This addresses the failure modes of its two ingredients:
 * the K-CFM generalises from all its training data but is only reliable near it: on unseen inputs (a block
   elsewhere in the workspace, a rotated scene) its chunks become noisy and wrong.
 
-Here the K-CFM is only ever queried next to its training data, and the chunk that the map carries is not one
-stored demonstration but the K-CFM's prediction at that configuration, which draws on all the training data.
-
-Which map: a K-CFM chunk is a sample, some 17 px (median, over its first 8 targets) from the chunk demonstrated
-at the same configuration, and a map that is exact at 25 keypoints may stretch space between them. Measured on
-120 held-out expert states (``phi`` fitted from the nearest of 180 training episodes), the transported chunk's
-median / p90 error against the demonstrated one was 47 / 186 px with ILWR, 27 / 348 px with the GP map and
-19 / 41 px with a rigid map, against 18 / 39 px for the K-CFM queried at the observation itself. Closed loop on 20
-configurations per split, ILWR gave 0 / 0 / 0% and the rigid map 85 / 95 / 20%. Hence ``AffineMap("rigid")`` is the
-default; any map with an inverse can be passed.
+Why only the agent is pulled back: a map exact at 25 keypoints is not exact everywhere, and pulling the whole
+observation back leaves each keypoint a few px off its source (p90 of the worst keypoint: 5.9 px with ILWR, 89 px
+with the GP map), so the T shapes the K-CFM sees are no longer rigid T shapes. The K-CFM reacts strongly to that:
+measured on 120 held-out expert states (``phi`` fitted from the nearest state of 180 training episodes), the
+transported chunk's median / p90 error (first 8 targets, against the demonstrated chunk) was 47 / 186 px with all
+keypoints pulled back through ILWR and 20 / 55 px with the agent alone, against 10 / 51 px for policy
+transportation and 18 / 39 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
+agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
 """
 
 from __future__ import annotations
@@ -40,11 +37,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..maps import AffineMap
+from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
 from .source_index import SourceIndex
+
+
+PULL_BACK = ("agent", "all")
 
 
 class TransportedKCFMPolicy:
@@ -54,27 +54,32 @@ class TransportedKCFMPolicy:
         model: a trained K-CFM.
         index: its training configurations (e.g. ``SourceIndex.from_store(store, episodes=train_episodes,
             reference=PUSHT_BLOCK)``); only their keypoints are used.
-        make_map: builds an unfitted map with an inverse (default ``AffineMap``, rigid: module docstring).
+        make_map: builds an unfitted map with an inverse (``ILWRMap``: exact inverse, rigid alignment first).
         steps: Euler steps of the flow.
         execute: how many actions of the chunk :meth:`act` returns.
+        pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
+            pulled back); see the module docstring.
 
     After :meth:`act`, ``last_source`` (index of ``S``), ``last_map`` (``phi``) and ``last_pullback``
-    (``phi^-1(T)``, the K-CFM's input) describe the decision.
+    (the K-CFM's input) describe the decision.
     """
 
     def __init__(
         self,
         model: KCFM,
         index: SourceIndex,
-        make_map: Callable[[], TransportMap] = AffineMap,
+        make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int = 10,
         execute: int = 8,
+        pull_back: str = "agent",
     ) -> None:
         self.policy = KCFMPolicy(model, steps, execute)  # validates steps and execute
         k = int(model.hparams.n_keypoints)
         if index.keypoints.shape[1:] != (k, 2):
             raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, 2)")
-        self.index, self.make_map = index, make_map
+        if pull_back not in PULL_BACK:
+            raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
+        self.index, self.make_map, self.pull_back = index, make_map, pull_back
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
         self.last_pullback: np.ndarray | None = None
@@ -84,13 +89,14 @@ class TransportedKCFMPolicy:
         cls,
         path: str | Path,
         index: SourceIndex,
-        make_map: Callable[[], TransportMap] = AffineMap,
+        make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int = 10,
         execute: int = 8,
+        pull_back: str = "agent",
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         base = KCFMPolicy.from_checkpoint(path, steps, execute)
-        return cls(base.model, index, make_map, steps, execute)
+        return cls(base.model, index, make_map, steps, execute, pull_back)
 
     @property
     def model(self) -> KCFM:
@@ -110,14 +116,18 @@ class TransportedKCFMPolicy:
         self.last_source, self.last_map, self.last_pullback = None, None, None
 
     def act(self, obs: dict) -> np.ndarray:
-        """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(T)))`` for ``T = obs["keypoints"]``."""
+        """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``."""
         target = np.asarray(obs["keypoints"], dtype=np.float64)
         i, _ = self.index.query(target)  # validates the shape and finiteness of the observation
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
         phi = self.make_map().fit(source_t, target_t)
         with torch.no_grad():
-            pullback = phi.inverse(target_t).to(torch.float64)
+            if self.pull_back == "all":
+                pullback = phi.inverse(target_t).to(torch.float64)
+            else:
+                pullback = source_t.clone()
+                pullback[-1] = phi.inverse(target_t[-1:])[0]
         chunk = self.policy.act({"keypoints": pullback})
         with torch.no_grad():
             out = phi(torch.from_numpy(chunk)).to(torch.float64).numpy()
