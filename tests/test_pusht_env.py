@@ -35,7 +35,8 @@ from kpflow.tasks.pusht.geometry import (
     wrap_angle,
 )
 from kpflow.tasks.pusht.physics import block_mass_properties
-from kpflow.tasks.pusht.render import AGENT, BLOCK, GOAL, KEYPOINT, REGION, WHITE, write_video
+from kpflow.tasks.pusht.render import AGENT, BLOCK, GOAL, KEYPOINT, REGION, WHITE
+from kpflow.utils.video import write_video
 
 STANDARD = get_workspace("standard")
 

@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.expert import PushTExpert
-from ..tasks.pusht.render import write_video
+from ..utils.video import write_video
 from ..tasks.pusht.rollout import EpisodeResult, run_episode
 from ..tasks.pusht.splits import split_config
 from .episode_store import EpisodeStore

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from kpflow.eval import plots
 from kpflow.tasks.pusht.env import PushTEnv
-from kpflow.tasks.pusht.render import write_video
+from kpflow.utils.video import write_video
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.splits import SPLITS, split_config
 from kpflow.utils.io import save_figure, write_json, write_text

@@ -5,7 +5,7 @@
 * :mod:`.physics` -- the pymunk space, built as the standard env builds it (quirks documented there).
 * :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it.
 * :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment.
-* :mod:`.render` -- RGB frames and videos.
+* :mod:`.render` -- RGB frames (videos: :mod:`kpflow.utils.video`).
 * :mod:`.routing` -- agent paths around the block, retimed into speed-bounded targets.
 * :mod:`.expert` -- :class:`~.expert.PushTExpert`, the scripted demonstrator.
 * :mod:`.rollout` -- one episode with any policy, recorded in the Diffusion Policy convention.
