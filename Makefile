@@ -7,9 +7,18 @@ export OMP_NUM_THREADS ?= 1
 export MPLBACKEND ?= Agg
 export WANDB_MODE ?= offline
 
-.PHONY: venv demo test bench clean
+.PHONY: venv osmesa demo test bench clean
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 venv: $(STAMP)
+
+# Offscreen MuJoCo rendering on the CPU (the packing camera): Debian's libosmesa6, installed when missing. Without
+# it (no apt, no rights) MuJoCo falls back to Mesa's EGL, which renders the same images.
+osmesa:
+	@ldconfig -p | grep -q libOSMesa || { command -v apt-get >/dev/null && \
+	  { $(SUDO) apt-get install -y -q --no-install-recommends libosmesa6 >/dev/null 2>&1 || \
+	    { $(SUDO) apt-get update -q >/dev/null 2>&1 && $(SUDO) apt-get install -y -q --no-install-recommends libosmesa6 >/dev/null 2>&1; }; } || \
+	  echo "libosmesa6 could not be installed: MuJoCo will render through EGL"; }
 
 # torch first, pinned exactly (the local CPU wheel); then the package and its pinned dependencies.
 $(STAMP): pyproject.toml
@@ -19,10 +28,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $(STAMP)
 
-demo: $(STAMP)
+demo: $(STAMP) osmesa
 	$(BIN)/python evaluate.py experiment=pusht_demo
 
-test: $(STAMP)
+test: $(STAMP) osmesa
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

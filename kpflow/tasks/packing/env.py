@@ -16,15 +16,19 @@ change without rebuilding the model (robosuite's ``hard_reset=False``: 0.1 s ins
   its intrinsics and camera-to-world pose (OpenCV axes) come with it. The container's pose is read from the
   simulator (it stands in for the paper's AprilTag).
 
-Rendering runs headless: ``MUJOCO_GL`` defaults to ``egl`` (Mesa's software EGL works without a GPU); set
-``MUJOCO_GL=osmesa`` (with Debian's libosmesa6) to use OSMesa instead.
+Rendering runs headless on the CPU: unless ``MUJOCO_GL`` is set, it is ``osmesa`` when Debian's libosmesa6 is
+installed (``make`` installs it) and Mesa's software ``egl`` otherwise.
 """
 
 from __future__ import annotations
 
+import ctypes.util
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+if "MUJOCO_GL" not in os.environ:
+    os.environ["MUJOCO_GL"] = "osmesa" if ctypes.util.find_library("OSMesa") else "egl"
+if os.environ["MUJOCO_GL"] == "osmesa":
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
