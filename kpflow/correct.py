@@ -6,9 +6,9 @@ leaves the training region (:func:`~kpflow.data.corrections.collect_corrections`
 after each, the policy is evaluated on ``eval_configs`` fixed configurations of ``split`` (those of
 ``evaluate.py``, disjoint from the corrected ones). A learned policy
 (``policy=kcfm policy.checkpoint=...``) is not retrained between rounds: alternate ``correct`` (with
-``data.path=<last run>/episodes.zarr data.n_episodes=null``) and ``train.py`` for DAgger rounds. Writes ``episodes.zarr``,
+``data=pusht_store data.path=<last run>/episodes.zarr``) and ``train.py`` for DAgger rounds. Writes ``episodes.zarr``,
 ``rounds.json``, ``rounds.md`` (dataset size and success per round) and ``rounds.png`` beside the resolved config.
-Train on the result with ``python train.py model=kcfm data.path=<run>/episodes.zarr data.n_episodes=null``.
+Train on the result with ``python train.py model=kcfm data=pusht_store data.path=<run>/episodes.zarr``.
 """
 
 from __future__ import annotations

@@ -136,11 +136,12 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
     assert len(ensure_pusht_demos(path, None)) == n  # any existing store, taken as it is
     with pytest.raises(FileNotFoundError, match="n_episodes=null"):
         ensure_pusht_demos(tmp_path / "missing.zarr", None)
-    # data=pusht_human reads whatever store is at data.path (here the expert demos) for any policy
-    with initialize_config_dir(str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
-        cfg = compose("evaluate", overrides=["data=pusht_human", f"data.path={path}", "policy=nearest", "logger=none"])
-    policy = instantiate(cfg.policy)
-    assert len(policy.index) == demos.n_steps
+    # data=pusht_human and data=pusht_store read whatever store is at data.path (here the expert demos)
+    for data in ("pusht_human", "pusht_store"):
+        with initialize_config_dir(str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+            cfg = compose("evaluate", overrides=[f"data={data}", f"data.path={path}", "policy=nearest", "logger=none"])
+        policy = instantiate(cfg.policy)
+        assert len(policy.index) == demos.n_steps
 
 
 def test_standard_protocol_is_diffusion_policys(tmp_path):
