@@ -18,7 +18,7 @@ from .scene import CONTAINER_SIZE
 N_KEYPOINTS = 32
 GROUPS = {"start": slice(0, 8), "object": slice(8, 16), "lifted": slice(16, 24), "container": slice(24, 32)}
 START_BOX = (0.10, 0.10, 0.10)  # m: the end-effector box around the start pose
-LIFT = 0.15  # m: how high the object is lifted before it is carried
+LIFT = 0.25  # m: how high the object is lifted before it is carried
 
 
 def yaw_of(rot: np.ndarray) -> float:

@@ -2,8 +2,10 @@
 
 A trajectory is a dict of per-control-step arrays: ``positions [T, 3]`` and ``rotations [T, 3, 3]`` of the cup's tip
 (absolute targets for the operational-space controller) and ``suction [T]`` (whether the vacuum is on). The scripted
-planner (:func:`plan_packing`) approaches the object's top, seals, lifts it by ``LIFT``, carries it over the
-container, lowers it in, releases and retreats, in straight segments of at most ``MAX_STEP`` / ``MAX_TURN`` per step.
+planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
+straight onto it, seals, lifts it by ``LIFT``, carries it over the container, lowers it in, releases and retreats,
+in straight segments of at most ``MAX_STEP`` / ``MAX_TURN`` per step. Coming down vertically matters for tall,
+narrow objects: a diagonal approach, with the controller lagging, swept the cereal box over.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ from .scene import CONTAINER_WALL
 
 MAX_STEP, MAX_TURN = 0.015, 0.1  # m and rad per control step (20 Hz): larger jumps can flip the UR5e's elbow
 DOWN = Rotation.from_euler("x", np.pi).as_matrix()  # the cup pointing down
-APPROACH = 0.08  # m above the object's top before descending
 PRESS = 0.004  # m: the contact target lies this far below the top, so the cup touches it
 PLACE_CLEARANCE = 0.015  # m between the object's bottom and the container's floor at release
 RETREAT = 0.12
@@ -50,7 +51,7 @@ def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: 
     lifted = top + LIFT
     place = table_height + CONTAINER_WALL + PLACE_CLEARANCE + height
     segments = [  # (phase, target position, rotation, settle steps, suction during the segment)
-        ("approach", (cx, cy, top + APPROACH), grasp_rot, 10, False),
+        ("approach", (cx, cy, lifted), grasp_rot, 15, False),  # above the object first: nothing is swept sideways
         ("descend", (cx, cy, top - PRESS), grasp_rot, 10, False),
         ("seal", (cx, cy, top - PRESS), grasp_rot, 5, True),
         ("lift", (cx, cy, lifted), grasp_rot, 5, True),
