@@ -17,8 +17,8 @@ TASKS = ("pusht",)
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
 def main(cfg: DictConfig) -> dict:
-    if cfg.task not in TASKS:
-        raise ValueError(f"collect: unknown task {cfg.task!r}; choose one of {TASKS}")
+    if cfg.task.name not in TASKS:
+        raise ValueError(f"collect: unknown task {cfg.task.name!r}; choose one of {TASKS}")
     out = start_run(cfg)
     summary = collect_pusht(
         out / "episodes.zarr",
