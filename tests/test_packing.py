@@ -12,11 +12,11 @@ import torch
 import yaml
 
 from kpflow.maps import AffineMap, GPMap, ILWRMap
-from kpflow.tasks.packing.env import START_POS, TABLE_TOP, PackingEnv
+from kpflow.tasks.packing.env import START_POS, PackingEnv
 from kpflow.tasks.packing.keypoints import GROUPS, LIFT, N_KEYPOINTS, packing_keypoints
 from kpflow.tasks.packing.objects import OBJECT_TYPES
 from kpflow.tasks.packing.perception import backproject, box_corners, canonical_box
-from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, Scene, sample_scene
+from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
 from kpflow.tasks.packing.trajectory import execute
 from kpflow.tasks.packing.trial import box_corner_error, record_source, run_trial, transport_demo
 

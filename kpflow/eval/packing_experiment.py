@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from kpflow.eval import plots
-from kpflow.eval.pusht_experiment import wilson_interval
+from kpflow.eval.stats import wilson_interval
 from kpflow.utils.video import write_video
 from kpflow.utils.io import save_figure, write_json, write_text
 

@@ -10,7 +10,6 @@ min(max coverage / 0.95, 1).
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
 import time
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from kpflow.eval import plots
+from kpflow.eval.stats import wilson_interval
 from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.utils.video import write_video
 from kpflow.tasks.pusht.rollout import run_episode
@@ -32,16 +32,6 @@ STANDARD_EPISODES, STANDARD_MAX_STEPS = 50, 300  # Diffusion Policy's Push-T eva
 
 def _max_steps(protocol: str, max_steps: int) -> int:
     return STANDARD_MAX_STEPS if protocol == "standard" else max_steps
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (Wilson 1927): the 95% interval for ``z = 1.96``."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 class TimedPolicy:

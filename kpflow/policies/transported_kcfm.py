@@ -19,13 +19,13 @@ This addresses the failure modes of its two ingredients:
 * the K-CFM generalises from all its training data but is only reliable near it: on unseen inputs (a block
   elsewhere in the workspace, a rotated scene) its chunks become noisy and wrong.
 
-Why only the agent is pulled back: a map exact at 25 keypoints is not exact everywhere, and pulling the whole
-observation back leaves each keypoint a few px off its source (p90 of the worst keypoint: 5.9 px with ILWR, 89 px
-with the GP map), so the T shapes the K-CFM sees are no longer rigid T shapes. The K-CFM reacts strongly to that:
-measured on 120 held-out expert states (``phi`` fitted from the nearest state of 180 training episodes), the
-transported chunk's median / p90 error (first 8 targets, against the demonstrated chunk) was 47 / 186 px with all
-keypoints pulled back through ILWR and 20 / 55 px with the agent alone, against 10 / 51 px for policy
-transportation and 18 / 39 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
+Why only the agent is pulled back: a map fitted to 25 keypoints is not exact everywhere, so pulling the whole
+observation back leaves the keypoints a few px off their source and the T shapes the K-CFM sees are no longer rigid
+T shapes. The K-CFM reacts strongly to that. ``benchmarks/transported_chunks.py`` measures it on 120 states of 20
+episodes held out of a 180-episode source index (the 200-demonstration K-CFM of Table 1): the median / p90 error of
+the first 8 targets against the demonstrated chunk is 46.3 / 191.6 px with all keypoints pulled back through ILWR
+(26.4 / 346.2 through the GP map) and 21.4 / 62.7 px with the robot alone, against 10.4 / 51.2 px for policy
+transportation and 18.3 / 40.2 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
 agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
 """
 

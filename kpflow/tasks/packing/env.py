@@ -46,11 +46,9 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from . import gripper  # noqa: E402,F401  (registers SuctionGripper)
 from .objects import OBJECT_TYPES, body_box  # noqa: E402
-from .scene import CONTAINER_SIZE, CONTAINER_WALL, Scene  # noqa: E402
+from .scene import CONTAINER_SIZE, CONTAINER_WALL, TABLE_SIZE, TABLE_TOP, Scene  # noqa: E402
 from .trajectory import DOWN, interpolate  # noqa: E402
 
-TABLE_SIZE = (0.8, 1.2, 0.05)
-TABLE_TOP = 0.8
 CAMERA = "topdown"
 CAMERA_POS = (-0.08, 0.0, 1.95)
 CAMERA_FOVY = 50.0
@@ -180,8 +178,7 @@ class PackingEnv(ManipulationEnv):
         d.qpos[self.robots[0]._ref_joint_pos_indexes] = self._start_qpos
         d.qvel[:] = 0.0
         self.sim.forward()
-        self._target = (START_POS.copy(), DOWN.copy())
-        self.hold(10)  # let the object settle and the controller take its start pose
+        self.hold(10, START_POS, DOWN)  # let the object settle and the controller take its start pose
 
     # ------------------------------------------------------------------------------------------ state
     def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -236,8 +233,11 @@ class PackingEnv(ManipulationEnv):
         """One control step towards the absolute pose ``(pos [3], rot [3, 3])`` of the cup's tip."""
         self.step(np.concatenate([np.asarray(pos, float), rotvec(np.asarray(rot, float))]))
 
-    def hold(self, steps: int) -> None:
-        """Keep commanding the current target (or the current pose) for ``steps`` control steps."""
+    def hold(self, steps: int, pos: np.ndarray | None = None, rot: np.ndarray | None = None) -> None:
+        """Command ``(pos, rot)`` (which becomes the target; default: the current target, else the current pose)
+        for ``steps`` control steps."""
+        if pos is not None:
+            self._target = (np.asarray(pos, float), np.asarray(rot, float))
         pos, rot = self._target if self._target is not None else self.ee_pose()
         for _ in range(steps):
             self.command(pos, rot)
@@ -248,8 +248,7 @@ class PackingEnv(ManipulationEnv):
         start_pos, start_rot = self.ee_pose()
         for p, r in zip(*interpolate(start_pos, start_rot, pos, rot)):
             self.command(p, r)
-        self._target = (np.asarray(pos, float), np.asarray(rot, float))
-        self.hold(settle)
+        self.hold(settle, pos, rot)
         return float(np.linalg.norm(self.ee_pose()[0] - pos))
 
     def arm_touches_container(self) -> bool:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .perception import box_corners, object_box
-from .scene import CONTAINER_SIZE
+from .scene import CONTAINER_SIZE, TABLE_TOP
 
 N_KEYPOINTS = 32
 GROUPS = {"start": slice(0, 8), "object": slice(8, 16), "lifted": slice(16, 24), "container": slice(24, 32)}
@@ -33,8 +33,6 @@ def packing_keypoints(env, reference_yaw: float = 0.0) -> dict:
     ``reference_yaw`` picks which of the object box's half-turn-symmetric yaws is used (the source's, so that
     corners correspond across scenes).
     """
-    from .env import TABLE_TOP
-
     ee_pos, ee_rot = env.ee_pose()
     start = box_corners(ee_pos[:2], START_BOX[:2], yaw_of(ee_rot), ee_pos[2] - START_BOX[2] / 2, ee_pos[2] + START_BOX[2] / 2)
     box = object_box(env.render_topdown(), TABLE_TOP, reference_yaw)

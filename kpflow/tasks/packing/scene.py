@@ -15,6 +15,9 @@ import numpy as np
 
 from .objects import OBJECT_TYPES
 
+#: the table (full size, m) and the height of its top in the world
+TABLE_SIZE = (0.8, 1.2, 0.05)
+TABLE_TOP = 0.8
 #: object positions: a 40 cm (x) by 60 cm (y) area of the table in the arm's reliable reach
 OBJECT_AREA = ((-0.32, 0.08), (-0.40, 0.20))
 #: container centres and yaws in the full-variation condition

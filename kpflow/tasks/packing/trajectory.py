@@ -108,8 +108,7 @@ def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None,
         min_sv = min(min_sv, env.arm_singular_value())
         if frames is not None and t % frame_every == 0:
             frames.append(env.render_view())
-    env._target = (positions[-1], rotations[-1])
-    env.hold(settle)
+    env.hold(settle, positions[-1], rotations[-1])
     error = np.array(error)
     success = env.object_in_container()
     failure = None

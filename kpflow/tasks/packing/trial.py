@@ -17,9 +17,9 @@ import torch
 from kpflow.maps.base import TransportMap
 from kpflow.transport import transport_trajectory
 
-from .env import TABLE_TOP, PackingEnv
+from .env import PackingEnv
 from .keypoints import packing_keypoints, yaw_of
-from .scene import SOURCE_SCENE, Scene
+from .scene import SOURCE_SCENE, TABLE_TOP, Scene
 from .trajectory import execute, plan_packing
 
 
