@@ -9,6 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from kpflow.tasks.arm.keypoints import box_corners
+
 VOXEL = 0.005  # m: height bins for the top surface
 
 
@@ -55,17 +57,6 @@ def canonical_box(centre: np.ndarray, size: np.ndarray, angle: float, reference_
     if offset <= -np.pi / 2 + 1e-12:
         offset += np.pi
     return np.asarray(centre, float), size, float(reference_yaw + offset)
-
-
-def box_corners(centre_xy: np.ndarray, size_xy: np.ndarray, yaw: float, bottom: float, top: float) -> np.ndarray:
-    """The 8 corners ``[8, 3]`` of an upright box: bottom face then top face, each counter-clockwise from
-    ``(-x, -y)`` in the box's frame."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, -s], [s, c]])
-    half = np.asarray(size_xy, float) / 2
-    square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) * half
-    xy = square @ rot.T + np.asarray(centre_xy, float)
-    return np.concatenate([np.c_[xy, np.full(4, bottom)], np.c_[xy, np.full(4, top)]])
 
 
 def object_box(image: dict, table_height: float, reference_yaw: float = 0.0) -> dict:

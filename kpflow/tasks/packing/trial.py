@@ -3,7 +3,7 @@
 :func:`record_source` runs the scripted planner in the source scene and keeps its 32 keypoints and the commanded
 end-effector trajectory (positions, orientations, suction). :func:`run_trial` extracts the 32 keypoints of a new
 scene, fits a map ``phi`` from the source's keypoints to them, transports the trajectory (positions through
-``phi``, orientations through the polar factor of its Jacobian, :func:`kpflow.transport.transport_trajectory`) and
+``phi``, orientations through the polar factor of its Jacobian, :mod:`kpflow.tasks.arm.transfer`) and
 executes it with the operational-space controller on absolute poses.
 """
 
@@ -12,13 +12,13 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-import torch
 
 from kpflow.maps.base import TransportMap
-from kpflow.transport import transport_trajectory
+from kpflow.tasks.arm import transfer
+from kpflow.tasks.arm.motion import yaw_of
 
 from .env import PackingEnv
-from .keypoints import packing_keypoints, yaw_of
+from .keypoints import packing_keypoints
 from .scene import SOURCE_SCENE, TABLE_TOP, Scene
 from .trajectory import execute, plan_packing
 
@@ -36,28 +36,9 @@ def record_source(env: PackingEnv, scene: Scene = SOURCE_SCENE) -> dict:
 
 
 def transport_demo(source: dict, target_keypoints: np.ndarray, make_map: Callable[[], TransportMap]) -> dict:
-    """The source trajectory carried by a map fitted from the source's keypoints to ``target_keypoints [32, 3]``:
-    a trajectory (same suction and phases) plus ``std [T, 3]`` (the map's uncertainty) and the fitted ``map``."""
-    kp_s = torch.as_tensor(source["keypoints"], dtype=torch.float64)
-    kp_t = torch.as_tensor(np.asarray(target_keypoints, float))
-    if kp_t.shape != kp_s.shape or not torch.isfinite(kp_t).all():
-        raise ValueError(f"target keypoints must be finite with shape {tuple(kp_s.shape)}; got {tuple(kp_t.shape)}")
-    phi = make_map().fit(kp_s, kp_t)
-    traj = source["trajectory"]
-    with torch.no_grad():
-        moved = transport_trajectory(
-            phi,
-            torch.as_tensor(traj["positions"], dtype=torch.float64),
-            orientations=torch.as_tensor(traj["rotations"], dtype=torch.float64),
-        )
-    return {
-        "positions": moved.positions.numpy(),
-        "rotations": moved.orientations.numpy(),
-        "suction": traj["suction"].copy(),
-        "phases": traj["phases"].copy(),
-        "std": moved.std.numpy(),
-        "map": phi,
-    }
+    """The source's trajectory carried by a map fitted from its 32 keypoints to ``target_keypoints [32, 3]``
+    (:func:`kpflow.tasks.arm.transfer.transport_demo`)."""
+    return transfer.transport_demo(source["trajectory"], source["keypoints"], target_keypoints, make_map)
 
 
 def run_trial(

@@ -2,7 +2,7 @@
 
 robosuite has no suction gripper, so this is a 0-DoF gripper model (a cup on a shaft, no actuators: the arm's action
 stays the 6-D pose) whose grasp is a MuJoCo weld equality between the cup's ``eef`` body and the object, switched
-on at run time by :meth:`kpflow.tasks.packing.env.PackingEnv.suction_on` when the cup touches the object (as a
+on at run time by :meth:`kpflow.tasks.arm.env.SuctionArmEnv.suction_on` when the cup touches the object (as a
 vacuum seals on contact) and off by ``suction_off``. A weld holds the object at the pose it had when it was
 switched on, as a sealed cup does. Registered with robosuite as ``gripper_types="SuctionGripper"``.
 """
