@@ -56,3 +56,16 @@ def new_figure(rows: int, cols: int, size: float = 3.2):
 
 def close(fig) -> None:
     plt.close(fig)
+
+
+def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_b, good, title: str = "") -> None:
+    """Two images side by side with a line per matched pair ``pixels_a [n, 2]`` -> ``pixels_b [n, 2]`` (x, y),
+    green where ``good [n]`` and red elsewhere."""
+    width = image_a.shape[1]
+    ax.imshow(np.concatenate([image_a, image_b], axis=1))
+    for (xa, ya), (xb, yb), ok in zip(np.asarray(pixels_a), np.asarray(pixels_b), np.asarray(good)):
+        colour = "lime" if ok else "red"
+        ax.plot([xa, xb + width], [ya, yb], "-", color=colour, lw=1)
+        ax.scatter([xa, xb + width], [ya, yb], color=colour, s=10)
+    ax.set_axis_off()
+    ax.set_title(title, fontsize=7)

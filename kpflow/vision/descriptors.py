@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from kpflow.vision.vit import VisionTransformer
+from kpflow.vision.vit import VisionTransformer, vit_small
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -175,3 +175,22 @@ class ViTBackbone:
         centres = grid_centres(desc.shape[1:3], self.model.patch_size, self.model.stride)
         centres = centres * torch.tensor([width / size[1], height / size[0]], dtype=torch.float64)
         return DenseFeatures(desc[0].cpu(), sal[0].cpu(), centres)
+
+
+def dino_vits8(
+    weights: str | None = None,
+    seed: int = 0,
+    layer: int = 9,
+    stride: int | None = None,
+    hierarchy: int = 2,
+    resize: int | tuple[int, int] | None = 224,
+) -> ViTBackbone:
+    """A :class:`ViTBackbone` on DINO's ViT-S/8: ``weights`` is a checkpoint file the user provides
+    (:meth:`VisionTransformer.load_weights`; nothing is downloaded); without one the network is randomly initialised
+    from ``seed`` (an untrained control: its descriptors carry no semantics)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = vit_small(patch_size=8)
+    if weights is not None:
+        model.load_weights(weights)
+    return ViTBackbone(model, layer=layer, stride=stride, hierarchy=hierarchy, resize=resize)

@@ -5,6 +5,10 @@ Cells are ``step x step`` tiles from the image's top-left corner (h = H // step 
 the bottom / right is left out). Each cell's descriptor is OpenCV's SIFT descriptor of an upright keypoint
 (angle 0) of diameter ``size`` at the cell centre, computed on the grey image; OpenCV's descriptor covers 4 x 4
 spatial bins of 1.5 ``size`` pixels each, i.e. about 6 ``size`` pixels across.
+
+SIFT sees only grey levels, so two objects of one shape but different colours look alike to it. With
+``colour_weight`` w > 0 each descriptor is the unit SIFT vector followed by w times the cell's mean RGB in [0, 1]
+(so w = 1 lets colour weigh about as much as the gradients).
 """
 
 from __future__ import annotations
@@ -29,13 +33,16 @@ def border_saliency(image: np.ndarray, step: int) -> torch.Tensor:
 
 
 class SiftBackbone:
-    """Dense SIFT descriptors ``[H // step, W // step, 128]`` with :func:`border_saliency`; cell centres
-    (j step + step / 2, i step + step / 2)."""
+    """Dense SIFT descriptors ``[H // step, W // step, 128]`` (``+ 3`` with colour) with :func:`border_saliency`;
+    cell centres (j step + step / 2, i step + step / 2)."""
 
-    def __init__(self, step: int = 8, size: float = 8.0):
-        if step < 1 or size <= 0:
-            raise ValueError(f"step must be >= 1 and size > 0, got step={step}, size={size}")
-        self.step, self.size = step, float(size)
+    def __init__(self, step: int = 8, size: float = 8.0, colour_weight: float = 0.0):
+        if step < 1 or size <= 0 or colour_weight < 0:
+            raise ValueError(
+                f"step must be >= 1, size > 0 and colour_weight >= 0, got step={step}, size={size}, "
+                f"colour_weight={colour_weight}"
+            )
+        self.step, self.size, self.colour_weight = step, float(size), float(colour_weight)
         self._sift = cv2.SIFT_create()
 
     def __call__(self, image: np.ndarray) -> DenseFeatures:
@@ -52,4 +59,9 @@ class SiftBackbone:
             described = 0 if desc is None else len(kept)
             raise RuntimeError(f"OpenCV SIFT described {described} of {len(keypoints)} grid points")
         descriptors = torch.from_numpy(desc).reshape(*grid, desc.shape[1])
+        if self.colour_weight > 0:
+            h, w = grid[0] * self.step, grid[1] * self.step
+            rgb = image[:h, :w].reshape(grid[0], self.step, grid[1], self.step, 3).mean(axis=(1, 3)) / 255.0
+            unit = descriptors.double() / descriptors.double().norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            descriptors = torch.cat([unit, self.colour_weight * torch.from_numpy(rgb)], dim=-1)
         return DenseFeatures(descriptors, border_saliency(image, self.step), centres)

@@ -1,0 +1,89 @@
+"""Keypoints of the stacking task, found in the camera images (the paper's Section 3.2).
+
+The image taken before the demonstration and the image of the new scene are matched by a dense backbone
+(:func:`kpflow.vision.find_correspondences`: at most 7 salient, well-spread best-buddy pairs); both pixels of each
+pair are lifted to 3-D with their own depth (:func:`kpflow.vision.lift_pixels`). To these the end effector's start
+box is added (the arm starts where it started, :func:`kpflow.tasks.arm.keypoints.end_effector_box`).
+
+The simulator says where each source point should have gone (:func:`true_targets`): a point on a block moves with
+the block; a point on anything else stays. :func:`oracle_pairs` gives exact pairs on the blocks' top faces, the
+upper bound for what correspondences can give.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from kpflow.vision import DenseBackbone, find_correspondences, lift_pixels, project_points, sample_depth
+
+from .objects import BLOCKS
+
+BACKGROUND = "table"
+
+
+def lift(image: dict, pixels: np.ndarray) -> np.ndarray:
+    """World points ``[n, 3]`` of ``pixels [n, 2]`` (x, y) in a top-down image (:meth:`render_topdown`'s dict)."""
+    pixels = torch.as_tensor(np.asarray(pixels, float).reshape(-1, 2))
+    depth = sample_depth(image["depth"], pixels)
+    return lift_pixels(pixels, depth, image["intrinsics"], image["camera_to_world"]).numpy()
+
+
+def labels_at(image: dict, pixels: np.ndarray) -> list[str]:
+    """The block (or ``BACKGROUND``) each pixel ``[n, 2]`` of a top-down image shows."""
+    out = []
+    for x, y in np.asarray(pixels, float).reshape(-1, 2):
+        row, col = int(y), int(x)
+        out.append(next((name for name, mask in image["masks"].items() if mask[row, col]), BACKGROUND))
+    return out
+
+
+def true_targets(points: np.ndarray, labels: list[str], poses_before: dict, poses_now: dict) -> np.ndarray:
+    """Where source ``points [n, 3]`` are now: a point on a block moves rigidly with it (``poses_*``: name ->
+    ``(position [3], rotation [3, 3])``), a background point stays."""
+    out = np.array(points, float, copy=True)
+    for i, name in enumerate(labels):
+        if name != BACKGROUND:
+            (p0, r0), (p1, r1) = poses_before[name], poses_now[name]
+            out[i] = r1 @ (r0.T @ (points[i] - p0)) + p1
+    return out
+
+
+def image_pairs(
+    before: dict, now: dict, backbone: DenseBackbone, max_pairs: int = 7, saliency_threshold: float = 0.2, seed: int = 0
+) -> dict:
+    """Correspondences between two top-down images, lifted: ``pixels_before``/``pixels_now [n, 2]``,
+    ``source``/``target [n, 3]`` (world points) and ``labels`` (what each source pixel shows)."""
+    corr = find_correspondences(before["rgb"], now["rgb"], backbone, max_pairs, saliency_threshold, seed)
+    pa, pb = corr.pixels_a.numpy(), corr.pixels_b.numpy()
+    return {
+        "pixels_before": pa,
+        "pixels_now": pb,
+        "source": lift(before, pa),
+        "target": lift(now, pb),
+        "labels": labels_at(before, pa),
+    }
+
+
+def oracle_pairs(before: dict, now: dict, boxes_before: dict, poses_before: dict, poses_now: dict) -> dict:
+    """Exact pairs: the centre and two adjacent inset corners (not in a line with it) of each block's top face (``boxes_before``: name ->
+    ``(centre, rotation, half extents)``), carried by the true motion; pixels by projection, for the match images."""
+    offsets = np.array([[0.0, 0.0, 1.0], [0.6, 0.6, 1.0], [0.6, -0.6, 1.0]])
+    source, labels = [], []
+    for name in BLOCKS:
+        centre, rot, half = boxes_before[name]
+        source.append(centre + (offsets * half) @ rot.T)
+        labels += [name] * len(offsets)
+    source = np.concatenate(source)
+    target = true_targets(source, labels, poses_before, poses_now)
+
+    def pixels(image, points):
+        return project_points(points, image["intrinsics"], image["camera_to_world"])[0].numpy()
+
+    return {
+        "pixels_before": pixels(before, source),
+        "pixels_now": pixels(now, target),
+        "source": source,
+        "target": target,
+        "labels": labels,
+    }

@@ -1,0 +1,127 @@
+"""One demonstration, transported zero-shot through keypoints found in images.
+
+:func:`record_source` takes the top-down RGB-D image before the demonstration and runs the scripted stacking in the
+source scene. :func:`run_trial` takes the image of a new scene, matches it to the source's image (or uses the
+simulator's exact pairs, ``backbone="oracle"``), lifts the pairs to 3-D, adds the end effector's start box, fits a
+map ``phi`` from the source's points to the new ones, transports the demonstration through it
+(:func:`kpflow.tasks.arm.transfer.transport_demo`) and executes it.
+
+Besides success, each trial measures the 3-D error of the correspondences against where the simulator says the
+source points went (:func:`~.keypoints.true_targets`), and how far the transported grasp is from the demonstrated
+grasp carried by the cheese's true motion: its orientation error (deg, the cup turned by a half turn counts as the
+same grasp of a box) and its position error.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kpflow.maps.base import TransportMap
+from kpflow.tasks.arm.keypoints import end_effector_box
+from kpflow.tasks.arm.motion import yaw_of
+from kpflow.tasks.arm.transfer import transport_demo
+from kpflow.vision import DenseBackbone
+
+from .env import StackingEnv
+from .keypoints import image_pairs, oracle_pairs, true_targets
+from .objects import BLOCKS, CHEESE, LETTUCE
+from .scene import SOURCE_SCENE, Scene
+from .trajectory import execute, nearest_half_turn, plan_stacking
+
+ORACLE = "oracle"
+HALF_TURN = Rotation.from_euler("z", np.pi)
+
+
+def _state(env: StackingEnv) -> dict:
+    """The image, the blocks' poses and boxes, and the end effector's start box, now."""
+    return {
+        "image": env.render_topdown(),
+        "poses": {name: env.object_pose(name) for name in BLOCKS},
+        "boxes": {name: env.object_box(name) for name in BLOCKS},
+        "start_box": end_effector_box(*env.ee_pose()),
+    }
+
+
+def record_source(env: StackingEnv, scene: Scene = SOURCE_SCENE) -> dict:
+    """The source demonstration in ``scene``: ``image`` (before it), the blocks' ``poses`` and ``boxes``, the
+    ``start_box`` keypoints, the ``trajectory`` and ``result`` (of running it, :func:`~.trajectory.execute`)."""
+    env.reset_to(scene)
+    state = _state(env)
+    trajectory = plan_stacking(*env.ee_pose(), state["boxes"][CHEESE], state["boxes"][LETTUCE])
+    return {"scene": scene, **state, "trajectory": trajectory, "result": execute(env, trajectory)}
+
+
+def grasp_errors(source: dict, moved: dict, poses_now: dict) -> tuple[float, float]:
+    """Orientation error (deg) and position error (mm) of the transported grasp (the first ``seal`` step) against
+    the source's grasp carried by the cheese's true motion."""
+    i = int(np.flatnonzero(source["trajectory"]["phases"] == "seal")[0])
+    (p0, r0), (p1, r1) = source["poses"][CHEESE], poses_now[CHEESE]
+    motion = Rotation.from_matrix(r1 @ r0.T)
+    ideal = motion * Rotation.from_matrix(source["trajectory"]["rotations"][i])
+    got = Rotation.from_matrix(moved["rotations"][i])
+    angle = min((got.inv() * ideal).magnitude(), (got.inv() * HALF_TURN * ideal).magnitude())
+    ideal_pos = motion.apply(source["trajectory"]["positions"][i] - p0) + p1
+    return float(np.rad2deg(angle)), float(1e3 * np.linalg.norm(moved["positions"][i] - ideal_pos))
+
+
+def run_trial(
+    env: StackingEnv,
+    source: dict,
+    scene: Scene,
+    backbone: DenseBackbone | str,
+    make_map: Callable[[], TransportMap],
+    max_pairs: int = 7,
+    saliency_threshold: float = 0.2,
+    seed: int = 0,
+    frames: list | None = None,
+) -> dict:
+    """Set up ``scene``, find the keypoints (``backbone``, or ``"oracle"``), transport the demonstration, execute.
+
+    Returns ``success``/``failure`` (``"no correspondences"`` when the backbone finds none), the ``pairs`` (pixels,
+    3-D points, labels, ``errors_mm`` against the truth), ``pair_error_mm`` (median), ``grasp_error_deg`` and
+    ``grasp_error_mm``, ``place_yaw_error_deg`` (the cheese's yaw against the lettuce's at the end, half turns
+    equal), ``max_std`` (of the map along the path), the ``trajectory``, the measured ``tip`` and ``now_rgb`` (the
+    new scene's image).
+    """
+    env.reset_to(scene)
+    now = _state(env)
+    if isinstance(backbone, str):
+        if backbone != ORACLE:
+            raise ValueError(f"backbone must be a DenseBackbone or {ORACLE!r}, got {backbone!r}")
+        pairs = oracle_pairs(source["image"], now["image"], source["boxes"], source["poses"], now["poses"])
+    else:
+        pairs = image_pairs(source["image"], now["image"], backbone, max_pairs, saliency_threshold, seed)
+    truth = true_targets(pairs["source"], pairs["labels"], source["poses"], now["poses"])
+    pairs["errors_mm"] = 1e3 * np.linalg.norm(pairs["target"] - truth, axis=1)
+    record = {
+        "scene": scene.as_dict(),
+        "n_pairs": len(pairs["source"]),
+        "pairs_on_blocks": sum(label != "table" for label in pairs["labels"]),
+        "pair_error_mm": float(np.median(pairs["errors_mm"])) if len(pairs["source"]) else float("nan"),
+        "pairs": pairs,
+        "now_rgb": now["image"]["rgb"],
+    }
+    if not len(pairs["source"]):
+        return {**record, "success": False, "failure": "no correspondences", "grasp_error_deg": float("nan"),
+                "grasp_error_mm": float("nan"), "place_yaw_error_deg": float("nan"), "max_std": float("nan")}  # fmt: skip
+    kp_source = np.concatenate([source["start_box"], pairs["source"]])
+    kp_target = np.concatenate([now["start_box"], pairs["target"]])
+    moved = transport_demo(source["trajectory"], kp_source, kp_target, make_map)
+    grasp_deg, grasp_mm = grasp_errors(source, moved, now["poses"])
+    result = execute(env, moved, frames=frames)
+    cheese_yaw, lettuce_yaw = yaw_of(env.object_pose(CHEESE)[1]), yaw_of(env.object_pose(LETTUCE)[1])
+    place_yaw = abs(nearest_half_turn(cheese_yaw, lettuce_yaw) - lettuce_yaw)
+    return {
+        **record,
+        "success": result["success"],
+        "failure": result["failure"],
+        "grasp_error_deg": grasp_deg,
+        "grasp_error_mm": grasp_mm,
+        "place_yaw_error_deg": float(np.rad2deg(place_yaw)),
+        "max_std": float(moved["std"].max()),
+        "trajectory": moved,
+        "tip": result["tip"],
+    }
