@@ -14,12 +14,14 @@ from kpflow.vision import (
     VisionTransformer,
     ViTBackbone,
     best_buddies,
+    dino_vits8,
     find_correspondences,
     grid_centres,
     lift_pixels,
     log_bin,
     match_features,
     project_points,
+    rigidly_consistent,
     sample_depth,
     vit_small,
 )
@@ -331,3 +333,68 @@ def test_lifting_rejects_invalid_depth_and_pixels():
         lift_pixels(torch.zeros(3, 2), torch.tensor([1.0, 0.0, float("nan")]), k, pose)
     with pytest.raises(ValueError, match="outside"):
         sample_depth(torch.ones(48, 64), torch.tensor([[64.0, 10.0]]))
+
+
+def test_sift_colour_term_tells_apart_blocks_that_grey_sift_confuses():
+    rng = np.random.default_rng(0)
+    grey = rng.integers(60, 200, size=(64, 64), dtype=np.uint8)
+    yellow = np.stack([grey, grey, (grey * 0.2).astype(np.uint8)], -1)
+    blue = np.stack([(grey * 0.2).astype(np.uint8), grey, grey], -1)
+    plain, coloured = SiftBackbone(), SiftBackbone(colour_weight=2.0)
+    assert np.asarray(plain(yellow).descriptors).shape[-1] == 128 and np.asarray(coloured(yellow).descriptors).shape[-1] == 131
+
+    def similarity(backbone):  # mean cosine similarity of each cell's descriptor in the two images
+        a, b = (torch.as_tensor(np.asarray(backbone(img).descriptors), dtype=torch.float64) for img in (yellow, blue))
+        return torch.nn.functional.cosine_similarity(a, b, dim=-1).mean().item()
+
+    assert similarity(coloured) < similarity(plain) - 0.2
+    with pytest.raises(ValueError, match="colour_weight"):
+        SiftBackbone(colour_weight=-1.0)
+
+
+def test_dino_vits8_is_seeded_and_loads_user_weights(tmp_path):
+    a, b, c = dino_vits8(seed=0), dino_vits8(seed=0), dino_vits8(seed=1)
+    state = a.model.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in b.model.state_dict().items())
+    assert not torch.equal(state["cls_token"], c.model.state_dict()["cls_token"])
+    path = tmp_path / "dino_deitsmall8_pretrain.pth"
+    torch.save(c.model.state_dict(), path)
+    loaded = dino_vits8(weights=str(path), seed=0)
+    assert all(torch.equal(v, loaded.model.state_dict()[k]) for k, v in c.model.state_dict().items())
+    assert loaded.layer == 9 and loaded.resize == 224
+
+
+def test_pixel_spread_gives_every_part_of_the_image_a_pair():
+    """Descriptors that differ only in a few cells: clustering appearance spends the pairs on those few cells, while
+    clustering positions puts one pair in each quadrant of the image."""
+    rng = np.random.default_rng(5)
+    h = w = 10
+    desc = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (h, w, 1)) + 1e-3 * rng.standard_normal((h, w, 4))
+    desc[0, :3] = rng.standard_normal((3, 4))  # three distinctive cells in the top-left quadrant's first row
+    features = (desc, np.ones((h, w)), grid_centres((h, w), 8, 8).numpy())
+    quadrant = lambda p: (int(p[0] >= 40), int(p[1] >= 40))  # noqa: E731
+    by_pixels = match_features(features, features, max_pairs=4, spread="pixels")
+    assert sorted(quadrant(p) for p in by_pixels.pixels_a.tolist()) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    by_descriptors = match_features(features, features, max_pairs=4)
+    assert sum(quadrant(p) == (0, 0) for p in by_descriptors.pixels_a.tolist()) >= 3
+    torch.testing.assert_close(by_pixels.pixels_a, by_pixels.pixels_b)
+    with pytest.raises(ValueError, match="spread"):
+        match_features(features, features, spread="space")
+
+
+def test_rigidity_check_drops_the_pair_that_fits_no_object():
+    rng = np.random.default_rng(6)
+    block_a = rng.uniform(-0.04, 0.04, size=(4, 3))
+    block_b = rng.uniform(-0.04, 0.04, size=(3, 3)) + [0.4, 0.0, 0.0]
+    lone = np.array([[0.0, 0.6, 0.0]])
+    source = np.concatenate([block_a, block_b, lone])
+    turn = Rotation.from_euler("z", 0.6).as_matrix()
+    target = np.concatenate([block_a @ turn.T + [0.1, 0.2, 0.0], block_b - [0.0, 0.3, 0.0], lone + 0.5])
+    assert rigidly_consistent(source, target).all()  # two blocks moving differently, and a point far from both
+    wrong = target.copy()
+    wrong[1] = target[5]  # a point of block A matched onto block B
+    assert rigidly_consistent(source, wrong).tolist() == [True, False, True, True, True, True, True, True]
+    with pytest.raises(ValueError, match="both be"):
+        rigidly_consistent(source, target[:3])
+    with pytest.raises(ValueError, match="> 0"):
+        rigidly_consistent(source, target, tolerance=0.0)

@@ -58,14 +58,15 @@ def close(fig) -> None:
     plt.close(fig)
 
 
-def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_b, good, title: str = "") -> None:
+def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_b, good, title: str = "", dropped=None) -> None:
     """Two images side by side with a line per matched pair ``pixels_a [n, 2]`` -> ``pixels_b [n, 2]`` (x, y),
-    green where ``good [n]`` and red elsewhere."""
+    green where ``good [n]`` and red elsewhere, dashed where ``dropped [n]``."""
     width = image_a.shape[1]
+    dropped = np.zeros(len(good), bool) if dropped is None else np.asarray(dropped)
     ax.imshow(np.concatenate([image_a, image_b], axis=1))
-    for (xa, ya), (xb, yb), ok in zip(np.asarray(pixels_a), np.asarray(pixels_b), np.asarray(good)):
+    for (xa, ya), (xb, yb), ok, out in zip(np.asarray(pixels_a), np.asarray(pixels_b), np.asarray(good), dropped):
         colour = "lime" if ok else "red"
-        ax.plot([xa, xb + width], [ya, yb], "-", color=colour, lw=1)
+        ax.plot([xa, xb + width], [ya, yb], "--" if out else "-", color=colour, lw=1)
         ax.scatter([xa, xb + width], [ya, yb], color=colour, s=10)
     ax.set_axis_off()
     ax.set_title(title, fontsize=7)

@@ -9,7 +9,7 @@ demonstration. Writes ``results.json`` (every trial: failure reason, corresponde
 ``results.md`` (per condition, backbone and map: success with its 95% Wilson interval, failure reasons, the 3-D
 error of the correspondences against the simulator's truth, the orientation and position error of the transported
 grasp, the placed block's yaw error), ``matches_*.png`` (the pairs drawn on the two images, green within
-``good_mm`` of the truth) and an mp4 of one trial per condition.
+``good_mm`` of the truth, red beyond, dashed where dropped as breaking rigidity) and mp4s of the first ``videos`` trials per condition and keypoint source.
 """
 
 from __future__ import annotations
@@ -56,11 +56,12 @@ def _run(condition: str, index: int, seed: int, backbone: str, map_name: str, fr
 def _trial(job: tuple) -> dict:
     condition, index, seed, backbone, map_name = job
     r = _run(*job)
-    keep = ("scene", "success", "failure", "n_pairs", "pairs_on_blocks", "pair_error_mm", "grasp_error_deg",
+    keep = ("scene", "success", "failure", "n_pairs", "rejected", "pairs_on", "pair_error_mm", "grasp_error_deg",
             "grasp_error_mm", "place_yaw_error_deg", "max_std")  # fmt: skip
     return {
         "condition": condition, "index": index, "backbone": backbone, "map": map_name, **{k: r[k] for k in keep},
-        "pair_errors_mm": r["pairs"]["errors_mm"].tolist(),
+        "pair_errors_mm": r["pairs"]["errors_mm"][r["pairs"]["kept"]].tolist(),
+        "rejected_errors_mm": r["pairs"]["errors_mm"][~r["pairs"]["kept"]].tolist(),
     }  # fmt: skip
 
 
@@ -73,6 +74,7 @@ def summarise(trials: list[dict], good_mm: float) -> dict:
     """Success with its 95% Wilson interval, failure reasons, correspondence and grasp errors of a group of trials."""
     n, k = len(trials), sum(t["success"] for t in trials)
     errors = np.concatenate([t["pair_errors_mm"] for t in trials]) if trials else np.empty(0)
+    rejected = np.concatenate([t["rejected_errors_mm"] for t in trials]) if trials else np.empty(0)
     return {
         "trials": n,
         "successes": k,
@@ -80,6 +82,9 @@ def summarise(trials: list[dict], good_mm: float) -> dict:
         "ci": wilson_interval(k, n),
         "failures": dict(Counter(t["failure"] for t in trials if not t["success"])),
         "pairs_mean": float(np.mean([t["n_pairs"] for t in trials])),
+        "no_pair_on_cheese": sum(t["pairs_on"]["cheese"] == 0 for t in trials),
+        "rejected": len(rejected),
+        "rejected_wrong": int((rejected >= good_mm).sum()),
         "pair_error_mm_median": _median(errors),
         "pairs_good": float(np.mean(errors < good_mm)) if len(errors) else float("nan"),
         "grasp_error_deg_median": _median([t["grasp_error_deg"] for t in trials]),
@@ -90,17 +95,20 @@ def summarise(trials: list[dict], good_mm: float) -> dict:
 
 def table(summaries: dict, good_mm: float) -> str:
     rows = [
-        f"| condition | keypoints | map | success [95% CI] | failure reasons | pairs | pair error, median (mm) "
+        f"| condition | keypoints | map | success [95% CI] | failure reasons | pairs kept | pairs dropped (of them wrong) | no pair on the cheese (trials) "
+        f"| pair error, median (mm) "
         f"| pairs within {good_mm:.0f} mm | grasp orientation error, median (deg) | grasp position error, median (mm) "
         f"| placed yaw error, median of successes (deg) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (condition, backbone, map_name), s in summaries.items():
         lo, hi = s["ci"]
         reasons = ", ".join(f"{r}: {c}" for r, c in sorted(s["failures"].items())) or "-"
         rows.append(
             f"| {condition} | {backbone} | {map_name} | {s['successes']}/{s['trials']} = {100 * s['success']:.0f}% "
-            f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons} | {s['pairs_mean']:.1f} | {s['pair_error_mm_median']:.1f} "
+            f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons} | {s['pairs_mean']:.1f} | {s['rejected']} ({s['rejected_wrong']}) "
+            f"| {s['no_pair_on_cheese']} "
+            f"| {s['pair_error_mm_median']:.1f} "
             f"| {100 * s['pairs_good']:.0f}% | {s['grasp_error_deg_median']:.1f} | {s['grasp_error_mm_median']:.1f} "
             f"| {s['place_yaw_error_deg_median']:.1f} |"
         )
@@ -111,7 +119,7 @@ def _match_figure(source: dict, trial: dict, now_rgb: np.ndarray, title: str, pa
     pairs = trial["pairs"]
     fig, axes = plots.new_figure(1, 1, size=6.0)
     plots.draw_matches(axes[0, 0], source["image"]["rgb"], now_rgb, pairs["pixels_before"], pairs["pixels_now"],
-                       pairs["errors_mm"] < good_mm, title)  # fmt: skip
+                       pairs["errors_mm"] < good_mm, title, dropped=~pairs["kept"])  # fmt: skip
     save_figure(fig, path, dpi=110, bbox_inches="tight")
     plots.close(fig)
 
@@ -126,6 +134,8 @@ def run_stacking_experiment(
     oracle: bool = True,
     max_pairs: int = 7,
     saliency_threshold: float = 0.2,
+    spread: str = "descriptors",
+    consistency: dict | None = None,
     good_mm: float = 20.0,
     match_images: int = 2,
     videos: int = 1,
@@ -154,7 +164,7 @@ def run_stacking_experiment(
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(c, i, seed, b, m) for c in conditions for b in sources for m in maps for i in range(n_trials)]
-    pairs = {"max_pairs": max_pairs, "saliency_threshold": saliency_threshold}
+    pairs = {"max_pairs": max_pairs, "saliency_threshold": saliency_threshold, "spread": spread, "consistency": consistency}
     init = (dict(backbones), dict(maps), None if source is None else dict(source), tuple(camera_size), pairs)
     if workers > 1:
         pool = mp.get_context("fork").Pool(workers, initializer=_init, initargs=init)
@@ -182,7 +192,7 @@ def run_stacking_experiment(
     for c in conditions:
         for b in sources:
             for i in range(min(match_images, n_trials)):
-                frames = [] if b == sources[0] and i < videos else None
+                frames = [] if i < videos else None
                 r = _run(c, i, seed, b, first_map, frames)
                 outcome = "success" if r["success"] else r["failure"].replace(" ", "_")
                 name = f"matches_{c}_{b}_{i:02d}_{outcome}.png"
@@ -204,7 +214,8 @@ def run_stacking_experiment(
     header = (
         "# Stacking: keypoints from images, one demonstration transported to new scenes\n\n"
         f"Source demonstration succeeded in its own scene: {src['result']['success']}. "
-        f"{n_trials} seeded scenes per condition; at most {max_pairs} pairs per image pair.\n\n"
+        f"{n_trials} seeded scenes per condition; at most {max_pairs} pairs per image pair, spread over {spread}; "
+        f"pairs breaking rigidity dropped: {consistency or 'no'}.\n\n"
     )
     write_text(out / "results.md", header + table(summaries, good_mm))
     return results

@@ -6,10 +6,12 @@
 - :mod:`kpflow.vision.sift`: an offline dense-SIFT backbone.
 - :mod:`kpflow.vision.correspondences`: salient, well-spread best-buddy pairs (Amir et al. 2021).
 - :mod:`kpflow.vision.lifting`: pixels + depth <-> 3-D world points with a pinhole camera.
+- :mod:`kpflow.vision.consistency`: dropping lifted pairs that break rigidity.
 
 Pixels are (x, y) with the origin at the image's top-left corner and pixel centres at (u + 0.5, v + 0.5).
 """
 
+from kpflow.vision.consistency import rigidly_consistent
 from kpflow.vision.correspondences import Correspondences, best_buddies, find_correspondences, match_features
 from kpflow.vision.descriptors import (
     DenseBackbone,
@@ -42,6 +44,7 @@ __all__ = [
     "log_bin",
     "match_features",
     "project_points",
+    "rigidly_consistent",
     "sample_depth",
     "vit_descriptors",
     "vit_small",

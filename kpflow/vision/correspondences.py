@@ -5,6 +5,8 @@ ViT Features as Dense Visual Descriptors", ``find_correspondences``):
    (mutual nearest neighbours over all cells), kept where both cells are salient (saliency > threshold);
 2. k-means (seeded) over the buddies' concatenated descriptors, normalised to unit length, with ``max_pairs``
    clusters; from each cluster the pair with the largest saliency (image A cell + image B cell) is kept.
+   ``spread="pixels"`` clusters the pairs' concatenated pixel positions instead: pairs spread over the images
+   rather than over appearance, so a small object that looks like little else still gets a pair.
 
 Pixels are (x, y) in each input image's frame (:mod:`kpflow.vision.descriptors`). Swapping the images swaps the
 pairs: buddies are ordered by a key that does not depend on which image comes first (saliency sum, then the sorted
@@ -24,6 +26,7 @@ from sklearn.cluster import KMeans
 from kpflow.vision.descriptors import DenseBackbone, DenseFeatures
 
 F64 = torch.float64
+SPREADS = ("descriptors", "pixels")
 
 
 @dataclass(frozen=True)
@@ -79,10 +82,14 @@ def match_features(
     max_pairs: int = 7,
     saliency_threshold: float = 0.2,
     seed: int = 0,
+    spread: str = "descriptors",
 ) -> Correspondences:
-    """At most ``max_pairs`` salient, well-spread best-buddy pairs between two backbone outputs (see module doc)."""
+    """At most ``max_pairs`` salient, well-spread best-buddy pairs between two backbone outputs (see module doc);
+    ``spread`` is ``"descriptors"`` (Amir et al.) or ``"pixels"``."""
     if max_pairs < 1:
         raise ValueError(f"max_pairs must be >= 1, got {max_pairs}")
+    if spread not in SPREADS:
+        raise ValueError(f"spread must be one of {SPREADS}, got {spread!r}")
     desc_a, sal_a, centres_a = _flatten(features_a, "A")
     desc_b, sal_b, centres_b = _flatten(features_b, "B")
     if desc_a.shape[1] != desc_b.shape[1]:
@@ -95,8 +102,11 @@ def match_features(
     order = torch.from_numpy(np.lexsort((hi, lo, -score)))  # by descending score, then the unordered cell pair
     idx_a, idx_b, sim = idx_a[order], idx_b[order], sim[order]
     if len(idx_a) > max_pairs:
-        pairs = torch.cat([desc_a[idx_a], desc_b[idx_b]], dim=1)
-        pairs = pairs / pairs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        if spread == "descriptors":
+            pairs = torch.cat([desc_a[idx_a], desc_b[idx_b]], dim=1)
+            pairs = pairs / pairs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        else:
+            pairs = torch.cat([centres_a[idx_a], centres_b[idx_b]], dim=1)
         labels = KMeans(n_clusters=max_pairs, n_init=10, random_state=seed).fit(pairs.numpy()).labels_
         # pairs are sorted by descending score: a cluster's first member is its most salient pair
         first = np.sort(np.unique(labels, return_index=True)[1])
@@ -111,6 +121,7 @@ def find_correspondences(
     max_pairs: int = 7,
     saliency_threshold: float = 0.2,
     seed: int = 0,
+    spread: str = "descriptors",
 ) -> Correspondences:
     """:func:`match_features` on ``backbone(image_a)`` and ``backbone(image_b)`` (RGB ``[H, W, 3]`` uint8 images)."""
-    return match_features(backbone(image_a), backbone(image_b), max_pairs, saliency_threshold, seed)
+    return match_features(backbone(image_a), backbone(image_b), max_pairs, saliency_threshold, seed, spread)

@@ -1,7 +1,8 @@
 """Keypoints of the stacking task, found in the camera images (the paper's Section 3.2).
 
 The image taken before the demonstration and the image of the new scene are matched by a dense backbone
-(:func:`kpflow.vision.find_correspondences`: at most 7 salient, well-spread best-buddy pairs); both pixels of each
+(:func:`kpflow.vision.find_correspondences`: at most 7 salient best-buddy pairs, spread over appearance or over the
+image); both pixels of each
 pair are lifted to 3-D with their own depth (:func:`kpflow.vision.lift_pixels`). To these the end effector's start
 box is added (the arm starts where it started, :func:`kpflow.tasks.arm.keypoints.end_effector_box`).
 
@@ -50,11 +51,17 @@ def true_targets(points: np.ndarray, labels: list[str], poses_before: dict, pose
 
 
 def image_pairs(
-    before: dict, now: dict, backbone: DenseBackbone, max_pairs: int = 7, saliency_threshold: float = 0.2, seed: int = 0
+    before: dict,
+    now: dict,
+    backbone: DenseBackbone,
+    max_pairs: int = 7,
+    saliency_threshold: float = 0.2,
+    seed: int = 0,
+    spread: str = "descriptors",
 ) -> dict:
     """Correspondences between two top-down images, lifted: ``pixels_before``/``pixels_now [n, 2]``,
     ``source``/``target [n, 3]`` (world points) and ``labels`` (what each source pixel shows)."""
-    corr = find_correspondences(before["rgb"], now["rgb"], backbone, max_pairs, saliency_threshold, seed)
+    corr = find_correspondences(before["rgb"], now["rgb"], backbone, max_pairs, saliency_threshold, seed, spread)
     pa, pb = corr.pixels_a.numpy(), corr.pixels_b.numpy()
     return {
         "pixels_before": pa,

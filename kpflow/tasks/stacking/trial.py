@@ -23,7 +23,7 @@ from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.keypoints import end_effector_box
 from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.arm.transfer import transport_demo
-from kpflow.vision import DenseBackbone
+from kpflow.vision import DenseBackbone, rigidly_consistent
 
 from .env import StackingEnv
 from .keypoints import image_pairs, oracle_pairs, true_targets
@@ -76,15 +76,20 @@ def run_trial(
     max_pairs: int = 7,
     saliency_threshold: float = 0.2,
     seed: int = 0,
+    spread: str = "descriptors",
+    consistency: dict | None = None,
     frames: list | None = None,
 ) -> dict:
-    """Set up ``scene``, find the keypoints (``backbone``, or ``"oracle"``), transport the demonstration, execute.
+    """Set up ``scene``, find the keypoints (``backbone``, or ``"oracle"``; ``max_pairs``, ``saliency_threshold``,
+    ``seed`` and ``spread`` as in :func:`kpflow.vision.match_features`), drop the image pairs that break rigidity
+    (``consistency``: the arguments of :func:`kpflow.vision.rigidly_consistent`; None keeps every pair), transport
+    the demonstration through the rest, execute.
 
-    Returns ``success``/``failure`` (``"no correspondences"`` when the backbone finds none), the ``pairs`` (pixels,
-    3-D points, labels, ``errors_mm`` against the truth), ``pair_error_mm`` (median), ``grasp_error_deg`` and
-    ``grasp_error_mm``, ``place_yaw_error_deg`` (the cheese's yaw against the lettuce's at the end, half turns
-    equal), ``max_std`` (of the map along the path), the ``trajectory``, the measured ``tip`` and ``now_rgb`` (the
-    new scene's image).
+    Returns ``success``/``failure`` (``"no correspondences"`` when no pair is left), the ``pairs`` (pixels, 3-D
+    points, labels, ``errors_mm`` against the truth, ``kept``), ``n_pairs`` (kept) and ``rejected``, ``pairs_on``
+    (block -> how many kept source points lie on it), ``pair_error_mm`` (median of the kept), ``grasp_error_deg`` and ``grasp_error_mm``, ``place_yaw_error_deg`` (the
+    cheese's yaw against the lettuce's at the end, half turns equal), ``max_std`` (of the map along the path), the
+    ``trajectory``, the measured ``tip`` and ``now_rgb`` (the new scene's image).
     """
     env.reset_to(scene)
     now = _state(env)
@@ -93,22 +98,27 @@ def run_trial(
             raise ValueError(f"backbone must be a DenseBackbone or {ORACLE!r}, got {backbone!r}")
         pairs = oracle_pairs(source["image"], now["image"], source["boxes"], source["poses"], now["poses"])
     else:
-        pairs = image_pairs(source["image"], now["image"], backbone, max_pairs, saliency_threshold, seed)
+        pairs = image_pairs(source["image"], now["image"], backbone, max_pairs, saliency_threshold, seed, spread)
     truth = true_targets(pairs["source"], pairs["labels"], source["poses"], now["poses"])
     pairs["errors_mm"] = 1e3 * np.linalg.norm(pairs["target"] - truth, axis=1)
+    pairs["kept"] = np.ones(len(truth), bool)
+    if consistency is not None and backbone != ORACLE:
+        pairs["kept"] = rigidly_consistent(pairs["source"], pairs["target"], **consistency)
+    kept = pairs["kept"]
     record = {
         "scene": scene.as_dict(),
-        "n_pairs": len(pairs["source"]),
-        "pairs_on_blocks": sum(label != "table" for label in pairs["labels"]),
-        "pair_error_mm": float(np.median(pairs["errors_mm"])) if len(pairs["source"]) else float("nan"),
+        "n_pairs": int(kept.sum()),
+        "rejected": int((~kept).sum()),
+        "pairs_on": {name: int(sum(bool(k) and label == name for k, label in zip(kept, pairs["labels"]))) for name in BLOCKS},
+        "pair_error_mm": float(np.median(pairs["errors_mm"][kept])) if kept.any() else float("nan"),
         "pairs": pairs,
         "now_rgb": now["image"]["rgb"],
     }
-    if not len(pairs["source"]):
+    if not kept.any():
         return {**record, "success": False, "failure": "no correspondences", "grasp_error_deg": float("nan"),
                 "grasp_error_mm": float("nan"), "place_yaw_error_deg": float("nan"), "max_std": float("nan")}  # fmt: skip
-    kp_source = np.concatenate([source["start_box"], pairs["source"]])
-    kp_target = np.concatenate([now["start_box"], pairs["target"]])
+    kp_source = np.concatenate([source["start_box"], pairs["source"][kept]])
+    kp_target = np.concatenate([now["start_box"], pairs["target"][kept]])
     moved = transport_demo(source["trajectory"], kp_source, kp_target, make_map)
     grasp_deg, grasp_mm = grasp_errors(source, moved, now["poses"])
     result = execute(env, moved, frames=frames)
