@@ -18,7 +18,7 @@ from kpflow.tasks.packing.objects import OBJECT_TYPES
 from kpflow.tasks.packing.perception import backproject, box_corners, canonical_box
 from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
 from kpflow.tasks.packing.trajectory import execute
-from kpflow.tasks.packing.trial import box_corner_error, record_source, run_trial, transport_demo
+from kpflow.tasks.packing.trial import box_corner_error, record_source, run_trial, transport_source
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -123,12 +123,12 @@ def test_scripted_demonstration_packs_the_source_object(source):
 
 @pytest.mark.parametrize("make_map", [GPMap, ILWRMap, AffineMap])
 def test_identical_scenes_reproduce_the_demonstration(source, make_map):
-    moved = transport_demo(source, source["keypoints"], make_map)
+    moved = transport_source(source, source["keypoints"], make_map)
     np.testing.assert_allclose(moved["positions"], source["trajectory"]["positions"], atol=1e-5)
     np.testing.assert_allclose(moved["rotations"], source["trajectory"]["rotations"], atol=1e-5)
     np.testing.assert_array_equal(moved["suction"], source["trajectory"]["suction"])
     with pytest.raises(ValueError, match="target keypoints"):
-        transport_demo(source, source["keypoints"][:31], make_map)
+        transport_source(source, source["keypoints"][:31], make_map)
 
 
 def test_a_transported_demonstration_packs_a_moved_object(env, source):

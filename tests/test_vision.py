@@ -394,6 +394,8 @@ def test_rigidity_check_drops_the_pair_that_fits_no_object():
     wrong = target.copy()
     wrong[1] = target[5]  # a point of block A matched onto block B
     assert rigidly_consistent(source, wrong).tolist() == [True, False, True, True, True, True, True, True]
+    lone_pair = rigidly_consistent(np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]))
+    assert not lone_pair.any()  # two neighbours that disagree: nothing tells which is wrong, so both go
     with pytest.raises(ValueError, match="both be"):
         rigidly_consistent(source, target[:3])
     with pytest.raises(ValueError, match="> 0"):

@@ -9,7 +9,8 @@ demonstration. Writes ``results.json`` (every trial: failure reason, corresponde
 ``results.md`` (per condition, backbone and map: success with its 95% Wilson interval, failure reasons, the 3-D
 error of the correspondences against the simulator's truth, the orientation and position error of the transported
 grasp, the placed block's yaw error), ``matches_*.png`` (the pairs drawn on the two images, green within
-``good_mm`` of the truth, red beyond, dashed where dropped as breaking rigidity) and mp4s of the first ``videos`` trials per condition and keypoint source.
+``good_mm`` of the truth, red beyond, dashed where dropped as breaking rigidity) and mp4s of the first ``videos``
+trials per condition and keypoint source (with the first map).
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from kpflow.eval.stats import wilson_interval
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.video import write_video
 
-ORACLE = "oracle"
 _WORKER: dict = {}  # this process's simulator, source demonstration, backbones and maps
 
 
@@ -42,15 +42,17 @@ def _init(backbones: dict, maps: dict, source: dict | None, camera_size, pairs: 
     env = StackingEnv(camera_size=tuple(camera_size))
     scene = Scene(**{k: tuple(v) for k, v in source.items()}) if source else SOURCE_SCENE
     _WORKER.update(env=env, backbones=backbones, maps=maps, pairs=pairs, source=record_source(env, scene))
+    _WORKER["init"] = (backbones, maps, source, camera_size, pairs)
 
 
 def _run(condition: str, index: int, seed: int, backbone: str, map_name: str, frames: list | None = None) -> dict:
     from kpflow.tasks.stacking.scene import sample_scene
-    from kpflow.tasks.stacking.trial import run_trial
+    from kpflow.tasks.stacking.trial import ORACLE, run_trial
 
     scene = sample_scene(condition, index, seed, _WORKER["source"]["scene"])
     bb = ORACLE if backbone == ORACLE else _WORKER["backbones"][backbone]
-    return run_trial(_WORKER["env"], _WORKER["source"], scene, bb, _WORKER["maps"][map_name], seed=seed, frames=frames, **_WORKER["pairs"])
+    env, source, make_map = _WORKER["env"], _WORKER["source"], _WORKER["maps"][map_name]
+    return run_trial(env, source, scene, bb, make_map, seed=seed, frames=frames, **_WORKER["pairs"])
 
 
 def _trial(job: tuple) -> dict:
@@ -95,8 +97,8 @@ def summarise(trials: list[dict], good_mm: float) -> dict:
 
 def table(summaries: dict, good_mm: float) -> str:
     rows = [
-        f"| condition | keypoints | map | success [95% CI] | failure reasons | pairs kept | pairs dropped (of them wrong) | no pair on the cheese (trials) "
-        f"| pair error, median (mm) "
+        "| condition | keypoints | map | success [95% CI] | failure reasons | pairs kept | pairs dropped (of them wrong) "
+        "| no pair on the cheese (trials) | pair error, median (mm) "
         f"| pairs within {good_mm:.0f} mm | grasp orientation error, median (deg) | grasp position error, median (mm) "
         f"| placed yaw error, median of successes (deg) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -115,10 +117,10 @@ def table(summaries: dict, good_mm: float) -> str:
     return "\n".join(rows) + "\n"
 
 
-def _match_figure(source: dict, trial: dict, now_rgb: np.ndarray, title: str, path: Path, good_mm: float) -> None:
+def _match_figure(source: dict, trial: dict, title: str, path: Path, good_mm: float) -> None:
     pairs = trial["pairs"]
     fig, axes = plots.new_figure(1, 1, size=6.0)
-    plots.draw_matches(axes[0, 0], source["image"]["rgb"], now_rgb, pairs["pixels_before"], pairs["pixels_now"],
+    plots.draw_matches(axes[0, 0], source["image"]["rgb"], trial["now_rgb"], pairs["pixels_before"], pairs["pixels_now"],
                        pairs["errors_mm"] < good_mm, title, dropped=~pairs["kept"])  # fmt: skip
     save_figure(fig, path, dpi=110, bbox_inches="tight")
     plots.close(fig)
@@ -150,6 +152,7 @@ def run_stacking_experiment(
     factory of a transportation map; ``oracle`` adds the simulator's exact pairs as a keypoint source.
     """
     from kpflow.tasks.stacking.scene import CONDITIONS
+    from kpflow.tasks.stacking.trial import ORACLE
 
     conditions = list(conditions)
     sources = [*backbones, *([ORACLE] if oracle else [])]
@@ -184,21 +187,25 @@ def run_stacking_experiment(
         for c in conditions for b in sources for m in maps
     }  # fmt: skip
 
-    if not _WORKER:
+    if _WORKER.get("init") != init:  # this process has not set up this run's simulator yet
         _init(*init)
     src = _WORKER["source"]
     first_map = next(iter(maps))
     images, video_paths = [], []
     for c in conditions:
         for b in sources:
-            for i in range(min(match_images, n_trials)):
+            for i in range(min(max(match_images, videos), n_trials)):
                 frames = [] if i < videos else None
                 r = _run(c, i, seed, b, first_map, frames)
                 outcome = "success" if r["success"] else r["failure"].replace(" ", "_")
-                name = f"matches_{c}_{b}_{i:02d}_{outcome}.png"
-                title = f"{c} #{i}, {b}: {r['n_pairs']} pairs, median error {r['pair_error_mm']:.0f} mm, {first_map}: {outcome}"
-                _match_figure(src, r, r["now_rgb"], title, out / name, good_mm)
-                images.append(name)
+                if i < match_images:
+                    name = f"matches_{c}_{b}_{i:02d}_{outcome}.png"
+                    title = (
+                        f"{c} #{i}, {b}: {r['n_pairs']} pairs kept, median error {r['pair_error_mm']:.0f} mm, "
+                        f"{first_map}: {outcome}"
+                    )
+                    _match_figure(src, r, title, out / name, good_mm)
+                    images.append(name)
                 if frames:
                     video_paths.append(str(write_video(frames, out / f"{c}_{b}_{first_map}_{i:02d}_{outcome}.mp4", fps=20)))
 

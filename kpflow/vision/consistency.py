@@ -5,6 +5,9 @@ whose source point has neighbours (source points within ``radius``) but keeps it
 to none of them is inconsistent with every object around it, and is dropped; a pair without neighbours is kept,
 since nothing can vouch for or against it. One wrong pair among a handful bends a map fitted through all of them
 (a GP interpolates it), so dropping it matters more than keeping every right one.
+
+The vote is one pass and symmetric, so it cannot tell which of two lone neighbours is wrong: both are dropped. Two
+wrong pairs that happen to keep their distance to each other keep each other.
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def rigidly_consistent(source: np.ndarray, target: np.ndarray, radius: float = 0.12, tolerance: float = 0.015) -> np.ndarray:
+def rigidly_consistent(
+    source: np.ndarray, target: np.ndarray, radius: float = 0.12, tolerance: float = 0.015
+) -> np.ndarray:
     """Mask ``[n]`` of the pairs ``source [n, 3]`` -> ``target [n, 3]`` to keep (module docstring)."""
     source, target = np.asarray(source, float), np.asarray(target, float)
     if source.shape != target.shape or source.ndim != 2:

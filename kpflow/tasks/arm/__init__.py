@@ -4,6 +4,8 @@
 * :mod:`.motion` -- cup orientations and interpolated straight-line waypoints.
 * :mod:`.env` -- :class:`SuctionArmEnv`: absolute-pose control, suction, the camera; tasks subclass it.
 * :mod:`.execution` -- running a trajectory and the arm's failure reasons.
+* :mod:`.keypoints` -- box corners and the end effector's start box.
+* :mod:`.transfer` -- a recorded trajectory carried into a new scene through a map fitted on keypoints.
 """
 
 from .env import SuctionArmEnv

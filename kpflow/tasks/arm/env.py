@@ -88,7 +88,7 @@ class SuctionArmEnv(ManipulationEnv):
     table_top = 0.8
     camera_pos = (-0.08, 0.0, 1.95)
     camera_fovy = 50.0
-    start_pos = np.array([-0.32, 0.0, 1.12])
+    start_pos = (-0.32, 0.0, 1.12)
 
     def __init__(self, camera_size: tuple[int, int] = (480, 640), seed: int | None = 0, **kwargs):
         self.camera_size = tuple(int(v) for v in camera_size)
@@ -168,14 +168,13 @@ class SuctionArmEnv(ManipulationEnv):
         self._arm_geoms = set(np.flatnonzero(root[m.geom_bodyid] == root[self.eef_body]).tolist())
 
     # ------------------------------------------------------------------------------------------ scenes
-    def place_object(self, name: str, x: float, y: float, yaw: float, base: float | None = None) -> None:
-        """Stand object ``name`` upright with the centre of its box at ``(x, y)`` turned by ``yaw``, its bottom 1 mm
-        above height ``base`` (default: the table top)."""
+    def place_object(self, name: str, x: float, y: float, yaw: float) -> None:
+        """Stand object ``name`` on the table with the centre of its box at ``(x, y)`` turned by ``yaw``, its bottom
+        1 mm above the table top."""
         centre, half = self.object_extent[name]
         rot = Rotation.from_euler("z", yaw)
         offset = rot.apply([centre[0], centre[1], 0.0])  # the body origin is not the box's centre
-        base = self.table_top if base is None else base
-        pos = (x - offset[0], y - offset[1], base + half[2] - centre[2] + 1e-3)
+        pos = (x - offset[0], y - offset[1], self.table_top + half[2] - centre[2] + 1e-3)
         self.sim.data.set_joint_qpos(self.objects[name].joints[0], np.concatenate([pos, rot.as_quat(scalar_first=True)]))
 
     def park_object(self, name: str) -> None:
@@ -195,12 +194,12 @@ class SuctionArmEnv(ManipulationEnv):
         self.sim.forward()
         self.scene = scene
         if self._start_qpos is None:  # first episode: drive to the start pose once and remember the joints
-            self.move_to(self.start_pos, DOWN, settle=60)
+            self.move_to(np.array(self.start_pos), DOWN, settle=60)
             self._start_qpos = np.array(d.qpos[self.robots[0]._ref_joint_pos_indexes])
         d.qpos[self.robots[0]._ref_joint_pos_indexes] = self._start_qpos
         d.qvel[:] = 0.0
         self.sim.forward()
-        self.hold(10, self.start_pos, DOWN)  # let the objects settle and the controller take its start pose
+        self.hold(10, np.array(self.start_pos), DOWN)  # let the objects settle and the controller take its start pose
 
     def _scene_required(self) -> None:
         if self.scene is None:

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 MAX_STEP, MAX_TURN = 0.015, 0.1  # m and rad per control step (20 Hz): larger jumps can flip the UR5e's elbow
 DOWN = Rotation.from_euler("x", np.pi).as_matrix()  # the cup pointing down
+PRESS = 0.004  # m: a contact target lies this far below an object's top, so the cup touches it
 
 
 def cup_down(yaw: float) -> np.ndarray:

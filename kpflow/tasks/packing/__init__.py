@@ -3,8 +3,7 @@ containers.
 
 * :mod:`.objects` -- the object types (boxes, a cylinder, robosuite's can and cereal box) and their true extents.
 * :mod:`.scene` -- a scene (object type and pose, container pose) and the seeded relocation / full-variation samplers.
-* :mod:`.gripper` -- the suction cup (a 0-DoF gripper whose grasp is a weld).
-* :mod:`.env` -- :class:`PackingEnv`: the robosuite environment, absolute-pose control, suction, the top-down camera.
+* :mod:`.env` -- :class:`PackingEnv`: the suction arm of :mod:`kpflow.tasks.arm`, a container and the objects.
 * :mod:`.perception` -- the object's box from RGB-D and a segmentation mask (minimum-area rectangle, top voxel).
 * :mod:`.keypoints` -- the 32 keypoints: start, object, lifted object, container.
 * :mod:`.trajectory` -- the scripted demonstration and running a trajectory with its failure reason.

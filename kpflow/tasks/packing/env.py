@@ -20,7 +20,7 @@ from .scene import CONTAINER_SIZE, CONTAINER_WALL, TABLE_SIZE, TABLE_TOP, Scene
 
 #: the cup's tip at the start of every episode (above the robot's side of the table, out of the camera's view of
 #: the object area), pointing down
-START_POS = SuctionArmEnv.start_pos
+START_POS = np.array(SuctionArmEnv.start_pos)
 
 
 class _FixedContainer(Bin):
@@ -48,11 +48,14 @@ class PackingEnv(SuctionArmEnv):
     def _make_objects(self):
         return {kind: make(kind) for kind, make in OBJECT_TYPES.items()}
 
-    def _static_objects(self):
+    def _load_model(self):
         self.container = _FixedContainer(
             name="container", bin_size=CONTAINER_SIZE, wall_thickness=CONTAINER_WALL, transparent_walls=False,
             use_texture=False, rgba=(0.55, 0.4, 0.25, 1),
         )  # fmt: skip
+        super()._load_model()
+
+    def _static_objects(self):
         return [self.container]
 
     def _setup_references(self):

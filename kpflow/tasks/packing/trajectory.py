@@ -4,19 +4,18 @@ A trajectory is a dict of per-control-step arrays: ``positions [T, 3]`` and ``ro
 (absolute targets for the operational-space controller) and ``suction [T]`` (whether the vacuum is on). The scripted
 planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
 straight onto it, seals, lifts it by ``LIFT``, carries it over the container, lowers it in, releases and retreats,
-in straight segments of at most ``MAX_STEP`` / ``MAX_TURN`` per step. Coming down vertically matters for tall,
+in the straight, interpolated segments of :func:`kpflow.tasks.arm.motion.interpolate`. Coming down vertically matters for tall,
 narrow objects: a diagonal approach, with the controller lagging, swept the cereal box over.
 """
 
 from __future__ import annotations
 
 from kpflow.tasks.arm.execution import arm_failure, follow
-from kpflow.tasks.arm.motion import cup_down, segments_to_trajectory
+from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory
 
 from .keypoints import LIFT
 from .scene import CONTAINER_WALL
 
-PRESS = 0.004  # m: the contact target lies this far below the top, so the cup touches it
 PLACE_CLEARANCE = 0.015  # m between the object's bottom and the container's floor at release
 RETREAT = 0.12
 
@@ -53,7 +52,7 @@ def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None,
     ``"not grasped"``, ``"near-singular"`` or ``"unreachable"`` (tracking error above ``arm.execution.TRACKING_LIMIT``, with or
     without the arm's Jacobian getting near-singular), ``"collision"`` (the arm touched the container),
     ``"missed container"``), the measured ``tip [T, 3]``, the ``tracking_error [T]``
-    (m), ``grasp_step`` and ``min_singular_value`` (of the arm's position Jacobian, over the run).
+    (m), ``grasp_step``, ``grasped`` and ``min_singular_value`` (of the arm's 6 x 6 Jacobian, over the run).
     """
     run = follow(env, trajectory, settle, env.container_geoms, frames, frame_every)
     success = env.object_in_container()

@@ -35,7 +35,7 @@ def record_source(env: PackingEnv, scene: Scene = SOURCE_SCENE) -> dict:
     return {"scene": scene, "keypoints": kp["keypoints"], "box": kp["box"], "trajectory": trajectory, "result": result}
 
 
-def transport_demo(source: dict, target_keypoints: np.ndarray, make_map: Callable[[], TransportMap]) -> dict:
+def transport_source(source: dict, target_keypoints: np.ndarray, make_map: Callable[[], TransportMap]) -> dict:
     """The source's trajectory carried by a map fitted from its 32 keypoints to ``target_keypoints [32, 3]``
     (:func:`kpflow.tasks.arm.transfer.transport_demo`)."""
     return transfer.transport_demo(source["trajectory"], source["keypoints"], target_keypoints, make_map)
@@ -53,7 +53,7 @@ def run_trial(
     env.reset_to(scene)
     kp = packing_keypoints(env, reference_yaw=source["box"]["yaw"])
     box_error = box_corner_error(kp["box"]["corners"], env.object_box())  # before anything moves
-    moved = transport_demo(source, kp["keypoints"], make_map)
+    moved = transport_source(source, kp["keypoints"], make_map)
     result = execute(env, moved, frames=frames)
     return {
         "scene": scene.as_dict(),

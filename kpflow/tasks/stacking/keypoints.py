@@ -1,8 +1,8 @@
 """Keypoints of the stacking task, found in the camera images (the paper's Section 3.2).
 
 The image taken before the demonstration and the image of the new scene are matched by a dense backbone
-(:func:`kpflow.vision.find_correspondences`: at most 7 salient best-buddy pairs, spread over appearance or over the
-image); both pixels of each
+(:func:`kpflow.vision.find_correspondences`: at most ``max_pairs`` (7) salient best-buddy pairs, spread over
+appearance or over the image); both pixels of each
 pair are lifted to 3-D with their own depth (:func:`kpflow.vision.lift_pixels`). To these the end effector's start
 box is added (the arm starts where it started, :func:`kpflow.tasks.arm.keypoints.end_effector_box`).
 
@@ -73,8 +73,9 @@ def image_pairs(
 
 
 def oracle_pairs(before: dict, now: dict, boxes_before: dict, poses_before: dict, poses_now: dict) -> dict:
-    """Exact pairs: the centre and two adjacent inset corners (not in a line with it) of each block's top face (``boxes_before``: name ->
-    ``(centre, rotation, half extents)``), carried by the true motion; pixels by projection, for the match images."""
+    """Exact pairs: the centre and two adjacent inset corners (not in a line with it: a line leaves the turn about it
+    free) of each block's top face (``boxes_before``: name -> ``(centre, rotation, half extents)``), carried by the
+    true motion; pixels by projection, for the match images."""
     offsets = np.array([[0.0, 0.0, 1.0], [0.6, 0.6, 1.0], [0.6, -0.6, 1.0]])
     source, labels = [], []
     for name in BLOCKS:

@@ -60,7 +60,7 @@ def sample_scene(condition: str, index: int, seed: int = 0, source: Scene = SOUR
         xy = [rng.uniform((AREA_X[0], SIDE_Y[s][0]), (AREA_X[1], SIDE_Y[s][1])) for s in sides]
         if np.linalg.norm(xy[0] - xy[1]) >= MIN_GAP:
             break
-    yaws = [source.cheese_pose[2] + rng.uniform(-YAW_RANGE, YAW_RANGE), source.lettuce_pose[2] + rng.uniform(-YAW_RANGE, YAW_RANGE)]
+    yaws = [pose[2] + rng.uniform(-YAW_RANGE, YAW_RANGE) for pose in (source.cheese_pose, source.lettuce_pose)]
     return Scene(
         (float(xy[0][0]), float(xy[0][1]), float(yaws[0])), (float(xy[1][0]), float(xy[1][1]), float(yaws[1]))
     )

@@ -11,9 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from kpflow.tasks.arm.execution import arm_failure, follow
-from kpflow.tasks.arm.motion import cup_down, segments_to_trajectory, yaw_of
+from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory, yaw_of
 
-PRESS = 0.004  # m: the contact target lies this far below the top, so the cup touches it
 LIFT = 0.12  # m: the cheese's bottom clears the lettuce's top by this much while carried
 PLACE_CLEARANCE = 0.006  # m between the cheese's bottom and the lettuce's top at release
 RETREAT = 0.10
@@ -55,14 +54,15 @@ def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None,
 
     Returns :func:`~kpflow.tasks.arm.execution.follow`'s record plus ``success`` (the cheese rests on the lettuce,
     :meth:`~.env.StackingEnv.stacked`) and ``failure``: None, the arm's reason
-    (:func:`~kpflow.tasks.arm.execution.arm_failure`), ``"grasped the lettuce"`` or ``"missed the lettuce"``.
+    (:func:`~kpflow.tasks.arm.execution.arm_failure`; no geoms are watched for collisions here, so never
+    ``"collision"``), ``"grasped the lettuce"`` (the wrong block) or ``"missed the lettuce"``.
     """
     run = follow(env, trajectory, settle, frames=frames, frame_every=frame_every)
     success = env.stacked()
     failure = None
     if not success:
         if run["grasped"] is not None and run["grasped"] != env.grasp_object:
-            failure = "grasped the lettuce"
+            failure = f"grasped the {run['grasped']}"
         else:
             failure = arm_failure(run) or "missed the lettuce"
     return {"success": bool(success), "failure": failure, **run}

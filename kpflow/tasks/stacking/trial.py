@@ -87,22 +87,24 @@ def run_trial(
 
     Returns ``success``/``failure`` (``"no correspondences"`` when no pair is left), the ``pairs`` (pixels, 3-D
     points, labels, ``errors_mm`` against the truth, ``kept``), ``n_pairs`` (kept) and ``rejected``, ``pairs_on``
-    (block -> how many kept source points lie on it), ``pair_error_mm`` (median of the kept), ``grasp_error_deg`` and ``grasp_error_mm``, ``place_yaw_error_deg`` (the
-    cheese's yaw against the lettuce's at the end, half turns equal), ``max_std`` (of the map along the path), the
-    ``trajectory``, the measured ``tip`` and ``now_rgb`` (the new scene's image).
+    (block -> how many kept source points lie on it), ``pair_error_mm`` (median of the kept), ``grasp_error_deg``
+    and ``grasp_error_mm``, ``place_yaw_error_deg`` (the cheese's yaw against the lettuce's at the end, half turns
+    equal), ``max_std`` (of the map along the path), the ``trajectory``, the measured ``tip`` and ``now_rgb`` (the
+    new scene's image).
     """
+    oracle = isinstance(backbone, str)
+    if oracle and backbone != ORACLE:
+        raise ValueError(f"backbone must be a DenseBackbone or {ORACLE!r}, got {backbone!r}")
     env.reset_to(scene)
     now = _state(env)
-    if isinstance(backbone, str):
-        if backbone != ORACLE:
-            raise ValueError(f"backbone must be a DenseBackbone or {ORACLE!r}, got {backbone!r}")
+    if oracle:
         pairs = oracle_pairs(source["image"], now["image"], source["boxes"], source["poses"], now["poses"])
     else:
         pairs = image_pairs(source["image"], now["image"], backbone, max_pairs, saliency_threshold, seed, spread)
     truth = true_targets(pairs["source"], pairs["labels"], source["poses"], now["poses"])
     pairs["errors_mm"] = 1e3 * np.linalg.norm(pairs["target"] - truth, axis=1)
     pairs["kept"] = np.ones(len(truth), bool)
-    if consistency is not None and backbone != ORACLE:
+    if consistency is not None and not oracle:
         pairs["kept"] = rigidly_consistent(pairs["source"], pairs["target"], **consistency)
     kept = pairs["kept"]
     record = {
@@ -115,8 +117,9 @@ def run_trial(
         "now_rgb": now["image"]["rgb"],
     }
     if not kept.any():
-        return {**record, "success": False, "failure": "no correspondences", "grasp_error_deg": float("nan"),
-                "grasp_error_mm": float("nan"), "place_yaw_error_deg": float("nan"), "max_std": float("nan")}  # fmt: skip
+        nan = float("nan")
+        return {**record, "success": False, "failure": "no correspondences", "grasp_error_deg": nan,
+                "grasp_error_mm": nan, "place_yaw_error_deg": nan, "max_std": nan, "trajectory": None, "tip": None}  # fmt: skip
     kp_source = np.concatenate([source["start_box"], pairs["source"][kept]])
     kp_target = np.concatenate([now["start_box"], pairs["target"][kept]])
     moved = transport_demo(source["trajectory"], kp_source, kp_target, make_map)
