@@ -10,15 +10,14 @@ error), ``trajectories.png`` (source and transported paths with the keypoints) a
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from collections import Counter
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from kpflow.eval import plots
+from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
 from kpflow.utils.video import write_video
 from kpflow.utils.io import save_figure, write_json, write_text
@@ -36,7 +35,7 @@ def _init(maps: dict, source: dict | None, camera_size) -> None:
     torch.set_num_threads(1)
     env = PackingEnv(camera_size=tuple(camera_size))
     scene = Scene(**source) if source else SOURCE_SCENE
-    _WORKER.update(env=env, maps=maps, source=record_source(env, scene))
+    _WORKER.update(env=env, maps=maps, source=record_source(env, scene), init=(maps, source, camera_size))
 
 
 def _trial(job: tuple) -> dict:
@@ -126,23 +125,11 @@ def run_packing_experiment(
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(c, i, seed, m) for c in conditions for m in maps for i in range(n_trials)]
     init = (dict(maps), None if source is None else dict(source), tuple(camera_size))
-    if workers > 1:
-        pool = mp.get_context("fork").Pool(workers, initializer=_init, initargs=init)
-        results = pool.imap(_trial, jobs)
-    else:
-        pool = None
-        _init(*init)
-        results = map(_trial, jobs)
-    try:
-        trials = list(tqdm(results, total=len(jobs), desc="packing trials", unit="trial", disable=not progress))
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
+    trials = map_jobs(_trial, jobs, workers, _init, init, desc="packing trials", unit="trial", progress=progress)
     summaries = {(c, m): summarise([t for t in trials if t["condition"] == c and t["map"] == m]) for c in conditions for m in maps}
     md = table(summaries)
 
-    if not _WORKER:
+    if _WORKER.get("init") != init:  # this process has not set up this run's simulator yet
         _init(*init)
     env, src = _WORKER["env"], _WORKER["source"]
     first_map = "gp" if "gp" in maps else next(iter(maps))

@@ -10,14 +10,13 @@ min(max coverage / 0.95, 1).
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from kpflow.eval import plots
+from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
 from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.utils.video import write_video
@@ -186,14 +185,7 @@ def run_pusht_experiment(
         for i in range(STANDARD_EPISODES if p == "standard" else n_configs)
     ]
     _POLICY = policy
-    pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
-    try:
-        results = pool.imap(_episode, jobs) if pool else map(_episode, jobs)
-        episodes = list(tqdm(results, total=len(jobs), desc=f"evaluate {name}", unit="ep", disable=not progress))
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
+    episodes = map_jobs(_episode, jobs, workers, desc=f"evaluate {name}", unit="ep", progress=progress)
     summaries = {p: summarise([e for e in episodes if e["protocol"] == p]) for p in protocols}
     md = table(summaries, name)
     _plot(summaries, episodes, name, out / "success.png")

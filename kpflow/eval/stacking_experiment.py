@@ -15,15 +15,14 @@ trials per condition and keypoint source (with the first map).
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from collections import Counter
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from kpflow.eval import plots
+from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.video import write_video
@@ -169,19 +168,7 @@ def run_stacking_experiment(
     jobs = [(c, i, seed, b, m) for c in conditions for b in sources for m in maps for i in range(n_trials)]
     pairs = {"max_pairs": max_pairs, "saliency_threshold": saliency_threshold, "spread": spread, "consistency": consistency}
     init = (dict(backbones), dict(maps), None if source is None else dict(source), tuple(camera_size), pairs)
-    if workers > 1:
-        pool = mp.get_context("fork").Pool(workers, initializer=_init, initargs=init)
-        results = pool.imap(_trial, jobs)
-    else:
-        pool = None
-        _init(*init)
-        results = map(_trial, jobs)
-    try:
-        trials = list(tqdm(results, total=len(jobs), desc="stacking trials", unit="trial", disable=not progress))
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
+    trials = map_jobs(_trial, jobs, workers, _init, init, desc="stacking trials", unit="trial", progress=progress)
     summaries = {
         (c, b, m): summarise([t for t in trials if (t["condition"], t["backbone"], t["map"]) == (c, b, m)], good_mm)
         for c in conditions for b in sources for m in maps
