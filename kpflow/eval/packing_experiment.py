@@ -10,7 +10,6 @@ error), ``trajectories.png`` (source and transported paths with the keypoints) a
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 from typing import Callable
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
-from kpflow.eval.stats import wilson_interval
+from kpflow.eval.stats import success_cells, success_summary
 from kpflow.utils.video import write_video
 from kpflow.utils.io import save_figure, write_json, write_text
 
@@ -51,13 +50,8 @@ def _trial(job: tuple) -> dict:
 
 def summarise(trials: list[dict]) -> dict:
     """Success rate with its 95% Wilson interval, failure reasons and perception error of a group of trials."""
-    n, k = len(trials), sum(t["success"] for t in trials)
     return {
-        "trials": n,
-        "successes": k,
-        "success": k / n,
-        "ci": wilson_interval(k, n),
-        "failures": dict(Counter(t["failure"] for t in trials if not t["success"])),
+        **success_summary(trials),
         "box_error_mm_median": float(np.median([t["box_error_mm"] for t in trials])),
     }
 
@@ -68,12 +62,7 @@ def table(summaries: dict) -> str:
         "|---|---|---|---|---|---|",
     ]
     for (condition, map_name), s in summaries.items():
-        lo, hi = s["ci"]
-        reasons = ", ".join(f"{r}: {c}" for r, c in sorted(s["failures"].items())) or "-"
-        rows.append(
-            f"| {condition} | {map_name} | {s['trials']} | {s['successes']}/{s['trials']} = {100 * s['success']:.0f}% "
-            f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons} | {s['box_error_mm_median']:.1f} |"
-        )
+        rows.append(f"| {condition} | {map_name} | {s['trials']} | {success_cells(s)} | {s['box_error_mm_median']:.1f} |")
     return "\n".join(rows) + "\n"
 
 

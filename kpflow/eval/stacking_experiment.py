@@ -15,7 +15,6 @@ trials per condition and keypoint source (with the first map).
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 from typing import Callable
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
-from kpflow.eval.stats import wilson_interval
+from kpflow.eval.stats import success_cells, success_summary
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.video import write_video
 
@@ -73,15 +72,10 @@ def _median(values) -> float:
 
 def summarise(trials: list[dict], good_mm: float) -> dict:
     """Success with its 95% Wilson interval, failure reasons, correspondence and grasp errors of a group of trials."""
-    n, k = len(trials), sum(t["success"] for t in trials)
     errors = np.concatenate([t["pair_errors_mm"] for t in trials]) if trials else np.empty(0)
     rejected = np.concatenate([t["rejected_errors_mm"] for t in trials]) if trials else np.empty(0)
     return {
-        "trials": n,
-        "successes": k,
-        "success": k / n,
-        "ci": wilson_interval(k, n),
-        "failures": dict(Counter(t["failure"] for t in trials if not t["success"])),
+        **success_summary(trials),
         "pairs_mean": float(np.mean([t["n_pairs"] for t in trials])),
         "no_pair_on_cheese": sum(t["pairs_on"]["cheese"] == 0 for t in trials),
         "rejected": len(rejected),
@@ -103,13 +97,9 @@ def table(summaries: dict, good_mm: float) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (condition, backbone, map_name), s in summaries.items():
-        lo, hi = s["ci"]
-        reasons = ", ".join(f"{r}: {c}" for r, c in sorted(s["failures"].items())) or "-"
         rows.append(
-            f"| {condition} | {backbone} | {map_name} | {s['successes']}/{s['trials']} = {100 * s['success']:.0f}% "
-            f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons} | {s['pairs_mean']:.1f} | {s['rejected']} ({s['rejected_wrong']}) "
-            f"| {s['no_pair_on_cheese']} "
-            f"| {s['pair_error_mm_median']:.1f} "
+            f"| {condition} | {backbone} | {map_name} | {success_cells(s)} | {s['pairs_mean']:.1f} "
+            f"| {s['rejected']} ({s['rejected_wrong']}) | {s['no_pair_on_cheese']} | {s['pair_error_mm_median']:.1f} "
             f"| {100 * s['pairs_good']:.0f}% | {s['grasp_error_deg_median']:.1f} | {s['grasp_error_mm_median']:.1f} "
             f"| {s['place_yaw_error_deg_median']:.1f} |"
         )

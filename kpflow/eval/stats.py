@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -13,3 +14,26 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def success_summary(trials: list[dict]) -> dict:
+    """``trials``, ``successes``, ``success`` (rate), ``ci`` (95% Wilson) and ``failures`` (reason -> count) of trials
+    that each have ``success`` and ``failure``."""
+    n, k = len(trials), sum(t["success"] for t in trials)
+    return {
+        "trials": n,
+        "successes": k,
+        "success": k / n if n else float("nan"),
+        "ci": wilson_interval(k, n),
+        "failures": dict(Counter(t["failure"] for t in trials if not t["success"])),
+    }
+
+
+def success_cells(summary: dict) -> str:
+    """``k/n = p% [lo, hi] | reasons`` of a :func:`success_summary`: two cells of a markdown table row."""
+    lo, hi = summary["ci"]
+    reasons = ", ".join(f"{r}: {c}" for r, c in sorted(summary["failures"].items())) or "-"
+    return (
+        f"{summary['successes']}/{summary['trials']} = {100 * summary['success']:.0f}% "
+        f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons}"
+    )
