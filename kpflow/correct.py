@@ -23,23 +23,19 @@ from omegaconf import DictConfig
 
 from kpflow.data.corrections import collect_corrections
 from kpflow.data.demos import ensure_pusht_demos
-from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.eval import plots
 from kpflow.eval.pusht_experiment import run_pusht_experiment
-from kpflow.utils.io import save_figure, write_json, write_text
+from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
 from kpflow.utils.run import start_run
 
 
 def copy_store(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
-    """Copy an episode store folder to ``dest`` through a temporary sibling folder and a rename (``dest`` must not exist)."""
-    dest = Path(dest)
-    if dest.exists():
-        raise FileExistsError(f"{dest} exists already; corrections grow a fresh copy")
-    tmp = dest.with_name(f".{dest.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(src, tmp)
-    os.replace(tmp, dest)
-    return dest
+    """Copy an episode store folder to ``dest`` (which must not exist) through a temporary sibling folder and a
+    rename, without the source's write lock file."""
+    with atomic_dir(dest) as tmp:
+        shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(LOCK_NAME))
+    return Path(dest)
 
 
 def rounds_table(reports: list[dict], start_steps: int, evals: list[dict | None]) -> str:

@@ -186,8 +186,8 @@ def test_crash_before_commit_loses_only_that_episode(filled, monkeypatch):
     path, episodes = filled
     with monkeypatch.context() as m:
         crash_before_commit(m)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            EpisodeStore(path, mode="a").add_episode(make_episode(6, 20), attrs={"seed": 20})
+        with pytest.raises(RuntimeError, match="simulated crash"), EpisodeStore(path, mode="a") as store:
+            store.add_episode(make_episode(6, 20), attrs={"seed": 20})
     raw = zarr.open(str(path), mode="r")
     assert raw["data/action"].shape[0] == sum(LENGTHS) + 6  # the rows are on disk, uncommitted
     assert len(raw["meta"].attrs["episode_attrs"]) == 5
@@ -206,29 +206,186 @@ def test_crash_before_commit_loses_only_that_episode(filled, monkeypatch):
     assert len(raw["meta"].attrs["episode_attrs"]) == 5
 
 
-def test_half_written_data_and_torn_commit(filled):
-    """Mimic crashes with raw zarr: data arrays resized unevenly, and episode_ends grown without its value."""
+def test_torn_commit_is_an_uncommitted_episode(filled, monkeypatch):
+    """A crash between zarr's two writes of an append to episode_ends (.zarray grown, value not written)."""
     path, episodes = filled
-    raw = zarr.open(str(path), mode="a")
-    raw["data/action"].resize(sum(LENGTHS) + 4, 2)
-    raw["data/state"].resize(sum(LENGTHS) + 2, 5)
-    raw["meta/episode_ends"].resize(len(LENGTHS) + 1)  # .zarray written, chunk not: reads as fill value 0
-    assert raw["meta/episode_ends"][-1] == 0
-    assert_same(EpisodeStore(path), episodes)
 
-    store = EpisodeStore(path, mode="a")
-    assert raw["meta/episode_ends"].shape == (len(LENGTHS),)
-    more = make_episode(3, 30)
-    store.add_episode(more)
+    def torn(self, end):
+        self._ends_array.resize(len(self._ends) + 1)  # what Array.append writes first
+        raise RuntimeError("simulated crash")
+
+    with monkeypatch.context() as m:
+        m.setattr(EpisodeStore, "_commit", torn)
+        with pytest.raises(RuntimeError, match="simulated crash"), EpisodeStore(path, mode="a") as store:
+            store.add_episode(make_episode(6, 20))
+    raw = zarr.open(str(path), mode="r")
+    assert raw["meta/episode_ends"][-1] == 0 and raw["meta/episode_ends"].shape == (len(LENGTHS) + 1,)
+    assert_same(EpisodeStore(path), episodes)  # readers ignore it
+
+    with EpisodeStore(path, mode="a") as store:  # appending removes it first
+        assert raw["meta/episode_ends"].shape == (len(LENGTHS),) and raw["data/state"].shape[0] == sum(LENGTHS)
+        more = make_episode(3, 30)
+        store.add_episode(more)
     assert_same(EpisodeStore(path), [*episodes, more])
+    assert "pending_episode" not in zarr.open(str(path), mode="r")["meta"].attrs
+
+
+def damage(path: Path, how: str) -> None:
+    """Damage a filled store with raw zarr the way a bug or a hand edit would (no append was in progress)."""
+    raw = zarr.open(str(path), mode="a")
+    ends = raw["meta/episode_ends"]
+    if how == "last end not above the one before":
+        ends[-1] = ends[-2]
+    elif how == "index shorter than the data":
+        ends.resize(len(LENGTHS) - 2)
+    elif how == "empty index with full data":
+        ends.resize(0)
+    elif how == "index longer than the data":
+        for name in ("action", "keypoints", "state"):
+            raw[f"data/{name}"].resize(sum(LENGTHS) - 5, *raw[f"data/{name}"].shape[1:])
+    elif how == "more episode attrs than episodes":
+        raw["meta"].attrs["episode_attrs"] = [{}] * (len(LENGTHS) + 2)
+    elif how == "one array longer than the index":
+        raw["data/state"].resize(sum(LENGTHS) + 4, 5)
+
+
+DAMAGE = {
+    "last end not above the one before": "not strictly increasing from 0 at index 3",
+    "index shorter than the data": r"data/\w+ has 23 rows but meta/episode_ends ends at row 10, and no append was in progress",
+    "empty index with full data": r"has 23 rows but the index is empty",
+    "index longer than the data": r"has 18 rows but meta/episode_ends says 23: rows were lost",
+    "more episode attrs than episodes": "lists attrs for 6 episodes but the store holds 4",
+    "one array longer than the index": r"data/state has 27 rows but meta/episode_ends ends at row 23",
+}
+
+
+@pytest.mark.parametrize("how", DAMAGE)
+def test_damaged_index_is_refused_and_left_as_it_is(filled, how):
+    path, _ = filled
+    damage(path, how)
+    before = {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and p.name != ".kpflow-write.lock"}
+    for mode in ("r", "a"):
+        with pytest.raises(ValueError, match=DAMAGE[how]):
+            EpisodeStore(path, mode=mode)
+    after = {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and p.name != ".kpflow-write.lock"}
+    assert after == before  # nothing was "repaired"
+
+
+def test_missing_chunk_is_an_error_naming_the_field(tmp_path):
+    path = tmp_path / "s.zarr"
+    with EpisodeStore(path, mode="a") as store:
+        for seed in range(3):
+            store.add_episode({"obs": np.ones((700, 2), np.float32) * seed, "action": np.ones((700, 1))})
+    (path / "data" / "obs" / "1.0").unlink()  # rows 1024..2047 of obs
+    for mode in ("r", "a"):
+        with pytest.raises(ValueError, match=r"field 'obs' is missing 1 chunk\(s\) of its first 2100 rows \(data/obs/1.0\)"):
+            EpisodeStore(path, mode=mode)
+
+
+def test_damaged_chunk_and_metadata_name_the_field(filled):
+    path, _ = filled
+    (path / "data" / "action" / "0.0").write_bytes(b"\x00garbage" * 50)
+    store = EpisodeStore(path)
+    with pytest.raises(ValueError, match=f"{path}: field 'action' could not be read: a chunk is damaged"):
+        store.episode(0)
+    with pytest.raises(ValueError, match="field 'action' could not be read"):
+        store.field("action")
+    good = (path / "data" / "state" / ".zarray").read_text()
+    (path / "data" / "state" / ".zarray").write_text("{not json")
+    for mode in ("r", "a"):
+        with pytest.raises(ValueError, match=f"{path}: field 'state' has damaged metadata \\(data/state/.zarray: JSONDecodeError"):
+            EpisodeStore(path, mode=mode)
+    (path / "data" / "state" / ".zarray").write_text(good)
+    (path / "meta" / ".zattrs").write_text("[[[")
+    with pytest.raises(ValueError, match=r"meta/.zattrs is damaged"):
+        EpisodeStore(path)
+
+
+def test_second_writer_fails_clearly_or_waits(filled):
+    import threading
+    import time
+
+    path, episodes = filled
+    first = EpisodeStore(path, mode="a")
+    with pytest.raises(TimeoutError, match="is being written by another process"):
+        EpisodeStore(path, mode="a")
+    with pytest.raises(TimeoutError, match=r"is being written by another process \(.*held by process \d+ after 0.2 s"):
+        EpisodeStore(path, mode="a", wait=0.2)
+    EpisodeStore(path)  # readers take no lock
+    threading.Timer(0.3, first.close).start()
+    t0 = time.monotonic()
+    with EpisodeStore(path, mode="a", wait=None) as second:  # waits for the first to close
+        assert time.monotonic() - t0 >= 0.25
+        second.add_episode(make_episode(2, 50))
+    with pytest.raises(PermissionError, match="was closed"):
+        first.add_episode(make_episode(2, 51))
+    assert_same(EpisodeStore(path), [*episodes, make_episode(2, 50)])
+
+
+def _append(path: str, worker: int) -> None:
+    for k in range(5):
+        with EpisodeStore(path, mode="a", wait=None) as store:
+            store.add_episode({"x": np.full((3 + k, 2), 10 * worker + k, np.float32)}, attrs={"worker": worker, "k": k})
+
+
+def test_concurrent_writers_append_whole_episodes(tmp_path):
+    import multiprocessing as mp
+
+    path = str(tmp_path / "s.zarr")
+    procs = [mp.get_context("fork").Process(target=_append, args=(path, w)) for w in range(4)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+        assert p.exitcode == 0
+    store = EpisodeStore(path)
+    assert len(store) == 20
+    seen = set()
+    for i in range(20):
+        a = store.episode_attrs(i)
+        x = store.episode(i)["x"]
+        assert x.shape == (3 + a["k"], 2) and (x == 10 * a["worker"] + a["k"]).all()
+        seen.add((a["worker"], a["k"]))
+    assert len(seen) == 20
+
+
+KILLED_WRITER = """
+import sys, numpy as np
+from kpflow.data.episode_store import EpisodeStore
+store = EpisodeStore(sys.argv[1], mode="a")
+for i in range(100000):
+    store.add_episode({"x": np.full((50, 200), i, np.float64)}, attrs={"i": i})
+    print(i, flush=True)
+"""
+
+
+def test_killed_writer_leaves_only_committed_episodes(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    path = tmp_path / "s.zarr"
+    for _ in range(3):
+        proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(path)], stdout=subprocess.PIPE, text=True)
+        for _ in range(20):
+            proc.stdout.readline()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        store = EpisodeStore(path)  # a reader sees whole episodes only
+        for i in range(len(store)):
+            assert (store.episode(i)["x"] == store.episode_attrs(i)["i"]).all()
+        with EpisodeStore(path, mode="a") as store:  # the lock died with the writer; the torn episode is removed
+            assert not list(path.rglob("*.partial"))
+            n = len(store)
+        assert n >= 20
 
 
 def test_crash_during_first_episode(tmp_path, monkeypatch):
     path = tmp_path / "s.zarr"
     with monkeypatch.context() as m:
         crash_before_commit(m)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            EpisodeStore(path, mode="a").add_episode(make_episode(4, 0))
+        with pytest.raises(RuntimeError, match="simulated crash"), EpisodeStore(path, mode="a") as store:
+            store.add_episode(make_episode(4, 0))
     assert zarr.open(str(path), mode="r")["data/action"].shape[0] == 4
     store = EpisodeStore(path)
     assert (store.n_episodes, store.n_steps, store.fields) == (0, 0, ())

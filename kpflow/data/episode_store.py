@@ -7,21 +7,32 @@ A store is a zarr group holding
 
 so existing datasets such as Diffusion Policy's ``pusht_cchi_v7_replay.zarr`` open as they are.
 
-Crash safety: :meth:`EpisodeStore.add_episode` writes the new data rows first and appends to
-``meta/episode_ends`` last; that append is the commit point. Rows past ``episode_ends[-1]`` are an
-uncommitted (crashed) episode: readers ignore them and mode ``"a"`` truncates them before appending.
-zarr 2.18's ``DirectoryStore.__setitem__`` writes every key (chunk or ``.zarray``/``.zattrs``
-metadata) to a ``*.partial`` temp file and moves it into place with ``os.replace``, so no single key is
-ever half-written. Appending to ``episode_ends`` is two such writes (``Array._append_nosync`` writes
-the grown ``.zarray`` then the chunk); a crash between them leaves a last entry that reads as the fill
-value 0, i.e. not greater than the previous end, which is recognised as an uncommitted episode.
-(This protects against a crashing process, not against power loss: nothing is fsync'ed.)
-A single writer is assumed.
+Crash safety. zarr 2.18's ``DirectoryStore`` writes every key (a chunk, ``.zarray`` or ``.zattrs``) to a
+``*.partial`` temporary and renames it into place, so no single key is ever half-written. :meth:`EpisodeStore.add_episode`
+writes in three steps:
+
+1. ``meta/.zattrs`` gains ``pending_episode = {"episode": E, "start": s, "end": e}`` (and the episode's attrs);
+2. the data rows ``[s, e)``;
+3. ``e`` is appended to ``meta/episode_ends``: the commit point. Then the pending mark is cleared.
+
+So the only states a crash can leave are the ones the pending mark describes: data rows past ``s`` (at most up to
+``e``), and ``episode_ends`` grown by one entry that reads as its fill value 0 (zarr's append writes the grown
+``.zarray`` before the chunk). Readers ignore such an uncommitted episode; mode ``"a"`` removes it before
+appending. Everything else that is inconsistent (ends not increasing, an index shorter or longer than the data, data
+with an empty index, per-episode attrs beyond the episodes, a missing chunk) is damage, not a torn append: every open
+refuses it with an error that says what is wrong, and changes nothing. (This protects against a crashing process,
+not against power loss: nothing is fsync'ed.)
+
+One writer at a time: mode ``"a"`` takes an exclusive lock (:class:`~kpflow.utils.file_lock.FileLock`, an
+``fcntl.flock`` on ``<store>/.kpflow-write.lock``, released when the store is closed or its process dies) before it looks at the
+store. A second writer waits up to ``wait`` seconds (``None``: as long as it takes) and then fails with an error
+that says another process is writing. Readers take no lock and see only committed episodes.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -29,11 +40,16 @@ import numpy as np
 import zarr
 from numcodecs import Blosc
 
+from ..utils.file_lock import FileLock
+from .zarr_checks import check_chunks, open_array, read
+
 # Same codec as the standard Push-T replay buffer.
 _COMPRESSOR = Blosc(cname="zstd", clevel=5, shuffle=Blosc.BITSHUFFLE)
 _MAX_CHUNK_ROWS = 1024
 _TARGET_CHUNK_BYTES = 1 << 22  # keep image chunks at a few MB
 _EPISODE_ATTRS = "episode_attrs"  # key of the per-episode attrs list in meta/.zattrs
+_PENDING = "pending_episode"  # key of the write-ahead mark of an append in progress, in meta/.zattrs
+LOCK_NAME = ".kpflow-write.lock"
 
 
 def _chunk_rows(row_bytes: int) -> int:
@@ -41,21 +57,62 @@ def _chunk_rows(row_bytes: int) -> int:
     return max(1, min(_MAX_CHUNK_ROWS, _TARGET_CHUNK_BYTES // max(row_bytes, 1)))
 
 
-def _committed_ends(ends: np.ndarray, n_rows: int, where: str) -> np.ndarray:
-    """The committed prefix of ``episode_ends``.
-
-    A last entry not greater than the previous end (the fill value of a torn append) is an
-    uncommitted episode and is dropped. Any other inconsistency is corruption and raises.
-    """
-    if len(ends) and ends[-1] <= (ends[-2] if len(ends) > 1 else 0):
-        ends = ends[:-1]
+def _check_ends(ends: np.ndarray, where: str) -> None:
+    """Raise unless ``ends`` is strictly increasing from above 0 (every episode has at least one row)."""
     starts = np.concatenate([[0], ends[:-1]])
     bad = np.flatnonzero(ends <= starts)
     if len(bad):
-        raise ValueError(f"{where}: meta/episode_ends is not strictly increasing at index {bad[0]}: {ends[: bad[0] + 1][-2:]}")
-    if len(ends) and ends[-1] > n_rows:
-        raise ValueError(f"{where}: meta/episode_ends[-1] = {ends[-1]} exceeds the {n_rows} rows of the shortest data array")
-    return ends
+        i = int(bad[0])
+        raise ValueError(
+            f"{where}: meta/episode_ends is not strictly increasing from 0 at index {i} "
+            f"({int(starts[i])} -> {int(ends[i])}): the index is damaged; nothing was changed"
+        )
+
+
+def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: int | None, where: str) -> tuple[int, bool]:
+    """How many entries of ``raw`` (the stored ``episode_ends``) are committed, and whether an uncommitted append
+    (or a stale pending mark) is left to clean up; raise ``ValueError`` for any state a torn append cannot leave.
+
+    ``rows``: the row count of every data array; ``n_attrs``: the length of the per-episode attrs list (None if
+    absent)."""
+    n = len(raw)
+    if pending is not None:
+        try:
+            e, start, end = int(pending["episode"]), int(pending["start"]), int(pending["end"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{where}: meta/.zattrs holds a malformed {_PENDING} mark {pending!r}; nothing was changed") from None
+        if n == e + 1 and raw[-1] == end:  # committed; only the mark was left
+            n = e + 1
+        elif n == e + 1 and raw[-1] == 0:  # torn commit: .zarray grown, value not written
+            n = e
+        elif n == e:
+            pass
+        else:
+            raise ValueError(
+                f"{where}: an append of episode {e} was in progress, but meta/episode_ends holds {len(raw)} entries: "
+                "the index is damaged; nothing was changed"
+            )
+        prev = int(raw[e - 1]) if e else 0
+        if prev != start:
+            raise ValueError(f"{where}: the pending episode {e} starts at row {start} but episode {e - 1} ends at {prev}: the index is damaged")
+        limit = end if n == e else int(raw[n - 1])
+        committed = int(raw[n - 1]) if n else 0
+    else:
+        limit = committed = int(raw[-1]) if n else 0
+    _check_ends(raw[:n], where)
+    for name, count in rows.items():
+        if count < committed:
+            raise ValueError(f"{where}: data/{name} has {count} rows but meta/episode_ends says {committed}: rows were lost")
+        if count > limit:
+            what = "the index is empty" if not n else f"meta/episode_ends ends at row {committed}"
+            raise ValueError(
+                f"{where}: data/{name} has {count} rows but {what}, and no append was in progress that could have "
+                "left them: the index is damaged; nothing was changed"
+            )
+    if n_attrs is not None and n_attrs > n + (pending is not None and n == int(pending["episode"])):
+        raise ValueError(f"{where}: meta/.zattrs lists attrs for {n_attrs} episodes but the store holds {n}: the metadata is damaged")
+    dirty = pending is not None or n < len(raw) or any(c > committed for c in rows.values())
+    return n, dirty
 
 
 class EpisodeStore:
@@ -64,38 +121,68 @@ class EpisodeStore:
     Args:
         path: directory of the zarr store.
         mode: ``"r"`` read-only (the store must exist) or ``"a"`` (open for appending; created if missing).
+        wait: mode ``"a"``: seconds to wait for another writer's lock (0: fail at once; None: wait as long as it
+            takes).
+
+    Use it as a context manager (or call :meth:`close`) to release the write lock as soon as you are done.
 
     Raises:
         FileNotFoundError: mode ``"r"`` and nothing at ``path``.
-        ValueError: ``path`` is not an episode store (not a zarr group, or no ``meta/episode_ends``).
+        TimeoutError: mode ``"a"`` and another writer held the store for longer than ``wait``.
+        ValueError: ``path`` is not an episode store, or the store is damaged (the message says how; nothing is
+            changed).
     """
 
-    def __init__(self, path: str | Path, mode: str = "r") -> None:
+    def __init__(self, path: str | Path, mode: str = "r", wait: float | None = 0.0) -> None:
         if mode not in ("r", "a"):
             raise ValueError(f"mode must be 'r' or 'a'; got {mode!r}")
         self.path, self.mode = Path(path), mode
+        self._lock: FileLock | None = None
         if self.path.exists() and not self.path.is_dir():
             raise ValueError(f"{self.path} is not an episode store: it is a file, not a zarr directory")
-        is_group = (self.path / ".zgroup").is_file()
         if mode == "r" and not self.path.exists():
             raise FileNotFoundError(f"no episode store at {self.path}")
-        if not is_group and (mode == "r" or any(self.path.iterdir() if self.path.exists() else ())):
+        is_group = (self.path / ".zgroup").is_file()
+        if not is_group and (mode == "r" or any(p.name != LOCK_NAME for p in (self.path.iterdir() if self.path.exists() else ()))):
             raise ValueError(f"{self.path} is not an episode store: not a zarr group (no .zgroup)")
+        if mode == "a":
+            self._lock = _acquire(self.path, wait)
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
 
-        self._root = zarr.open_group(store=zarr.DirectoryStore(str(self.path)), mode=mode)
-        if not isinstance(self._root.get("meta/episode_ends"), zarr.Array):
+    def _open(self) -> None:
+        where = str(self.path)
+        try:
+            self._root = zarr.open_group(store=zarr.DirectoryStore(where), mode=self.mode)
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, ValueError) as e:
+            raise ValueError(f"{where} is not a readable episode store: damaged .zgroup/.zattrs ({type(e).__name__}: {e})") from e
+        if self.mode == "a":
+            _remove_partials(self.path)
+        if "meta/episode_ends" not in self._root:
             self._init_layout()
         if not isinstance(self._root.get("data"), zarr.Group):
-            raise ValueError(f"{self.path} is not an episode store: missing the data group")
+            raise ValueError(f"{where} is not an episode store: missing the data group")
         self._data: zarr.Group = self._root["data"]
         self._meta: zarr.Group = self._root["meta"]
-        self._ends_array: zarr.Array = self._meta["episode_ends"]
-
-        arrays = dict(self._data.arrays())
-        n_rows = min((a.shape[0] for a in arrays.values()), default=0)
-        self._ends = _committed_ends(np.asarray(self._ends_array[:], dtype=np.int64), n_rows, str(self.path))
-        if mode == "a":
-            self._drop_uncommitted(arrays)
+        self._ends_array = open_array(self._meta, "episode_ends", where)
+        arrays = {name: open_array(self._data, name, where) for name in self._data.array_keys()}
+        raw = np.asarray(read(self._ends_array, slice(None), where, "meta/episode_ends"), dtype=np.int64)
+        try:
+            meta_attrs = self._meta.attrs.asdict()
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
+        pending, listed = meta_attrs.get(_PENDING), meta_attrs.get(_EPISODE_ATTRS)
+        rows = {name: a.shape[0] for name, a in arrays.items()}
+        n, dirty = _uncommitted(raw, pending, rows, None if listed is None else len(listed), where)
+        self._ends = raw[:n]
+        check_chunks(self._ends_array, n, where, "meta/episode_ends")
+        for name, a in arrays.items():
+            check_chunks(a, self.n_steps, where, name)
+        if self.mode == "a" and dirty:
+            self._drop_uncommitted(arrays, n < len(raw))
 
     def _init_layout(self) -> None:
         """Create ``data`` and ``meta/episode_ends`` in an empty group; refuse anything else."""
@@ -108,19 +195,37 @@ class EpisodeStore:
             "episode_ends", shape=(0,), chunks=(_MAX_CHUNK_ROWS,), dtype=np.int64, compressor=_COMPRESSOR, fill_value=0
         )
 
-    def _drop_uncommitted(self, arrays: dict[str, zarr.Array]) -> None:
-        """Mode "a": remove what a crashed :meth:`add_episode` left past the last commit."""
-        if len(self._ends) < self._ends_array.shape[0]:
+    def _drop_uncommitted(self, arrays: dict[str, zarr.Array], torn_commit: bool) -> None:
+        """Mode "a": remove what a crashed :meth:`add_episode` left past the last commit (see the module docstring)."""
+        if torn_commit:
             self._ends_array.resize(len(self._ends))
         if not len(self._ends):  # crash during the first episode: it had fixed the fields, forget them
             for name in arrays:
                 del self._data[name]
-        for name, array in arrays.items():
+        for array in arrays.values():
             if len(self._ends) and array.shape[0] > self.n_steps:
                 array.resize((self.n_steps, *array.shape[1:]))
-        listed = self._meta.attrs.get(_EPISODE_ATTRS)
-        if listed is not None and len(listed) > self.n_episodes:
-            self._meta.attrs[_EPISODE_ATTRS] = listed[: self.n_episodes]
+        attrs = dict(self._meta.attrs.asdict())
+        attrs.pop(_PENDING, None)
+        if _EPISODE_ATTRS in attrs:
+            attrs[_EPISODE_ATTRS] = attrs[_EPISODE_ATTRS][: self.n_episodes]
+        self._meta.attrs.put(attrs)
+
+    def close(self) -> None:
+        """Release the write lock (mode ``"a"``); the store can no longer be appended to through this object."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def __enter__(self) -> "EpisodeStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_lock", None) is not None:
+            self.close()
 
     # ----------------------------------------------------------------------------------------- reading
 
@@ -172,7 +277,7 @@ class EpisodeStore:
     def episode(self, i: int) -> dict[str, np.ndarray]:
         """Every field of episode ``i`` as ``{name: array [T, ...]}``."""
         rows = self.episode_slice(i)
-        return {name: self._data[name][rows] for name in self.fields}
+        return {name: read(self._data[name], rows, str(self.path), name) for name in self.fields}
 
     def episode_attrs(self, i: int) -> dict[str, Any]:
         """The attrs given to :meth:`add_episode` for episode ``i`` (``{}`` if none)."""
@@ -184,7 +289,7 @@ class EpisodeStore:
         """The committed rows of field ``name``, all episodes concatenated, loaded into memory."""
         if name not in self.fields:
             raise KeyError(f"no field {name!r} in {self.path}; fields: {self.fields}")
-        return self._data[name][: self.n_steps]
+        return read(self._data[name], slice(0, self.n_steps), str(self.path), name)
 
     # ----------------------------------------------------------------------------------------- writing
 
@@ -210,22 +315,28 @@ class EpisodeStore:
             except (TypeError, ValueError) as e:
                 raise ValueError(f"episode attrs must be JSON-serialisable: {e}") from e
 
+        if self._lock is None:
+            raise PermissionError(f"{self.path} was closed; open it again with mode='a' to add episodes")
         start = self.n_steps
         end = start + len(next(iter(values.values())))
+        mark = dict(self._meta.attrs.asdict())  # 1. the write-ahead mark (with the episode's attrs): one .zattrs write
+        mark[_PENDING] = {"episode": self.n_episodes, "start": start, "end": end}
+        listed = mark.get(_EPISODE_ATTRS)
+        if attrs is not None or listed is not None:  # per-episode attrs, kept as long as the episode count
+            listed = list(listed or [])[: self.n_episodes]
+            mark[_EPISODE_ATTRS] = listed + [{}] * (self.n_episodes - len(listed)) + [dict(attrs or {})]
+        self._meta.attrs.put(mark)
         if not self.fields:
             for name, v in values.items():
                 chunks = (_chunk_rows(v[0].nbytes), *v.shape[1:])
                 self._data.create(name, shape=(0, *v.shape[1:]), chunks=chunks, dtype=v.dtype, compressor=_COMPRESSOR, fill_value=0, overwrite=True)
-        for name, v in values.items():  # 1. data rows (invisible until committed)
+        for name, v in values.items():  # 2. data rows (invisible until committed)
             array = self._data[name]
             array.resize((end, *array.shape[1:]))
             array[start:end] = v
-        listed = self._meta.attrs.get(_EPISODE_ATTRS)
-        if attrs is not None or listed is not None:  # 2. per-episode attrs, kept as long as the episode count
-            listed = list(listed or [])[: self.n_episodes]
-            listed += [{}] * (self.n_episodes - len(listed)) + [dict(attrs or {})]
-            self._meta.attrs[_EPISODE_ATTRS] = listed
         self._commit(end)  # 3. the commit point
+        del mark[_PENDING]
+        self._meta.attrs.put(mark)
         return self.n_episodes - 1
 
     def _commit(self, end: int) -> None:
@@ -271,3 +382,27 @@ class EpisodeStore:
             if v.dtype.kind in "fc" and not np.isfinite(v).all():
                 raise ValueError(f"field {name!r} contains NaN or inf")
         return values
+
+
+def _acquire(path: Path, wait: float | None) -> FileLock:
+    """The store's exclusive write lock, waiting up to ``wait`` seconds (None: for ever)."""
+    path.mkdir(parents=True, exist_ok=True)
+
+    def say(holder: int | None) -> None:
+        if wait != 0:
+            print(f"waiting for process {holder or '?'} to finish writing {path} ...", file=sys.stderr, flush=True)
+
+    try:
+        return FileLock(path / LOCK_NAME, wait=wait, on_wait=say)
+    except TimeoutError as e:
+        raise TimeoutError(
+            f"{path} is being written by another process ({e}); wait for it to finish, or open the store with "
+            "wait=SECONDS (None: as long as it takes)"
+        ) from None
+
+
+def _remove_partials(path: Path) -> None:
+    """Remove the ``.<key>.<uuid>.partial`` temporaries that zarr's DirectoryStore leaves when killed mid-write
+    (only ever called with the write lock held, so no live writer owns them)."""
+    for leftover in path.rglob(".*.partial"):
+        leftover.unlink(missing_ok=True)

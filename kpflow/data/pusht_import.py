@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +33,7 @@ import zarr
 from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.utils.io import atomic_dir
 from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
 from kpflow.tasks.pusht.splits import FIXED_GOAL
@@ -179,29 +178,19 @@ def import_pusht_replay(
     state, action, ends = read_pusht_replay(source, max_episodes)
     _check_dest(dest, source, overwrite)
 
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
-    try:
-        store = EpisodeStore(tmp, mode="a")
-        store.attrs.update(
-            task="pusht",
-            source=str(source.resolve()),
-            goal="fixed",
-            goal_pose=[float(v) for v in FIXED_GOAL],
-            workspace="standard",
-            n_source_episodes=len(ends),
-        )
-        episodes = _episodes(ends)
-        for i, (a, b) in enumerate(tqdm(episodes, desc="import Push-T", unit="episode", disable=not progress)):
-            store.add_episode(episode_fields(state[a:b], action[a:b]), attrs={"source_episode": i})
-        del store
-        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700
-        if dest.exists():  # checked above: empty, or a store that we may replace
-            shutil.rmtree(dest) if dest.is_dir() else dest.unlink()
-        os.replace(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with atomic_dir(dest, overwrite=True) as tmp:  # checked above: missing, empty, or a store that we may replace
+        with EpisodeStore(tmp, mode="a") as store:
+            store.attrs.update(
+                task="pusht",
+                source=str(source.resolve()),
+                goal="fixed",
+                goal_pose=[float(v) for v in FIXED_GOAL],
+                workspace="standard",
+                n_source_episodes=len(ends),
+            )
+            episodes = _episodes(ends)
+            for i, (a, b) in enumerate(tqdm(episodes, desc="import Push-T", unit="episode", disable=not progress)):
+                store.add_episode(episode_fields(state[a:b], action[a:b]), attrs={"source_episode": i})
     return EpisodeStore(dest, mode="r")
 
 

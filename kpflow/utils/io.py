@@ -1,22 +1,66 @@
-"""Atomic file writes: write to a temporary file in the same folder, then rename over the target, so a crash
-never leaves a half-written file behind."""
+"""Atomic writes: write to a temporary sibling, then rename it over the target, so a crash never leaves a
+half-written file or folder behind.
+
+Temporaries are named ``.<name>.<pid>.<random>.tmp<suffix>`` beside the target (the target's suffix last, for
+writers that choose a format by it). A process killed mid-write (SIGKILL, power
+off) cannot remove its own; the next write of the same target removes every such leftover whose process is gone
+(:func:`remove_stale_temporaries`), and never one that a live process is still writing.
+"""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+TMP_SUFFIX = ".tmp"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries of ``path`` (``.<name>.<pid>.*.tmp<suffix>``, files or folders) left by dead
+    processes; returns what was removed."""
+    path = Path(path)
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    prefix, suffix = f".{path.name}.", TMP_SUFFIX + path.suffix
+    for entry in path.parent.iterdir():
+        if not (entry.name.startswith(prefix) and entry.name.endswith(suffix)):
+            continue
+        pid = entry.name[len(prefix) :].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
+            continue
+        shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(missing_ok=True)
+        removed.append(entry)
+    return removed
+
+
+def _temporary_name(path: Path) -> dict[str, Any]:
+    return dict(prefix=f".{path.name}.{os.getpid()}.", suffix=TMP_SUFFIX + path.suffix, dir=path.parent)
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path``, on error it is removed."""
+    """Yield a temporary file path next to ``path``; on success it replaces ``path``, on error it is removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(**_temporary_name(path))
     os.close(fd)
     os.chmod(tmp, 0o644)  # mkstemp makes it 0600; results are meant to be read by others
     try:
@@ -25,6 +69,54 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two existing paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS):  # filesystem or kernel without the flag
+        return False
+    raise OSError(err, os.strerror(err), str(a), None, str(b))
+
+
+@contextmanager
+def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Yield an empty temporary folder next to ``path``; on success it becomes ``path``, on error it is removed.
+
+    With ``overwrite`` an existing ``path`` is swapped with the new folder in one step (``renameat2`` with
+    ``RENAME_EXCHANGE``) and removed after, so a crash at any point leaves at ``path`` either the old folder or the
+    new one, never a mix and never neither. (Where the kernel cannot swap, the old folder is renamed aside first:
+    a crash between the two renames then leaves ``path`` missing and the old folder as a temporary.) Without
+    ``overwrite`` an existing ``path`` raises ``FileExistsError`` before anything is written.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists already")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
+    tmp = Path(tempfile.mkdtemp(**_temporary_name(path)))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700
+        if not (path.exists() and _exchange(tmp, path)):
+            aside = Path(tempfile.mkdtemp(**_temporary_name(path))) if path.exists() else None
+            if aside is not None:
+                os.replace(path, aside / "old")
+            os.replace(tmp, path)
+            if aside is not None:
+                shutil.rmtree(aside, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # the new folder on error, the old one after a swap
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

@@ -1,0 +1,120 @@
+"""Writes killed half-way leave the old file or folder intact, and the next write removes their temporaries."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.utils.io import atomic_dir, remove_stale_temporaries, write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_next_write_removes_temporaries_of_dead_processes_only(tmp_path):
+    target = tmp_path / "results.md"
+    stale_file = tmp_path / f".results.md.{dead_pid()}.abc.tmp.md"
+    stale_dir = tmp_path / f".results.md.{dead_pid()}.def.tmp.md"
+    live = tmp_path / f".results.md.{os.getppid()}.ghi.tmp.md"  # a live process's write in progress
+    other = tmp_path / f".other.md.{dead_pid()}.jkl.tmp.md"  # another target's: not ours to judge now
+    stale_file.write_text("half")
+    stale_dir.mkdir()
+    (stale_dir / "x").write_text("half")
+    live.write_text("in progress")
+    other.write_text("half")
+    write_text(target, "done\n")
+    assert target.read_text() == "done\n"
+    assert not stale_file.exists() and not stale_dir.exists()
+    assert live.exists() and other.exists()
+    assert remove_stale_temporaries(tmp_path / "other.md") == [other]
+
+
+def test_atomic_dir_replaces_a_folder_whole_or_not_at_all(tmp_path):
+    dest = tmp_path / "store"
+    with atomic_dir(dest) as tmp:
+        (tmp / "a").write_text("old")
+    with pytest.raises(FileExistsError, match="exists already"):
+        with atomic_dir(dest):
+            pass
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_dir(dest, overwrite=True) as tmp:
+            (tmp / "b").write_text("new")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in dest.iterdir()) == ["a"]  # the old folder, untouched
+    with atomic_dir(dest, overwrite=True) as tmp:
+        (tmp / "b").write_text("new")
+    assert sorted(p.name for p in dest.iterdir()) == ["b"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store"]  # no temporaries left
+
+
+def kill_when(proc: subprocess.Popen, appears, timeout: float = 60.0, after: float = 0.3) -> None:
+    """SIGKILL ``proc`` ``after`` seconds once ``appears()`` is true (it must still be running then)."""
+    t0 = time.monotonic()
+    while not appears():
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else "exited early"
+        assert time.monotonic() - t0 < timeout
+        time.sleep(0.02)
+    time.sleep(after)
+    assert proc.poll() is None, "finished before it could be killed: make the job longer"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+
+
+VIDEO = """
+import sys, numpy as np
+from kpflow.utils.video import write_video
+frames = [np.full((256, 256, 3), i % 255, np.uint8) for i in range(3000)]
+write_video(frames, sys.argv[1], fps=30)
+"""
+
+
+def test_killed_video_write_leaves_no_file_and_its_temporary_is_removed_next_time(tmp_path):
+    from kpflow.utils.video import write_video
+
+    path = tmp_path / "episode.mp4"
+    proc = subprocess.Popen([sys.executable, "-c", VIDEO, str(path)], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    kill_when(proc, lambda: any(tmp_path.glob(".episode.mp4.*.tmp.mp4")))
+    assert not path.exists() and len(list(tmp_path.glob(".episode.mp4.*.tmp.mp4"))) == 1
+    write_video([np.zeros((16, 16, 3), np.uint8)] * 3, path)
+    assert path.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode.mp4"]
+
+
+def write_replay_buffer(path: Path, n_episodes: int, length: int = 20) -> None:
+    """A buffer in the standard layout (random in-arena states; the import does not check physics)."""
+    rng = np.random.default_rng(0)
+    n = n_episodes * length
+    root = zarr.open_group(str(path), mode="w")
+    state = np.c_[rng.uniform(100, 400, (n, 4)), rng.uniform(-np.pi, np.pi, n)].astype(np.float32)
+    root.create_dataset("data/state", data=state, chunks=(1000, 5))
+    root.create_dataset("data/action", data=rng.uniform(100, 400, (n, 2)).astype(np.float32), chunks=(1000, 2))
+    root.create_dataset("meta/episode_ends", data=np.arange(1, n_episodes + 1, dtype=np.int64) * length)
+
+
+def test_killed_overwriting_import_keeps_the_old_store_and_the_next_import_cleans_up(tmp_path):
+    from kpflow.data.pusht_import import import_pusht_replay
+
+    source, dest = tmp_path / "buffer.zarr", tmp_path / "demos.zarr"
+    write_replay_buffer(source, 1500)
+    old = import_pusht_replay(source, dest, max_episodes=3, progress=False)
+    old_ends = old.episode_ends
+    cmd = [sys.executable, "-m", "kpflow.data.pusht_import", str(source), str(dest), "--overwrite", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    kill_when(proc, lambda: any((t / "meta" / "episode_ends").exists() for t in tmp_path.glob(".demos.zarr.*.tmp.zarr")), after=0.3)
+    leftovers = list(tmp_path.glob(".demos.zarr.*.tmp.zarr"))
+    assert len(leftovers) == 1
+    np.testing.assert_array_equal(EpisodeStore(dest).episode_ends, old_ends)  # the old store, intact
+    new = import_pusht_replay(source, dest, max_episodes=5, progress=False, overwrite=True)
+    assert len(new) == 5 and not any(tmp_path.glob(".demos.zarr.*"))
