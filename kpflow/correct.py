@@ -27,7 +27,24 @@ from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.eval import plots
 from kpflow.eval.pusht_experiment import run_pusht_experiment
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
+from kpflow.tasks.pusht.splits import GOAL_MODES, SPLITS
+from kpflow.utils.config_checks import Key
 from kpflow.utils.run import start_run
+
+KEYS = {
+    "seed": Key(int, lo=0),
+    "rounds": Key(int, lo=1),
+    "episodes_per_round": Key(int, lo=1),
+    "split": Key(str, choices=SPLITS),
+    "goal": Key(str, choices=GOAL_MODES),
+    "max_steps": Key(int, lo=1),
+    "stuck_steps": Key(int, lo=1),
+    "takeover_steps": Key(int, lo=1),
+    "eval_configs": Key(int, lo=0),
+    "eval_max_steps": Key(int, lo=1),
+    "workers": Key(int, lo=1),
+    "data.n_episodes": Key(int, lo=1, nullable=True),
+}
 
 
 def copy_store(src: str | os.PathLike, dest: str | os.PathLike) -> Path:
@@ -87,7 +104,7 @@ def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="correct")
 def main(cfg: DictConfig) -> list[dict]:
-    out = start_run(cfg)
+    out = start_run(cfg, KEYS)
     demos = {k: cfg.data[k] for k in ("path", "n_episodes", "seed", "workers")}
     start_steps = ensure_pusht_demos(**demos).n_steps
     store_path = copy_store(demos["path"], out / "episodes.zarr")

@@ -7,13 +7,14 @@ import os
 from itertools import count
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.expert import PushTExpert
 from ..utils.video import write_video
 from ..tasks.pusht.rollout import EpisodeResult, run_episode
-from ..tasks.pusht.splits import split_config
+from ..tasks.pusht.splits import GOAL_MODES, SPLITS, split_config
 from .episode_store import EpisodeStore
 
 
@@ -33,6 +34,18 @@ def _job(args) -> tuple[int, EpisodeResult]:
     return expert_episode(*args)
 
 
+def _check_int(name: str, value, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise ValueError(f"{name} must be an integer >= {lo}; got {value!r}")
+    return int(value)
+
+
+def collection_attrs(split: str, goal: str, seed: int, max_steps: int, keep_failures: bool) -> dict:
+    """The store attrs that identify a collection: a store is continued only by a collection with the same ones."""
+    return {"task": "pusht", "source": "expert", "split": split, "goal": goal, "seed": seed, "max_steps": max_steps,
+            "keep_failures": keep_failures}
+
+
 def collect_pusht(
     store_path: str | os.PathLike,
     n_episodes: int,
@@ -50,46 +63,86 @@ def collect_pusht(
 
     Configurations are taken in order (0, 1, 2, ... of the seeded ``split``); failed episodes are skipped unless
     ``keep_failures``, so the store holds exactly ``n_episodes``. Episodes are committed one by one in index order
-    whatever the number of ``workers``, so the same arguments give the same store. The first ``videos`` kept
-    episodes are also written as mp4 to ``video_dir``. Returns a summary (attempts, successes, steps, paths).
+    whatever the number of ``workers``, so the same arguments give the same store. That also makes an interrupted
+    collection resumable: a store that holds fewer episodes of the same collection (same split, goal, seed,
+    max_steps, keep_failures) is continued after its last committed configuration, and ends up identical to an
+    uninterrupted one. Another collection's store, or one with more episodes, is refused before anything is
+    written. A second process collecting into the same store waits for the first (the store's write lock) and then
+    finds it complete. The first ``videos`` kept episodes are also written as mp4 to ``video_dir``.
+
+    Returns a summary (episodes, resumed_from, attempts, successes, steps of the episodes collected now, paths).
     """
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    store = EpisodeStore(store_path, mode="a")
-    if len(store):
-        raise ValueError(f"{store_path} already holds {len(store)} episodes; collect into a new path")
-    store.attrs.update({"task": "pusht", "split": split, "goal": goal, "seed": seed, "source": "expert"})
-    video_dir = Path(video_dir) if video_dir is not None else Path(store_path).parent
-    jobs = ((split, i, seed, goal, max_steps, 0.95, i < videos) for i in count())
-    kept, attempts, successes, steps, video_paths = 0, 0, 0, [], []
-    pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
+    n_episodes = _check_int("n_episodes", n_episodes, 1)
+    workers = _check_int("workers", workers, 1)
+    max_steps = _check_int("max_steps", max_steps, 1)
+    videos = _check_int("videos", videos, 0)
+    seed = _check_int("seed", seed, 0)
+    if split not in SPLITS:
+        raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
+    if goal not in GOAL_MODES:
+        raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
+    want = collection_attrs(split, goal, seed, max_steps, bool(keep_failures))
+    if (Path(store_path) / "meta" / "episode_ends").exists():
+        check_collection(EpisodeStore(store_path), want, n_episodes)  # before the write lock repairs anything
+    with EpisodeStore(store_path, mode="a", wait=None) as store:
+        have = len(store)
+        check_collection(store, want, n_episodes)
+        if not have:
+            store.attrs.update(want)
+        start = store.episode_attrs(have - 1)["config_index"] + 1 if have else 0
+        return _collect(store, n_episodes, have, start, want, workers, videos, video_dir, progress)
+
+
+def check_collection(store: EpisodeStore, want: dict, n_episodes: int) -> None:
+    """Raise ``ValueError`` unless ``store`` is empty or a (partial) collection with the attrs ``want`` of at most
+    ``n_episodes`` episodes."""
+    if not len(store) and not store.attrs.get("task"):
+        return
+    attrs = store.attrs.asdict()
+    optional = ("max_steps", "keep_failures")  # absent from stores collected before they were recorded
+    differ = {k: (attrs.get(k), v) for k, v in want.items() if attrs.get(k) != v and not (k in optional and k not in attrs)}
+    if differ:
+        raise ValueError(
+            f"{store.path} holds {len(store)} episodes of another collection ({', '.join(f'{k}: {a!r} there, {b!r} asked' for k, (a, b) in differ.items())}); "
+            "collect into another path"
+        )
+    if len(store) > n_episodes:
+        raise ValueError(f"{store.path} already holds {len(store)} episodes, more than the {n_episodes} asked for")
+    if len(store) and "config_index" not in store.episode_attrs(len(store) - 1):
+        raise ValueError(f"{store.path}: its last episode has no config_index, so the collection cannot be continued")
+
+
+def _collect(store, n_episodes, have, start, want, workers, videos, video_dir, progress) -> dict:
+    split, goal, seed, max_steps = want["split"], want["goal"], want["seed"], want["max_steps"]
+    video_dir = Path(video_dir) if video_dir is not None else store.path.parent
+    jobs = ((split, i, seed, goal, max_steps, 0.95, have + (i - start) < videos) for i in count(start))
+    kept, attempts, successes, steps, video_paths = have, 0, 0, [], []
+    pool = mp.get_context("fork").Pool(workers) if workers > 1 and kept < n_episodes else None
     results = pool.imap(_job, jobs) if pool is not None else map(_job, jobs)
-    bar = tqdm(total=n_episodes, desc=f"collect pusht/{split}", unit="ep", disable=not progress)
+    bar = tqdm(total=n_episodes, initial=have, desc=f"collect pusht/{split}", unit="ep", disable=not progress)
     try:
-        for index, result in results:
+        while kept < n_episodes:
+            index, result = next(results)
             attempts += 1
             successes += result.success
-            if not (result.success or keep_failures):
+            if not (result.success or want["keep_failures"]):
                 continue
             attrs = {"config_index": index, "success": result.success, "coverage": result.coverage, "steps": result.steps}
             store.add_episode(result.episode, attrs=attrs)
             steps.append(result.steps)
-            if result.frames is not None and len(video_paths) < videos:
+            if result.frames is not None and kept < videos:
                 video_paths.append(str(write_video(result.frames, video_dir / f"episode_{kept:03d}.mp4")))
             kept += 1
             bar.update(1)
             bar.set_postfix(success=f"{successes}/{attempts}")
-            if kept == n_episodes:
-                break
     finally:
         bar.close()
         if pool is not None:
             pool.terminate()
     return {
-        "store": str(store_path),
+        "store": str(store.path),
         "episodes": kept,
+        "resumed_from": have,
         "attempts": attempts,
         "successes": successes,
         "steps": int(sum(steps)),

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from .chunks import ChunkDataModule
-from .collection import collect_pusht
+from .collection import check_collection, collect_pusht, collection_attrs
 from .episode_store import EpisodeStore
 
 
@@ -20,12 +20,13 @@ def ensure_pusht_demos(
     goal: str = "random",
     max_steps: int = 600,
 ) -> EpisodeStore:
-    """The expert store at ``path``, collected first when it does not exist yet (read-only once there).
+    """The expert store at ``path``, collected first when it does not exist yet or holds fewer episodes
+    (an interrupted collection is continued where it stopped; see :func:`collect_pusht`).
 
-    An existing store is reused only if it was collected with the same split, goal and seed and holds
-    ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path). With
+    An existing store is used only if it was collected with the same split, goal and seed (and max_steps) and holds
+    at most ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path). With
     ``n_episodes=None`` the store at ``path`` is taken as it is (one grown by corrections, or the imported human
-    dataset) and must exist.
+    dataset) and must exist. Returns the store, open read-only.
     """
     path = Path(path)
     if n_episodes is None:
@@ -35,15 +36,11 @@ def ensure_pusht_demos(
                 "python -m kpflow.collect, or import the human dataset with python -m kpflow.data.pusht_import SRC DEST)"
             )
         return EpisodeStore(path)
-    if not (path / "meta" / "episode_ends").exists():
+    want = collection_attrs(split, goal, seed, max_steps, False)
+    if not (path / "meta" / "episode_ends").exists() or len(EpisodeStore(path)) < n_episodes:
         collect_pusht(path, n_episodes, split=split, goal=goal, seed=seed, max_steps=max_steps, workers=workers)
     store = EpisodeStore(path)
-    want = {"split": split, "goal": goal, "seed": seed}
-    have = {k: store.attrs.get(k) for k in want}
-    if have != want or len(store) != n_episodes:
-        raise ValueError(
-            f"{path} holds {len(store)} episodes collected with {have}, but {n_episodes} with {want} were asked for"
-        )
+    check_collection(store, want, n_episodes)
     return store
 
 

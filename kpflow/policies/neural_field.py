@@ -1,6 +1,6 @@
 """A neural first-order motion policy xdot = g(x) trained with Lightning: an MLP on standardised positions,
 mean-squared velocity error. Its standardisation statistics live in buffers, so a checkpoint is all a
-deployment needs (``NeuralVectorField.load_from_checkpoint(path)``)."""
+deployment needs (``load_checkpoint(NeuralVectorField, path)`` from :mod:`kpflow.utils.checkpoint`)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,79 @@
+"""Typed checks of an entry point's config keys, run before anything is built or written.
+
+Hydra passes ``n_configs=abc`` on as the string ``"abc"``, and the error would surface deep inside (a TypeError in
+a range, Lightning's bare AssertionError). Each entry point declares its scalar keys as :class:`Key` specs and
+:func:`check_config` refuses a wrong type or range with an error that names the key, the expected value and the
+given one.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+_ABSENT = object()
+
+
+@dataclass(frozen=True)
+class Key:
+    """One scalar config key: its type (``int``, ``float``, ``bool`` or ``str``), an optional lower bound, the
+    allowed choices, and whether ``null`` is allowed."""
+
+    kind: type
+    lo: float | None = None
+    choices: tuple | None = None
+    nullable: bool = False
+
+    def describe(self) -> str:
+        what = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}[self.kind]
+        if self.lo is not None:
+            what += f" >= {self.lo}"
+        if self.choices is not None:
+            what = "one of " + ", ".join(map(str, self.choices))
+        return what + (" or null" if self.nullable else "")
+
+    def accepts(self, value: Any) -> bool:
+        if value is None:
+            return self.nullable
+        if self.kind is bool:
+            ok = isinstance(value, bool)
+        elif self.kind is int:
+            ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+        elif self.kind is float:
+            ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        else:
+            ok = isinstance(value, self.kind)
+        if ok and self.lo is not None:
+            ok = value >= self.lo
+        if ok and self.choices is not None:
+            ok = value in self.choices
+        return ok
+
+
+def check_config(cfg: DictConfig, keys: Mapping[str, Key]) -> None:
+    """Raise ``ValueError`` for the first dotted key of ``keys`` present in ``cfg`` whose value ``keys`` refuses
+    (absent keys are skipped: e.g. a trainer config without ``max_steps``)."""
+    for name, key in keys.items():
+        value = OmegaConf.select(cfg, name, default=_ABSENT, throw_on_missing=False)
+        if value is _ABSENT:
+            continue
+        if not key.accepts(value):
+            raise ValueError(f"config key {name} must be {key.describe()}; got {value!r} ({type(value).__name__})")
+
+
+# Keys of Lightning's Trainer that kpflow's trainer configs set or users commonly override.
+TRAINER_KEYS = {
+    "trainer.max_epochs": Key(int, lo=-1, nullable=True),
+    "trainer.min_epochs": Key(int, lo=0, nullable=True),
+    "trainer.max_steps": Key(int, lo=-1),
+    "trainer.check_val_every_n_epoch": Key(int, lo=1, nullable=True),
+    "trainer.log_every_n_steps": Key(int, lo=1, nullable=True),
+    "trainer.accumulate_grad_batches": Key(int, lo=1),
+    "trainer.gradient_clip_val": Key(float, lo=0, nullable=True),
+    "trainer.enable_progress_bar": Key(bool, nullable=True),
+    "trainer.enable_checkpointing": Key(bool, nullable=True),
+    "trainer.num_sanity_val_steps": Key(int, lo=-1, nullable=True),
+}

@@ -1,0 +1,160 @@
+"""Entry points refuse bad config values naming the key before writing anything, a run folder belongs to one run,
+a failed resume leaves the run's config as it was, and an interrupted collection continues where it stopped."""
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from kpflow.data.collection import collect_pusht
+from kpflow.data.demos import ensure_pusht_demos
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.utils.config_checks import TRAINER_KEYS, Key, check_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def entry_keys():
+    import evaluate
+    import train
+    from kpflow import collect, correct
+
+    return {"evaluate": evaluate.KEYS, "train": train.KEYS, "collect": collect.KEYS, "correct": correct.KEYS}
+
+
+BAD = [
+    ("evaluate", "n_configs=abc", r"config key n_configs must be an integer >= 1; got 'abc' \(str\)"),
+    ("evaluate", "workers=0", "config key workers must be an integer >= 1; got 0"),
+    ("evaluate", "split=bogus", "config key split must be one of in_distribution, .*standard, all; got 'bogus'"),
+    ("collect", "n_episodes=abc", "config key n_episodes must be an integer >= 1; got 'abc'"),
+    ("collect", "split=bogus", "config key split must be one of in_distribution, robot_ood, object_ood; got 'bogus'"),
+    ("collect", "keep_failures=maybe", "config key keep_failures must be true or false; got 'maybe'"),
+    ("correct", "rounds=abc", "config key rounds must be an integer >= 1; got 'abc'"),
+    ("correct", "rounds=0", "config key rounds must be an integer >= 1; got 0"),
+    ("correct", "eval_configs=1.5", "config key eval_configs must be an integer >= 0; got 1.5"),
+    ("train", "trainer.max_epochs=abc", "config key trainer.max_epochs must be an integer >= -1 or null; got 'abc'"),
+    ("train", "+trainer.gradient_clip_val=-1", "config key trainer.gradient_clip_val must be a number >= 0 or null; got -1"),
+    ("train", "resume=yes", "config key resume must be true or false; got 'yes'"),
+]
+
+
+@pytest.mark.parametrize("entry, override, message", BAD, ids=[f"{e}:{o}" for e, o, _ in BAD])
+def test_bad_values_name_the_key(entry, override, message):
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(entry, overrides=[override], return_hydra_config=True)
+    with pytest.raises(ValueError, match=message):
+        check_config(cfg, entry_keys()[entry])
+
+
+def test_good_configs_pass_their_checks():
+    for entry, keys in entry_keys().items():
+        with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+            cfg = compose(entry, return_hydra_config=True)
+        check_config(cfg, keys)
+    for trainer in ("cpu", "gpu", "ddp"):
+        with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+            check_config(compose("train", overrides=[f"trainer={trainer}"]), TRAINER_KEYS)
+
+
+def test_key_spec_by_hand():
+    assert Key(int, lo=1).accepts(3) and not Key(int).accepts(True) and not Key(int).accepts(2.0)
+    assert Key(float, lo=0).accepts(2) and not Key(float, lo=0).accepts(-0.5)
+    assert Key(int, nullable=True).accepts(None) and not Key(int).accepts(None)
+    assert Key(str, choices=("a", "b")).accepts("a") and not Key(str, choices=("a",)).accepts("b")
+
+
+def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("cmd", [
+    ("evaluate.py", "n_configs=abc"),
+    ("-m", "kpflow.collect", "split=bogus"),
+    ("-m", "kpflow.correct", "rounds=0"),
+    ("train.py", "trainer.max_epochs=abc"),
+], ids=["evaluate", "collect", "correct", "train"])  # fmt: skip
+def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
+    out = tmp_path / "run"
+    done = run(*cmd, f"hydra.run.dir={out}")
+    assert done.returncode != 0 and "config key" in done.stderr, done.stderr[-2000:]
+    assert not out.exists()
+
+
+def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_path):
+    out = tmp_path / "run"
+    base = ("train.py", "logger=csv", f"hydra.run.dir={out}", "data.n_points=60", "trainer.enable_progress_bar=false")
+    assert run(*base, "trainer.max_epochs=1").returncode == 0
+    config = (out / "config.yaml").read_text()
+    checkpoints = sorted(p.name for p in (out / "checkpoints").iterdir())
+
+    done = run(*base, "trainer.max_epochs=1")  # the same run_name again, without resume
+    assert done.returncode != 0 and "already holds a run" in done.stderr and "resume=true" in done.stderr
+    done = run(*base, "trainer.max_epochs=2", "resume=true", "model.hidden=64")  # a resume that cannot work
+    assert done.returncode != 0 and "does not fit the configured model" in done.stderr and "net.0.weight" in done.stderr
+    assert (out / "config.yaml").read_text() == config  # the run's config, as it was
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == checkpoints  # no last-v1.ckpt beside them
+    assert len(list((out / "csv").iterdir())) == 1  # and no logger folder for the failed attempts
+
+    assert run(*base, "trainer.max_epochs=2", "resume=true").returncode == 0
+    assert "max_epochs: 2" in (out / "config.yaml").read_text()
+
+
+def same_store(a: Path, b: Path) -> None:
+    x, y = EpisodeStore(a), EpisodeStore(b)
+    assert len(x) == len(y) and x.fields == y.fields
+    np.testing.assert_array_equal(x.episode_ends, y.episode_ends)
+    for name in x.fields:
+        np.testing.assert_array_equal(x.field(name), y.field(name))
+    assert [x.episode_attrs(i) for i in range(len(x))] == [y.episode_attrs(i) for i in range(len(y))]
+
+
+def test_an_interrupted_collection_continues_where_it_stopped(tmp_path):
+    partial, whole = tmp_path / "partial.zarr", tmp_path / "whole.zarr"
+    collect_pusht(partial, 1, workers=1, progress=False)  # as if stopped after one episode
+    summary = collect_pusht(partial, 3, workers=2, progress=False)
+    assert summary["resumed_from"] == 1 and summary["episodes"] == 3
+    collect_pusht(whole, 3, workers=1, progress=False)
+    same_store(partial, whole)
+    assert collect_pusht(partial, 3, progress=False)["attempts"] == 0  # complete: nothing to do
+    ensure_pusht_demos(partial, 3, workers=1)  # and the demos it is used as are accepted
+
+
+def test_collection_refuses_another_collections_store_without_touching_it(tmp_path):
+    path = tmp_path / "demos.zarr"
+    collect_pusht(path, 1, workers=1, progress=False)
+    before = {p: p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and "lock" not in p.name}
+    with pytest.raises(ValueError, match=r"another collection \(seed: 0 there, 1 asked\)"):
+        collect_pusht(path, 2, seed=1, progress=False)
+    with pytest.raises(ValueError, match="another collection.*split: 'in_distribution' there, 'robot_ood' asked"):
+        ensure_pusht_demos(path, 2, split="robot_ood", workers=1)
+    with pytest.raises(ValueError, match="unknown Push-T split 'bogus'"):
+        collect_pusht(tmp_path / "new.zarr", 2, split="bogus", progress=False)
+    assert not (tmp_path / "new.zarr").exists()
+    assert {p: p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and "lock" not in p.name} == before
+
+
+COLLECT = """
+import sys
+from kpflow.data.demos import ensure_pusht_demos
+ensure_pusht_demos(sys.argv[1], 4, workers=1)
+"""
+
+
+def test_a_killed_first_use_collection_is_resumed_by_the_next_run(tmp_path):
+    path, whole = tmp_path / "demos.zarr", tmp_path / "whole.zarr"
+    proc = subprocess.Popen([sys.executable, "-c", COLLECT, str(path)], cwd=ROOT, stderr=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while not ((path / "meta" / "episode_ends").exists() and len(EpisodeStore(path)) >= 1):
+        assert proc.poll() is None and time.monotonic() - t0 < 120
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert 1 <= len(EpisodeStore(path)) < 4
+    ensure_pusht_demos(path, 4, workers=1)
+    collect_pusht(whole, 4, workers=1, progress=False)
+    same_store(path, whole)
