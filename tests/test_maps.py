@@ -2,6 +2,7 @@
 
 import functools
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
@@ -263,3 +264,177 @@ def test_flow_log_det_matches_jacobian():
     phi = FlowMap(steps=50).fit(src, tgt)
     x = grid(2, n=6)
     torch.testing.assert_close(phi.log_det_jacobian(x), torch.linalg.slogdet(phi.jacobian(x)).logabsdet, atol=1e-8, rtol=0)
+
+
+# ------------------------------------------------------------------ bad input: dtypes, scale, hyper-parameters
+@pytest.fixture(scope="module")
+def fitted():
+    """One fitted map of every family (float64), shared by the query tests below."""
+    src, tgt = keypoint_pair(2)
+    return {name: make().fit(src, tgt) for name, make in FAMILIES.items()}
+
+
+UNSUPPORTED = [torch.float16, torch.bfloat16, torch.complex64, torch.complex128]
+
+
+@pytest.mark.parametrize("dtype", UNSUPPORTED, ids=str)
+@pytest.mark.parametrize("name", FAMILIES)
+def test_half_precision_and_complex_inputs_raise(fitted, name, dtype):
+    src, tgt = keypoint_pair(2)
+    msg = rf"has (complex )?dtype {dtype}.*float32 or float64"
+    with pytest.raises(ValueError, match="source " + msg):
+        FAMILIES[name]().fit(src.to(dtype), tgt)
+    with pytest.raises(ValueError, match="target " + msg):
+        FAMILIES[name]().fit(src, tgt.to(dtype))
+    phi = fitted[name]
+    x = grid(2, n=4).to(dtype)
+    for method in (phi, phi.jacobian, phi.predict, lambda q: phi.sample(q, 2)):
+        with pytest.raises(ValueError, match="x " + msg):
+            method(x)
+    with pytest.raises(ValueError, match="y " + msg):
+        phi.inverse(x)
+
+
+def test_unsupported_dtypes_from_numpy_and_python_raise():
+    src, tgt = keypoint_pair(2)
+    with pytest.raises(ValueError, match="source has dtype torch.float16.*float32 or float64"):
+        AffineMap().fit(src.numpy().astype(np.float16), tgt)
+    phi = AffineMap().fit(src, tgt)
+    with pytest.raises(ValueError, match="x has complex dtype torch.complex.*float32 or float64"):
+        phi([[1 + 2j, 0.5]])
+
+
+def test_integer_inputs_are_converted_to_float():
+    """Integers are converted by design: a fit to the default dtype, a query to the map's dtype."""
+    src = torch.tensor([[0, 0], [4, 0], [0, 3], [5, 5]])
+    phi = AffineMap("affine").fit(src, src * 2 + 1)
+    assert phi.A.dtype == torch.get_default_dtype()
+    torch.testing.assert_close(phi(torch.tensor([[1, 2]])), torch.tensor([[3.0, 5.0]]))
+    ref = AffineMap().fit(*keypoint_pair(2))
+    y = ref(torch.tensor([[1, 2]]))
+    assert y.dtype == torch.float64
+    torch.testing.assert_close(y, ref(torch.tensor([[1.0, 2.0]], dtype=torch.float64)), atol=0, rtol=0)
+
+
+SCALE_FAMILIES = {
+    "rigid": lambda: AffineMap("rigid"),
+    "similarity": lambda: AffineMap("similarity"),
+    "affine": lambda: AffineMap("affine"),
+    "translation": lambda: AffineMap("translation"),
+    "ilwr": lambda: ILWRMap(),
+    "gp": lambda: GPMap(),
+    "flow": lambda: FlowMap(steps=100),
+    "mlp": lambda: MLPMap(steps=100),
+}
+NEURAL = ("flow", "mlp")  # L-BFGS on different rounding: equal fits only up to the optimiser's tolerance
+
+
+@pytest.mark.parametrize("scale", [1e-5, 1e-12, 1e5])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("name", SCALE_FAMILIES)
+def test_small_and_large_keypoint_sets_fit_like_unit_ones(name, dtype, scale):
+    """Coincidence (and every other threshold) is relative to the keypoints' own magnitude: a well-shaped set
+    scaled by ``scale`` fits, and the map is the unit-scale map scaled (phi_s(s x) = s phi_1(x))."""
+    src, tgt = keypoint_pair(2, dtype=dtype)
+    ref = SCALE_FAMILIES[name]().fit(src, tgt)
+    phi = SCALE_FAMILIES[name]().fit(src * scale, tgt * scale)
+    f32 = dtype == torch.float32
+    slack = (1e-2 if f32 else 1e-4) if name in NEURAL else (1e-3 if f32 else 1e-8)
+    err_ref = (ref(src) - tgt).abs().max()
+    err = (phi(src * scale) - tgt * scale).abs().max() / scale  # phi(S) ~= T relative to the scale
+    assert err <= err_ref + slack, (err, err_ref)
+    x = grid(2, n=6, dtype=dtype)
+    if name not in NEURAL:
+        torch.testing.assert_close(phi(x * scale) / scale, ref(x), atol=2e-4 if f32 else 1e-8, rtol=0)
+    if name in ("rigid", "similarity", "affine", "translation", "ilwr", "flow"):  # exact inverses
+        back = phi.inverse(phi(x * scale)) / scale
+        torch.testing.assert_close(back, x, atol=1e-5 if f32 else 1e-9, rtol=0)
+
+
+def _ulp_steps(p: torch.Tensor, k: int) -> torch.Tensor:
+    for _ in range(k):
+        p = torch.nextafter(p, torch.full_like(p, float("inf")))
+    return p
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("name", ["rigid", "similarity", "affine", "ilwr", "gp"])
+def test_truly_coincident_keypoints_still_raise(name, dtype):
+    p = torch.tensor([0.3, 0.7], dtype=dtype)
+    cases = {
+        "all equal": p.expand(4, 2).clone(),
+        "all zero": torch.zeros(4, 2, dtype=dtype),
+        "equal up to a few ulps": torch.stack([_ulp_steps(p, k) for k in range(4)]) * torch.tensor([1.0, -1.0], dtype=dtype),
+        "tiny and equal up to a few ulps": torch.stack([_ulp_steps(p * 1e-6, k) for k in (0, 1, 3, 4)]),
+    }
+    for case, src in cases.items():
+        with pytest.raises(ValueError, match="all source keypoints coincide.*within .* resolution"):
+            SCALE_FAMILIES[name]().fit(src, src + 1.0)
+            pytest.fail(case)
+
+
+def test_duplicates_are_found_among_many_keypoints_far_from_the_origin():
+    """cdist's matrix-product form (N > 25) is off by ~sqrt(eps) |x|: duplicates must be found regardless."""
+    for dtype in (torch.float32, torch.float64):
+        g = torch.Generator().manual_seed(0)
+        for j in range(1, 60, 3):
+            src = torch.rand(60, 2, generator=g, dtype=dtype) * 3 + 1234.5
+            src[j] = src[0]
+            with pytest.raises(ValueError, match=f"duplicate source keypoints 0 and {j} coincide"):
+                AffineMap().fit(src, torch.rand(60, 2, generator=g, dtype=dtype))
+
+
+@pytest.mark.parametrize(
+    "arg, value",
+    [("lengthscale", -1), ("lengthscale", 0.0), ("lengthscale", float("nan")), ("lengthscale", float("inf")),
+     ("noise", -1e-3), ("noise", 0), ("min_noise", -1.0), ("min_noise", 0.0), ("iters", -1), ("iters", 2.5),
+     ("max_sample_bytes", 0), ("max_sample_bytes", -5)],
+)
+def test_gp_hyperparameters_are_checked_at_construction(arg, value):
+    with pytest.raises(ValueError, match=rf"^{arg} must be (a positive finite number|an integer >= 0).*; got {value!r}"):
+        GPMap(**{arg: value})
+
+
+def test_gp_regressor_checks_outputscale():
+    from kpflow.maps.gp_regression import GPRegressor
+
+    with pytest.raises(ValueError, match=r"outputscale must be a positive finite number; got -2\.0"):
+        GPRegressor(outputscale=-2.0)
+
+
+def test_gp_sample_refuses_a_joint_covariance_over_the_memory_limit():
+    from kpflow.maps import gp_regression
+
+    src, tgt = keypoint_pair(2)
+    phi = GPMap(max_sample_bytes=10_000).fit(src, tgt)
+    x = grid(2, n=6)  # 36 points: 2 x 36 x 36 float64 = 20736 B > 10000 B
+    msg = (r"sample\(\) at 36 points needs a joint posterior covariance of 2 x 36 x 36 torch.float64 \(20\.\d KiB.*"
+           r"over the limit of 9\.77 KiB \(max_sample_bytes\): the cost is quadratic in the number of points\. "
+           r"Sample fewer points, or in chunks.*use predict\(\)")
+    with pytest.raises(ValueError, match=msg):
+        phi.sample(x, 3)
+    assert phi.sample(x[:25], 3).shape == (3, 25, 2)  # 2 x 25 x 25 x 8 = 10000 B: within the limit
+    mean, var = phi.predict(x)  # the suggested way out works at any size
+    assert mean.shape == var.shape == x.shape
+    # the default limit (1 GiB) refuses the reported case, 2e4 points (6.4 GB), before allocating anything
+    assert gp_regression.MAX_SAMPLE_BYTES == 1 << 30
+    with pytest.raises(ValueError, match=r"at 20000 points .*\(5\.96 GiB.*limit of 1 GiB"):
+        GPMap().fit(src, tgt).sample(torch.zeros(20_000, 2, dtype=src.dtype), 1)
+
+
+@pytest.mark.parametrize("name", FAMILIES)
+def test_outputs_carry_no_autograd_graph_unless_the_query_requires_grad(fitted, name):
+    """Like every family, GPMap freezes its fitted parameters: outputs for a plain query are plain tensors
+    (no graph kept alive: memory), while a query that requires grad still gets gradients."""
+    phi = fitted[name]
+    assert not any(p.requires_grad for p in phi.parameters())
+    x = grid(2, n=5)
+    mean, var = phi.predict(x)
+    for label, out in {"forward": phi(x), "inverse": phi.inverse(x), "jacobian": phi.jacobian(x), "mean": mean,
+                       "variance": var, "sample": phi.sample(x, 2)}.items():
+        assert out.requires_grad is False and out.grad_fn is None, label
+    xg = x.clone().requires_grad_(True)
+    y = phi(xg)
+    assert y.requires_grad and phi.predict(xg)[0].requires_grad
+    (grad,) = torch.autograd.grad(y.sum(), xg)
+    torch.testing.assert_close(grad, phi.jacobian(x).sum(-2), atol=1e-8, rtol=1e-8)

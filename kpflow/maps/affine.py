@@ -9,9 +9,11 @@ the rigid and similarity fits are (Umeyama 1991, Eqs. 39-42)
 
 the affine fit solves min_{A,t} sum_i |A s_i + t - t_i|^2.
 
-Degenerate keypoints: all-coincident sources raise. Collinear sources (or coplanar in 3-D) raise for
-``kind="affine"`` since A is then undetermined; for rigid/similarity fits in 3-D collinear keypoints leave
-the spin about their common line undetermined and the SVD picks one, deterministically.
+Degenerate keypoints: all-coincident sources raise, coincident meaning relative to the keypoints' own magnitude (a
+spread within ~1e3 ulps of it; no absolute threshold, and the fit runs in units of the sources' spread, so it does not
+depend on their scale). Collinear sources (or coplanar in 3-D) raise for ``kind="affine"`` since A is then
+undetermined; for rigid/similarity fits in 3-D collinear keypoints leave the spin about their common line
+undetermined and the SVD picks one, deterministically.
 """
 
 from __future__ import annotations
@@ -64,11 +66,23 @@ def fit_affine(source: torch.Tensor, target: torch.Tensor, kind: Kind) -> tuple[
     eye = torch.eye(d, dtype=source.dtype, device=source.device).expand(b, d, d)
     if kind == "translation":
         return eye.clone(), mu_t - mu_s
-    spread = x.square().sum((1, 2)) / n  # [B]
-    scale = source.abs().amax((1, 2)).clamp_min(1.0)
-    eps = torch.finfo(source.dtype).eps
-    if (spread.sqrt() <= 1e3 * eps * scale).any():
-        raise ValueError("all source keypoints coincide: the rotation of the map is undetermined")
+    # Work in units of the sources' RMS spread (every fit below is invariant to a common scaling of x and y:
+    # A is unchanged), so the result does not depend on the keypoints' scale and squares cannot underflow.
+    finfo = torch.finfo(source.dtype)
+    peak = x.abs().amax((1, 2)).clamp_min(finfo.tiny)  # [B]
+    rms = peak * (x / peak[:, None, None]).square().sum((1, 2)).div(n).sqrt()  # [B]
+    # Coincident: the spread is within float resolution of the keypoints' own magnitude (no absolute floor).
+    magnitude = source.abs().amax((1, 2))
+    flat = rms <= 1e3 * finfo.eps * magnitude
+    if flat.any():
+        k = int(flat.nonzero()[0, 0])
+        raise ValueError(
+            f"all source keypoints coincide: their spread {float(rms[k]):.3g} is within {source.dtype} resolution "
+            f"of their magnitude {float(magnitude[k]):.3g}, so the rotation of the map is undetermined"
+        )
+    x, y = x / rms[:, None, None], y / rms[:, None, None]
+    spread = x.square().sum((1, 2)) / n  # [B], 1 up to rounding
+    eps = finfo.eps
     if kind == "affine":
         sv = torch.linalg.svdvals(x)  # [B, D]
         if (sv[:, -1] <= 1e4 * eps * sv[:, 0]).any():

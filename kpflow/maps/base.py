@@ -150,7 +150,7 @@ def newton_inverse(f, jac, y: torch.Tensor, x0: torch.Tensor, steps: int = 50, t
     """Solve f(x) = y point-wise by damped Newton iterations from ``x0`` (for maps without a closed-form
     inverse). Stops early when the largest residual falls below ``tol`` times the scale of ``y``."""
     x = x0
-    scale = y.abs().amax().clamp_min(1.0)
+    scale = y.abs().amax().clamp_min(torch.finfo(y.dtype).tiny)  # relative: no absolute floor for small-scale data
     for _ in range(steps):
         r = f(x) - y
         if r.abs().amax() <= tol * scale:

@@ -20,6 +20,7 @@ import torch
 
 from kpflow.maps.affine import AlignedMap
 from kpflow.maps.neural import anchor_points, fit_regression, smooth_mlp
+from kpflow.maps.validation import scale_floor
 
 
 class FlowMap(AlignedMap):
@@ -57,7 +58,7 @@ class FlowMap(AlignedMap):
         src, tgt = source[0], target[0]
         self._fit_alignment(source, target)
         self.centre = tgt.mean(0)
-        self.spread = (tgt - self.centre).square().sum(-1).mean().sqrt().clamp_min(1e-12)
+        self.spread = (tgt - self.centre).square().sum(-1).mean().sqrt().clamp_min(scale_floor(tgt))
         self.flows = self._build(src.shape[-1], src)
         u_src = (self.alignment._forward(source)[0] - self.centre) / self.spread
         u_tgt = (tgt - self.centre) / self.spread

@@ -23,7 +23,9 @@ class GPMap(AlignedMap):
 
     Args:
         alignment: ``"rigid"``, ``"similarity"``, ``"affine"``, ``"translation"`` or ``"none"``.
-        lengthscale, noise, fixed_noise, iters: see :class:`~kpflow.maps.gp_regression.GPRegressor`.
+        lengthscale, noise, min_noise, fixed_noise, iters, max_sample_bytes: see
+            :class:`~kpflow.maps.gp_regression.GPRegressor` (checked at construction: a value out of range raises
+            ``ValueError`` naming it).
     """
 
     exact_inverse = False
@@ -36,9 +38,13 @@ class GPMap(AlignedMap):
         min_noise: float | None = None,
         fixed_noise: bool = False,
         iters: int = 6,
+        max_sample_bytes: int | None = None,
     ) -> None:
         super().__init__(alignment)
-        self.gp = GPRegressor(lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters)
+        self.gp = GPRegressor(
+            lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters,
+            max_sample_bytes=max_sample_bytes,
+        )
 
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         self._fit_alignment(source, target)

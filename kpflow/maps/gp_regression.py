@@ -17,6 +17,20 @@ import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import nn
 
+from kpflow.maps.validation import check_count, check_positive, scale_floor
+
+#: default limit on the memory of the joint posterior covariance ``sample`` builds (D x M x M entries for M query
+#: points and D outputs; quadratic in M): 1 GiB
+MAX_SAMPLE_BYTES = 1 << 30
+
+
+def _format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    raise AssertionError  # unreachable
+
 
 class _ExactGP(gpytorch.models.ExactGP):
     """D independent outputs as a batch sharing one kernel: inputs ``[D, N, d]``, targets ``[D, N]``."""
@@ -39,6 +53,11 @@ class GPRegressor(nn.Module):
         min_noise: lower bound of the noise variance (standardised units); default 1e-6 in float64, 1e-4 in
             float32 (where a smaller floor leaves the kernel matrix numerically singular).
         iters: L-BFGS iterations for the hyper-parameters (0 keeps the initial values).
+        max_sample_bytes: refuse ``sample`` when its joint covariance would need more memory than this
+            (``None``: :data:`MAX_SAMPLE_BYTES`, 1 GiB).
+
+    After ``fit`` the hyper-parameters are frozen (``requires_grad=False``), as the neural maps' weights are, so
+    outputs carry an autograd graph only when the query itself requires grad.
     """
 
     def __init__(
@@ -49,8 +68,16 @@ class GPRegressor(nn.Module):
         min_noise: float | None = None,
         fixed_noise: bool = False,
         iters: int = 10,
+        max_sample_bytes: int | None = None,
     ) -> None:
         super().__init__()
+        check_positive("lengthscale", lengthscale, optional=True, what=" (the initial RBF length-scale; None: 1.0)")
+        check_positive("outputscale", outputscale, what=" (the initial output variance)")
+        check_positive("noise", noise, what=" (the initial noise variance)")
+        check_positive("min_noise", min_noise, optional=True, what=" (the noise variance's lower bound; None: default)")
+        check_count("iters", iters, 0, what=" (L-BFGS iterations)")
+        check_positive("max_sample_bytes", max_sample_bytes, optional=True, what=" (the memory limit of sample())")
+        self.max_sample_bytes = max_sample_bytes
         self.init_lengthscale, self.init_outputscale = lengthscale, outputscale
         self.init_noise, self.min_noise, self.fixed_noise, self.iters = noise, min_noise, fixed_noise, iters
         self.model: _ExactGP | None = None
@@ -58,7 +85,7 @@ class GPRegressor(nn.Module):
     def fit(self, x: torch.Tensor, y: torch.Tensor) -> "GPRegressor":
         n, d_out = y.shape
         self.x_mean = x.mean(0)
-        self.x_scale = (x - self.x_mean).square().sum(-1).mean().sqrt().clamp_min(1e-12)
+        self.x_scale = (x - self.x_mean).square().sum(-1).mean().sqrt().clamp_min(scale_floor(x))
         self.y_scale = y.square().mean().sqrt().clamp_min(1e-12 * self.x_scale)
         xs = ((x - self.x_mean) / self.x_scale).expand(d_out, n, x.shape[-1])
         ys = (y / self.y_scale).T.contiguous()
@@ -74,6 +101,8 @@ class GPRegressor(nn.Module):
             likelihood.raw_noise.requires_grad_(False)
         if self.iters > 0:
             self._optimise(model, likelihood, xs, ys)
+        for p in model.parameters():  # the likelihood's too (a sub-module of the model)
+            p.requires_grad_(False)
         model.eval()
         likelihood.eval()
         self.model, self.likelihood = model, likelihood
@@ -125,8 +154,9 @@ class GPRegressor(nn.Module):
         return ((x - self.x_mean) / self.x_scale).expand(self.model.train_targets.shape[0], *x.shape)
 
     def posterior(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
-        """Latent posterior at ``x [M, d]`` in standardised units (batch over the D outputs)."""
-        with gpytorch.settings.debug(False), gpytorch.settings.skip_posterior_variances(False), torch.no_grad():
+        """Latent posterior at ``x [M, d]`` in standardised units (batch over the D outputs); differentiable in
+        ``x`` (the hyper-parameters are frozen, so a query that does not require grad builds no graph)."""
+        with gpytorch.settings.debug(False), gpytorch.settings.skip_posterior_variances(False):
             return self.model(self._standardise(x))
 
     def mean(self, x: torch.Tensor) -> torch.Tensor:
@@ -139,7 +169,12 @@ class GPRegressor(nn.Module):
         return post.mean.T * self.y_scale, post.variance.T.clamp_min(0.0) * self.y_scale**2
 
     def sample(self, x: torch.Tensor, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Joint posterior samples ``[n, M, D]`` (one smooth function per sample and output)."""
+        """Joint posterior samples ``[n, M, D]`` (one smooth function per sample and output).
+
+        Joint samples need the full M x M posterior covariance per output (and its Cholesky factor): memory
+        quadratic in M. Raises ``ValueError`` before allocating when it would exceed ``max_sample_bytes``.
+        """
+        self._check_sample_memory(x)
         post = self.posterior(x)
         cov = post.covariance_matrix  # [D, M, M]
         m = x.shape[0]
@@ -148,6 +183,19 @@ class GPRegressor(nn.Module):
         eps = torch.randn(n, cov.shape[0], m, 1, generator=generator, dtype=x.dtype, device=x.device)
         f = post.mean[..., None] + chol @ eps  # [n, D, M, 1]
         return f.squeeze(-1).transpose(1, 2) * self.y_scale
+
+    def _check_sample_memory(self, x: torch.Tensor) -> None:
+        m, d_out = x.shape[0], self.model.train_targets.shape[0]
+        need = d_out * m * m * x.element_size()
+        limit = MAX_SAMPLE_BYTES if self.max_sample_bytes is None else self.max_sample_bytes
+        if need > limit:
+            raise ValueError(
+                f"sample() at {m} points needs a joint posterior covariance of {d_out} x {m} x {m} {x.dtype} "
+                f"({_format_bytes(need)}, plus as much again for its Cholesky factor), over the limit of "
+                f"{_format_bytes(limit)} (max_sample_bytes): the cost is quadratic in the number of points. "
+                "Sample fewer points, or in chunks (each chunk is then a separate joint draw), or use predict() "
+                "for the marginal mean and variance at every point"
+            )
 
     def gradient_variance(self, x: torch.Tensor) -> torch.Tensor:
         """var(d f_i / d x_j) ``[M, d]`` (the same for every output i since the kernel is shared).

@@ -13,6 +13,7 @@ import torch
 from kpflow.maps.affine import AlignedMap
 from kpflow.maps.base import newton_inverse
 from kpflow.maps.neural import anchor_points, fit_regression, smooth_mlp
+from kpflow.maps.validation import scale_floor
 
 
 class MLPMap(AlignedMap):
@@ -38,7 +39,7 @@ class MLPMap(AlignedMap):
         src, tgt = source[0], target[0]
         self._fit_alignment(source, target)
         self.centre = src.mean(0)
-        self.spread = (src - self.centre).square().sum(-1).mean().sqrt().clamp_min(1e-12)
+        self.spread = (src - self.centre).square().sum(-1).mean().sqrt().clamp_min(scale_floor(src))
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed)
             self.net = smooth_mlp(src.shape[-1], src.shape[-1], self.hidden, self.depth).to(src)
