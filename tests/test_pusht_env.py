@@ -1,6 +1,7 @@
 """Push-T: physics facts, keypoints, coverage, reset splits, the Gymnasium API and rendering (real pymunk/shapely)."""
 
 import math
+import re
 import warnings
 
 import imageio.v2 as imageio
@@ -9,6 +10,8 @@ import pymunk
 import pytest
 import shapely
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from kpflow.maps.affine import fit_affine
 from kpflow.tasks.pusht import (
@@ -491,6 +494,80 @@ def test_reset_to_a_state():
                 [1.0, 2.0, np.inf, 4.0, 0.0]):
         with pytest.raises(ValueError, match="state"):
             env.reset(options={"state": bad})
+
+
+@pytest.mark.parametrize(
+    "bad", [(np.nan, 256.0, 0.0), (256.0, np.inf, 0.0), (256.0, 256.0, -np.inf), (256.0, 256.0), (1.0, 2.0, 3.0, 4.0), "goal", None]
+)
+def test_reset_rejects_a_bad_goal_pose(bad):
+    env = PushTEnv()
+    with pytest.raises(ValueError, match=r"goal_pose must be 3 finite numbers \(goal x, y, angle\), got"):
+        env.reset(options={"state": [100.0, 120.0, 300.0, 250.0, 0.5], "goal_pose": bad})
+
+
+@pytest.mark.parametrize("split, size", [("in_distribution", 512), ("object_ood", 1024)])
+def test_reset_rejects_positions_outside_the_arena(split, size):
+    env = PushTEnv(split=split)
+    name = "standard" if size == 512 else "large"
+    good = [100.0, 120.0, 300.0, 250.0, 0.5]
+    labels = ["agent x", "agent y", "block x", "block y"]
+    for i, label in enumerate(labels):
+        for value in (-1.0, size + 1.0, -1e9):
+            bad = list(good)
+            bad[i] = value
+            msg = rf"state\[{i}\] \({label}\) = {re.escape(f'{value:g}')} is outside the {name} arena: positions must lie in \[0, {size}\]"
+            with pytest.raises(ValueError, match=msg):
+                env.reset(options={"state": bad})
+    for i, label in enumerate(["goal x", "goal y"]):
+        goal = [256.0, 256.0, 0.0]
+        goal[i] = size + 0.5
+        with pytest.raises(ValueError, match=rf"goal_pose\[{i}\] \({label}\) = {size + 0.5:g} is outside the {name} arena"):
+            env.reset(options={"state": good, "goal_pose": goal})
+    config = Config((float(size) * 2, 100.0), (300.0, 250.0, 0.0), FIXED_GOAL, name)
+    with pytest.raises(ValueError, match=rf"config.agent_pos\[0\] \(agent x\) = {2 * size} is outside the {name} arena"):
+        env.reset(options={"config": config})
+    with pytest.raises(ValueError, match=r"config.block_pose must be 3 finite numbers"):
+        env.reset(options={"config": Config((100.0, 100.0), (300.0, np.nan, 0.0), FIXED_GOAL, name)})
+    with pytest.raises(ValueError, match=r"state must be 5 finite numbers \(agent x, y, block x, y, angle\)"):
+        env.reset(options={"state": [1.0, np.nan, 3.0, 4.0, 0.0]})
+    # the arena's edges and any finite angle are fine, and the observation stays in the observation space
+    for state in ([0.0, 0.0, 0.0, 0.0, 0.0], [size, size, size, size, 1e6], [size, 0.0, 0.0, size, -7.0]):
+        obs, _ = env.reset(options={"state": state, "goal_pose": (size, 0.0, -3.0)})
+        assert env.observation_space.contains(obs), state
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    agent=st.tuples(st.floats(0.0, 512.0), st.floats(0.0, 512.0)),
+    block=st.tuples(st.floats(0.0, 512.0), st.floats(0.0, 512.0), st.floats(-1e3, 1e3)),
+    goal=st.tuples(st.floats(0.0, 512.0), st.floats(0.0, 512.0), st.floats(-1e3, 1e3)),
+)
+def test_any_state_in_the_arena_gives_an_observation_in_the_observation_space(agent, block, goal):
+    env = PushTEnv()
+    obs, _ = env.reset(options={"state": [*agent, *block], "goal_pose": goal})
+    assert env.observation_space.contains(obs)
+    obs, *_ = env.step(agent)
+    assert env.observation_space.contains(obs)
+
+
+def test_reset_rejects_unknown_and_conflicting_options():
+    env = PushTEnv()
+    known = r"known options are \['config', 'state', 'goal_pose'\]"
+    with pytest.raises(ValueError, match=r"unknown reset option\(s\) \['sate'\]; " + known):
+        env.reset(options={"sate": [100.0, 120.0, 300.0, 250.0, 0.5]})
+    with pytest.raises(ValueError, match=r"unknown reset option\(s\) \['goal', 'seed'\]; " + known):
+        env.reset(options={"state": [100.0, 120.0, 300.0, 250.0, 0.5], "seed": 3, "goal": (1, 2, 3)})
+    config = make_split("in_distribution", 1, seed=0)[0]
+    with pytest.raises(ValueError, match=r"options\['config'\] already sets the whole configuration: drop \['goal_pose'\]"):
+        env.reset(options={"config": config, "goal_pose": FIXED_GOAL})
+    with pytest.raises(ValueError, match=r"drop \['state'\]"):
+        env.reset(options={"config": config, "state": [100.0, 120.0, 300.0, 250.0, 0.5]})
+    with pytest.raises(ValueError, match=r"options\['goal_pose'\] applies only together with options\['state'\]"):
+        env.reset(options={"goal_pose": FIXED_GOAL})
+    with pytest.raises(ValueError, match=r"options must be a dict"):
+        env.reset(options=[("state", [100.0, 120.0, 300.0, 250.0, 0.5])])
+    obs, _ = env.reset(options={})  # empty options: a drawn configuration, as with None
+    assert env.observation_space.contains(obs)
 
 
 def test_step_errors():

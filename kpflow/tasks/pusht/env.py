@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -13,6 +15,30 @@ from .splits import FIXED_GOAL, GOAL_MODES, SPLITS, Config, sample_config
 from .workspace import get_workspace
 
 _BODY_POINTS = np.concatenate([T_KEYPOINTS, OUTLINE])  # one transform gives keypoints and outline
+#: the keys ``reset(options=...)`` understands
+RESET_OPTIONS = ("config", "state", "goal_pose")
+
+
+def _checked(value, name: str, what: str, labels: tuple[str, ...], workspace) -> np.ndarray:
+    """``value`` as ``len(labels)`` finite floats whose positions (the labels not named "angle") lie in the
+    arena ``[0, workspace.size]``; otherwise a ``ValueError`` naming ``name``, the entry and the bounds."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (len(labels),) or not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    for i, label in enumerate(labels):
+        if label != "angle" and not 0.0 <= arr[i] <= workspace.size:
+            raise ValueError(
+                f"{name}[{i}] ({label}) = {arr[i]:g} is outside the {workspace.name} arena: positions must lie in "
+                f"[0, {workspace.size}]"
+            )
+    return arr
+
+
+_STATE = ("state", "5 finite numbers (agent x, y, block x, y, angle)", ("agent x", "agent y", "block x", "block y", "angle"))
+_GOAL = ("goal_pose", "3 finite numbers (goal x, y, angle)", ("goal x", "goal y", "angle"))
 
 
 def _unit_turn(angle: float) -> float:
@@ -32,7 +58,10 @@ class PushTEnv(gym.Env):
     ``info`` carries ``is_success``, ``coverage``, ``block_pose`` and ``n_steps``.
 
     ``reset(seed=s)`` draws a configuration of ``split`` (see :mod:`.splits`); ``options={"config": Config}`` or
-    ``options={"state": [ax, ay, bx, by, theta]}`` (plus optional ``"goal_pose"``) resets to a given one.
+    ``options={"state": [ax, ay, bx, by, theta]}`` (plus optional ``"goal_pose"`` ``(x, y, theta)``, default
+    :data:`~.splits.FIXED_GOAL`) resets to a given one. Positions must lie in the arena ``[0, size]`` and every entry
+    must be finite; a bad value, an unknown option key, or a combination that would ignore one (``config`` with
+    ``state`` or ``goal_pose``) raises ``ValueError``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -85,19 +114,32 @@ class PushTEnv(gym.Env):
     # ------------------------------------------------------------------------------------------------ reset
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        options = options or {}
+        options = {} if options is None else options
+        if not isinstance(options, Mapping):
+            raise ValueError(f"options must be a dict with keys among {RESET_OPTIONS}, got {type(options).__name__}")
+        unknown = sorted(str(k) for k in options if k not in RESET_OPTIONS)
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}; known options are {list(RESET_OPTIONS)}")
+        if "config" in options and ("state" in options or "goal_pose" in options):
+            given = [k for k in ("state", "goal_pose") if k in options]
+            raise ValueError(f"options['config'] already sets the whole configuration: drop {given} or the config")
+        if "goal_pose" in options and "state" not in options:
+            raise ValueError("options['goal_pose'] applies only together with options['state']")
         if "config" in options:
             config = options["config"]
+            if not isinstance(config, Config):
+                raise ValueError(f"options['config'] must be a kpflow Config, got {type(config).__name__}")
+            ws = get_workspace(config.workspace)
+            pose = "3 finite numbers (x, y, angle)"
+            _checked(config.agent_pos, "config.agent_pos", "2 finite numbers (x, y)", ("agent x", "agent y"), ws)
+            _checked(config.block_pose, "config.block_pose", pose, ("block x", "block y", "angle"), ws)
+            _checked(config.goal_pose, "config.goal_pose", pose, ("goal x", "goal y", "angle"), ws)
         elif "state" in options:
-            state = np.asarray(options["state"], float)
-            if state.shape != (5,) or not np.isfinite(state).all():
-                raise ValueError(f"state must be 5 finite numbers (agent x, y, block x, y, angle), got {state}")
-            goal = options.get("goal_pose", FIXED_GOAL)
-            config = Config(tuple(state[:2]), tuple(state[2:]), tuple(np.asarray(goal, float)), self.workspace.name)
+            state = _checked(options["state"], *_STATE, self.workspace)
+            goal = _checked(options.get("goal_pose", FIXED_GOAL), *_GOAL, self.workspace)
+            config = Config(tuple(state[:2]), tuple(state[2:]), tuple(goal), self.workspace.name)
         else:
             config = sample_config(self.split, self.np_random, self.goal_mode)
-        if not isinstance(config, Config):
-            raise ValueError(f"options['config'] must be a kpflow Config, got {type(config).__name__}")
         if config.workspace != self.workspace.name:
             self._build(get_workspace(config.workspace))
         self.config = config
