@@ -301,24 +301,36 @@ def test_damaged_chunk_and_metadata_name_the_field(filled):
         EpisodeStore(path)
 
 
+HOLDER = """
+import sys, time
+from kpflow.data.episode_store import EpisodeStore
+store = EpisodeStore(sys.argv[1], mode="a")
+print("holding", flush=True)
+time.sleep(float(sys.argv[2]))
+"""
+
+
 def test_second_writer_fails_clearly_or_waits(filled):
-    import threading
+    import subprocess
+    import sys
     import time
 
     path, episodes = filled
-    first = EpisodeStore(path, mode="a")
-    with pytest.raises(TimeoutError, match="is being written by another process"):
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(path), "1.5"], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "holding"
+    with pytest.raises(TimeoutError, match=rf"{path} cannot be opened for writing: .*held by process {holder.pid}: wait"):
         EpisodeStore(path, mode="a")
-    with pytest.raises(TimeoutError, match=r"is being written by another process \(.*held by process \d+ after 0.2 s"):
+    with pytest.raises(TimeoutError, match=rf"held by process {holder.pid} after 0.2 s"):
         EpisodeStore(path, mode="a", wait=0.2)
-    EpisodeStore(path)  # readers take no lock
-    threading.Timer(0.3, first.close).start()
+    assert_same(EpisodeStore(path), episodes)  # readers take no lock
     t0 = time.monotonic()
-    with EpisodeStore(path, mode="a", wait=None) as second:  # waits for the first to close
-        assert time.monotonic() - t0 >= 0.25
-        second.add_episode(make_episode(2, 50))
+    with EpisodeStore(path, mode="a", wait=None) as store:  # waits for the holder to exit
+        assert time.monotonic() - t0 > 0.5 and holder.wait(10) == 0
+        store.add_episode(make_episode(2, 50))
+        with pytest.raises(TimeoutError, match="held by this process already, through another open handle"):
+            EpisodeStore(path, mode="a", wait=None)  # waiting for oneself would never end
     with pytest.raises(PermissionError, match="was closed"):
-        first.add_episode(make_episode(2, 51))
+        store.add_episode(make_episode(2, 51))
     assert_same(EpisodeStore(path), [*episodes, make_episode(2, 50)])
 
 

@@ -131,7 +131,7 @@ def test_collect_commits_successful_episodes_deterministically(tmp_path):
     for i in range(2):
         for key in ("keypoints", "action", "agent_pos", "block_pose", "goal_pose"):
             np.testing.assert_array_equal(a.episode(i)[key], b.episode(i)[key])
-    with pytest.raises(ValueError, match="already holds"):
+    with pytest.raises(ValueError, match="holds 2 episodes of another collection"):
         collect_pusht(tmp_path / "a.zarr", 1, progress=False)
     with pytest.raises(ValueError, match="n_episodes"):
         collect_pusht(tmp_path / "c.zarr", 0, progress=False)

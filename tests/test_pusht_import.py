@@ -188,6 +188,29 @@ def test_validation_nan(recorded, tmp_path):
     assert read_pusht_replay(bad, max_episodes=1)[0].shape == (30, 5)  # only the rows read are checked
 
 
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        ("chunk bytes", r"field 'data/state' could not be read: a chunk is damaged"),
+        ("zarray json", r"field 'data/action' has damaged metadata \(data/action/.zarray: JSONDecodeError"),
+        ("missing chunk", r"field 'data/state' is missing 1 chunk\(s\) of its first 108 rows"),
+    ],
+)
+def test_damaged_buffer_names_the_field(recorded, tmp_path, damage, match):
+    states, actions, _ = recorded
+    bad = write_standard(tmp_path / "bad.zarr", states, actions)
+    chunk = next((bad / "data" / "state").glob("0.*"))
+    if damage == "chunk bytes":
+        chunk.write_bytes(b"\x02\x01random bytes, not blosc" * 8)
+    elif damage == "zarray json":
+        (bad / "data" / "action" / ".zarray").write_text("{broken")
+    else:
+        chunk.unlink()
+    with pytest.raises(ValueError, match=match) as info:
+        import_pusht_replay(bad, tmp_path / "store", progress=False)
+    assert str(bad) in str(info.value) and not (tmp_path / "store").exists()
+
+
 def test_missing_source(tmp_path):
     with pytest.raises(FileNotFoundError, match="no Push-T replay buffer"):
         import_pusht_replay(tmp_path / "nothing.zarr", tmp_path / "store", progress=False)

@@ -113,9 +113,20 @@ def same_store(a: Path, b: Path) -> None:
     assert [x.episode_attrs(i) for i in range(len(x))] == [y.episode_attrs(i) for i in range(len(y))]
 
 
-def test_an_interrupted_collection_continues_where_it_stopped(tmp_path):
+def test_an_interrupted_collection_continues_where_it_stopped(tmp_path, monkeypatch):
     partial, whole = tmp_path / "partial.zarr", tmp_path / "whole.zarr"
-    collect_pusht(partial, 1, workers=1, progress=False)  # as if stopped after one episode
+    add = EpisodeStore.add_episode
+
+    def interrupted(self, episode, attrs=None):
+        if len(self) == 1:
+            raise KeyboardInterrupt  # Ctrl-C after the first episode
+        return add(self, episode, attrs)
+
+    with monkeypatch.context() as m:
+        m.setattr(EpisodeStore, "add_episode", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            collect_pusht(partial, 3, workers=1, progress=False)
+    assert len(EpisodeStore(partial)) == 1
     summary = collect_pusht(partial, 3, workers=2, progress=False)
     assert summary["resumed_from"] == 1 and summary["episodes"] == 3
     collect_pusht(whole, 3, workers=1, progress=False)
@@ -129,9 +140,11 @@ def test_collection_refuses_another_collections_store_without_touching_it(tmp_pa
     collect_pusht(path, 1, workers=1, progress=False)
     before = {p: p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and "lock" not in p.name}
     with pytest.raises(ValueError, match=r"another collection \(seed: 0 there, 1 asked\)"):
-        collect_pusht(path, 2, seed=1, progress=False)
+        collect_pusht(path, 1, seed=1, progress=False)
+    with pytest.raises(ValueError, match=r"another collection \(n_episodes: 1 there, 2 asked\)"):
+        collect_pusht(path, 2, progress=False)
     with pytest.raises(ValueError, match="another collection.*split: 'in_distribution' there, 'robot_ood' asked"):
-        ensure_pusht_demos(path, 2, split="robot_ood", workers=1)
+        ensure_pusht_demos(path, 1, split="robot_ood", workers=1)
     with pytest.raises(ValueError, match="unknown Push-T split 'bogus'"):
         collect_pusht(tmp_path / "new.zarr", 2, split="bogus", progress=False)
     assert not (tmp_path / "new.zarr").exists()
@@ -157,4 +170,23 @@ def test_a_killed_first_use_collection_is_resumed_by_the_next_run(tmp_path):
     assert 1 <= len(EpisodeStore(path)) < 4
     ensure_pusht_demos(path, 4, workers=1)
     collect_pusht(whole, 4, workers=1, progress=False)
+    same_store(path, whole)
+
+
+def _ensure(path: str) -> None:
+    ensure_pusht_demos(path, 2, workers=1)
+
+
+def test_two_jobs_collecting_into_one_store_on_first_use_give_one_collection(tmp_path):
+    """What a joblib sweep does on first use: the second job waits for the first's lock and finds the store done."""
+    import multiprocessing as mp
+
+    path, whole = tmp_path / "demos.zarr", tmp_path / "whole.zarr"
+    jobs = [mp.get_context("fork").Process(target=_ensure, args=(str(path),)) for _ in range(2)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(300)
+        assert job.exitcode == 0
+    collect_pusht(whole, 2, workers=1, progress=False)
     same_store(path, whole)

@@ -40,10 +40,11 @@ def _check_int(name: str, value, lo: int) -> int:
     return int(value)
 
 
-def collection_attrs(split: str, goal: str, seed: int, max_steps: int, keep_failures: bool) -> dict:
-    """The store attrs that identify a collection: a store is continued only by a collection with the same ones."""
-    return {"task": "pusht", "source": "expert", "split": split, "goal": goal, "seed": seed, "max_steps": max_steps,
-            "keep_failures": keep_failures}
+def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool) -> dict:
+    """The store attrs that identify a collection (including how many episodes it is meant to hold): a store is
+    continued only by a collection with the same ones."""
+    return {"task": "pusht", "source": "expert", "n_episodes": n_episodes, "split": split, "goal": goal, "seed": seed,
+            "max_steps": max_steps, "keep_failures": keep_failures}
 
 
 def collect_pusht(
@@ -66,8 +67,8 @@ def collect_pusht(
     whatever the number of ``workers``, so the same arguments give the same store. That also makes an interrupted
     collection resumable: a store that holds fewer episodes of the same collection (same split, goal, seed,
     max_steps, keep_failures) is continued after its last committed configuration, and ends up identical to an
-    uninterrupted one. Another collection's store, or one with more episodes, is refused before anything is
-    written. A second process collecting into the same store waits for the first (the store's write lock) and then
+    uninterrupted one. Another collection's store (one meant for another number of episodes too), or one with more
+    episodes, is refused before anything is written. A second process collecting into the same store waits for the first (the store's write lock) and then
     finds it complete. The first ``videos`` kept episodes are also written as mp4 to ``video_dir``.
 
     Returns a summary (episodes, resumed_from, attempts, successes, steps of the episodes collected now, paths).
@@ -81,7 +82,7 @@ def collect_pusht(
         raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
     if goal not in GOAL_MODES:
         raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
-    want = collection_attrs(split, goal, seed, max_steps, bool(keep_failures))
+    want = collection_attrs(n_episodes, split, goal, seed, max_steps, bool(keep_failures))
     if (Path(store_path) / "meta" / "episode_ends").exists():
         check_collection(EpisodeStore(store_path), want, n_episodes)  # before the write lock repairs anything
     with EpisodeStore(store_path, mode="a", wait=None) as store:
@@ -99,7 +100,7 @@ def check_collection(store: EpisodeStore, want: dict, n_episodes: int) -> None:
     if not len(store) and not store.attrs.get("task"):
         return
     attrs = store.attrs.asdict()
-    optional = ("max_steps", "keep_failures")  # absent from stores collected before they were recorded
+    optional = ("n_episodes", "max_steps", "keep_failures")  # absent from stores collected before they were recorded
     differ = {k: (attrs.get(k), v) for k, v in want.items() if attrs.get(k) != v and not (k in optional and k not in attrs)}
     if differ:
         raise ValueError(

@@ -23,8 +23,8 @@ def ensure_pusht_demos(
     """The expert store at ``path``, collected first when it does not exist yet or holds fewer episodes
     (an interrupted collection is continued where it stopped; see :func:`collect_pusht`).
 
-    An existing store is used only if it was collected with the same split, goal and seed (and max_steps) and holds
-    at most ``n_episodes`` episodes; otherwise a clear error says what differs (collect into another path). With
+    An existing store is used only if it is a collection of ``n_episodes`` episodes with the same split, goal and
+    seed (and max_steps); otherwise a clear error says what differs (collect into another path). With
     ``n_episodes=None`` the store at ``path`` is taken as it is (one grown by corrections, or the imported human
     dataset) and must exist. Returns the store, open read-only.
     """
@@ -36,7 +36,7 @@ def ensure_pusht_demos(
                 "python -m kpflow.collect, or import the human dataset with python -m kpflow.data.pusht_import SRC DEST)"
             )
         return EpisodeStore(path)
-    want = collection_attrs(split, goal, seed, max_steps, False)
+    want = collection_attrs(n_episodes, split, goal, seed, max_steps, False)
     if not (path / "meta" / "episode_ends").exists() or len(EpisodeStore(path)) < n_episodes:
         collect_pusht(path, n_episodes, split=split, goal=goal, seed=seed, max_steps=max_steps, workers=workers)
     store = EpisodeStore(path)

@@ -395,10 +395,7 @@ def _acquire(path: Path, wait: float | None) -> FileLock:
     try:
         return FileLock(path / LOCK_NAME, wait=wait, on_wait=say)
     except TimeoutError as e:
-        raise TimeoutError(
-            f"{path} is being written by another process ({e}); wait for it to finish, or open the store with "
-            "wait=SECONDS (None: as long as it takes)"
-        ) from None
+        raise TimeoutError(f"{path} cannot be opened for writing: {e} (EpisodeStore(..., wait=SECONDS | None))") from None
 
 
 def _remove_partials(path: Path) -> None:

@@ -23,6 +23,7 @@ bias velocity, so nothing leaks from one rollout into the next (it matches a fre
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -33,6 +34,7 @@ import zarr
 from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.zarr_checks import check_chunks, open_array, read
 from kpflow.utils.io import atomic_dir
 from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
@@ -70,12 +72,15 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
         root = zarr.open_group(store=zarr.DirectoryStore(str(path)), mode="r")
     except (zarr.errors.GroupNotFoundError, zarr.errors.ContainsArrayError) as e:
         raise ValueError(f"{path} is not a Push-T replay buffer: not a zarr group ({e})") from e
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not a readable Push-T replay buffer: damaged .zgroup ({type(e).__name__}: {e})") from e
 
     arrays = {}
     for name, (trailing, meaning) in {**REQUIRED, "meta/episode_ends": ((), "cumulative episode end rows")}.items():
-        array = root.get(name)
         expected = "[" + ", ".join(["N", *map(str, trailing)]) + "]"
-        if not isinstance(array, zarr.Array):
+        if (path / name / ".zarray").is_file():
+            array = open_array(root, name, str(path))
+        else:
             raise ValueError(f"{path}: missing array {name} (expected {expected}: {meaning})")
         if array.ndim != 1 + len(trailing) or array.shape[1:] != trailing:
             raise ValueError(f"{path}: {name} has shape {list(array.shape)}; expected {expected} ({meaning})")
@@ -87,7 +92,7 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
     n_rows = arrays["data/state"].shape[0]
     if arrays["data/action"].shape[0] != n_rows:
         raise ValueError(f"{path}: data/action has {arrays['data/action'].shape[0]} rows but data/state has {n_rows}")
-    ends = np.asarray(arrays["meta/episode_ends"][:], dtype=np.int64)
+    ends = np.asarray(read(arrays["meta/episode_ends"], slice(None), str(path), "meta/episode_ends"), dtype=np.int64)
     if not len(ends):
         raise ValueError(f"{path}: meta/episode_ends is empty: the buffer holds no episodes")
     bad = np.flatnonzero(np.diff(np.concatenate([[0], ends])) <= 0)
@@ -99,8 +104,10 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
         ends = ends[: int(max_episodes)]
 
     n = int(ends[-1])
-    state = np.asarray(arrays["data/state"][:n], dtype=np.float64)
-    action = np.asarray(arrays["data/action"][:n], dtype=np.float64)
+    for name in ("data/state", "data/action"):
+        check_chunks(arrays[name], n, str(path), name)
+    state = np.asarray(read(arrays["data/state"], slice(0, n), str(path), "data/state"), dtype=np.float64)
+    action = np.asarray(read(arrays["data/action"], slice(0, n), str(path), "data/action"), dtype=np.float64)
     for name, values in (("data/state", state), ("data/action", action)):
         rows = np.flatnonzero(~np.isfinite(values).all(axis=1))
         if len(rows):

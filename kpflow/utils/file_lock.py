@@ -18,7 +18,8 @@ class FileLock:
         on_wait: called once, with the holder's pid (or None), when the lock is taken and we start waiting.
 
     Raises:
-        TimeoutError: the lock was still held after ``wait`` seconds; its message names the file and the holder.
+        TimeoutError: the lock was still held after ``wait`` seconds, or is held by this process through another
+            handle (waiting would deadlock); the message names the file and the holder.
     """
 
     POLL_S = 0.05
@@ -33,14 +34,17 @@ class FileLock:
                 fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 break
             except BlockingIOError:
+                holder = self.holder()
+                if holder == os.getpid():  # another handle of this very process: waiting would never end
+                    self.release()
+                    raise TimeoutError(f"{self.path} is held by this process already, through another open handle: close that first") from None
                 if deadline is not None and time.monotonic() >= deadline:
-                    holder = self.holder()
                     self.release()
                     who = f"process {holder}" if holder else "another process"
                     after = f" after {wait} s" if wait else ""
-                    raise TimeoutError(f"{self.path} is held by {who}{after}") from None
+                    raise TimeoutError(f"{self.path} is held by {who}{after}: wait for it to finish, or wait longer") from None
                 if not waiting and on_wait is not None:
-                    on_wait(self.holder())
+                    on_wait(holder)
                 waiting = True
                 time.sleep(self.POLL_S)
         os.ftruncate(self._fd, 0)
