@@ -114,7 +114,7 @@ def main(cfg: DictConfig) -> list[dict]:
     def make_policy(store: EpisodeStore):
         if not rebuilt:
             return instantiate(cfg.policy)
-        return instantiate(cfg.policy, demos={**demos, "path": str(store_path), "n_episodes": len(store)})
+        return instantiate(cfg.policy, demos={**demos, "path": str(store_path), "n_episodes": None})  # the grown store as it is
 
     def evaluate(label: str) -> dict | None:
         if not (cfg.eval_configs and rebuilt):
