@@ -145,10 +145,13 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
 
 
 def test_standard_protocol_is_diffusion_policys(tmp_path):
-    """split=standard: 50 episodes of 300 steps with the goal fixed at (256, 256, pi/4), whatever n_configs and
-    max_steps say; score = mean of min(max coverage / 0.95, 1)."""
+    """split=standard: DP's start states on seeds 100000, 100001, ..., 300 steps with the goal fixed at
+    (256, 256, pi/4), whatever n_configs and max_steps say; score = mean of min(max coverage / 0.95, 1)."""
+    import shapely
+
     from kpflow.eval.pusht_experiment import run_pusht_experiment
-    from kpflow.tasks.pusht.geometry import coverage
+    from kpflow.tasks.pusht.geometry import AGENT_RADIUS, coverage, t_polygon
+    from kpflow.tasks.pusht.splits import standard_config
 
     class HoldStill:
         def reset(self, seed=None):
@@ -158,13 +161,38 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
             return np.asarray(obs["agent_pos"], float)[None]
 
     results = run_pusht_experiment(
-        HoldStill(), tmp_path, split="standard", n_configs=3, max_steps=1200, workers=2, videos=0, progress=False
+        HoldStill(), tmp_path, split="standard", n_configs=3, max_steps=1200, workers=2, videos=0, progress=False,
+        standard_episodes=12,
     )
     episodes = results["episodes"]
-    assert len(episodes) == 50 and all(e["steps"] == 300 for e in episodes)
-    for e in episodes[:5]:
-        config = split_config("in_distribution", e["config_index"], goal="fixed")
-        assert config.goal_pose == pytest.approx((256.0, 256.0, np.pi / 4))
-        assert e["max_coverage"] == pytest.approx(coverage(config.block_pose, config.goal_pose), abs=1e-6)
+    assert [e["config_index"] for e in episodes] == list(range(100_000, 100_012))  # DP's test seeds
+    assert all(e["steps"] == 300 or e["success_095"] for e in episodes)  # DP's 300 steps, whatever max_steps says
+    clear = 0
+    for e in episodes:
+        config = standard_config(e["config_index"])
+        if shapely.distance(t_polygon(config.block_pose), shapely.Point(config.agent_pos)) > AGENT_RADIUS + 1:
+            clear += 1  # nothing pushes the block: its coverage stays the start's
+            assert e["max_coverage"] == pytest.approx(coverage(config.block_pose, config.goal_pose), abs=1e-6)
+    assert clear >= 8
     score = np.mean([min(e["max_coverage"] / 0.95, 1.0) for e in episodes])
     assert results["summary"]["standard"]["score"] == pytest.approx(score)
+
+
+def test_standard_config_is_diffusion_policys_draw():
+    """Closed form: DP's PushTEnv.reset draws, with np.random.RandomState(seed), agent x, y in randint(50, 450),
+    block x, y in randint(100, 400), then the angle randn() * 2 pi - pi, and keeps the goal (256, 256, pi/4)."""
+    from kpflow.tasks.pusht.splits import STANDARD_FIRST_SEED, standard_config
+
+    assert STANDARD_FIRST_SEED == 100_000
+    for seed in (0, 1, 100_000, 100_499, 200_000, 2**32 - 1):
+        rs = np.random.RandomState(seed)
+        want = [rs.randint(50, 450), rs.randint(50, 450), rs.randint(100, 400), rs.randint(100, 400), rs.randn() * 2 * np.pi - np.pi]
+        c = standard_config(seed)
+        assert [*c.agent_pos, *c.block_pose] == want  # bit for bit
+        assert c.goal_pose == (256.0, 256.0, np.pi / 4) and c.workspace == "standard"
+    draws = np.array([[*standard_config(s).agent_pos, *standard_config(s).block_pose] for s in range(100_000, 100_500)])
+    assert draws[:, :2].min() >= 50 and draws[:, :2].max() <= 449 and draws[:, 2:4].min() >= 100 and draws[:, 2:4].max() <= 399
+    assert (draws[:, :4] == draws[:, :4].round()).all()  # integer positions, as there
+    for bad in (-1, 2**32, 1.5, True):
+        with pytest.raises(ValueError, match="seed must be an integer"):
+            standard_config(bad)

@@ -3,9 +3,12 @@
 Each split's configurations are the seeded :func:`~kpflow.tasks.pusht.splits.split_config` list (indices from
 ``first_config`` on, so evaluation configurations differ from the demonstrations' 0, 1, 2, ...). An episode runs
 until coverage 0.95 or ``max_steps``; success at 0.85 means coverage reached 0.85 within the limit (the episode
-would have ended there at that threshold). The ``standard`` protocol is Diffusion Policy's: the fixed goal, 50
-seeds, 300 steps per episode (its ``max_steps``, whatever ``max_steps`` says), score = mean over episodes of
-min(max coverage / 0.95, 1).
+would have ended there at that threshold). The ``standard`` protocol is Diffusion Policy's test protocol:
+its start-state draw (:func:`~kpflow.tasks.pusht.splits.standard_config`) on seeds ``standard_first_seed``,
+``standard_first_seed + 1``, ... (100000 on: LeRobot's and DP's test seeds), ``standard_episodes`` of them (500 by
+default, LeRobot's count; DP used 50), the fixed goal, at most 300 steps (whatever ``max_steps`` says), the episode
+ending at coverage 0.95; score = mean over episodes of max over steps of clip(coverage / 0.95, 0, 1), success =
+coverage 0.95 reached.
 """
 
 from __future__ import annotations
@@ -21,12 +24,12 @@ from kpflow.eval.stats import wilson_interval
 from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.utils.video import write_video
 from kpflow.tasks.pusht.rollout import run_episode
-from kpflow.tasks.pusht.splits import SPLITS, split_config
+from kpflow.tasks.pusht.splits import SPLITS, STANDARD_FIRST_SEED, split_config, standard_config
 from kpflow.utils.io import save_figure, write_json, write_text
 
 THRESHOLDS = (0.85, 0.95)
 PROTOCOLS = (*SPLITS, "standard")
-STANDARD_EPISODES, STANDARD_MAX_STEPS = 50, 300  # Diffusion Policy's Push-T evaluation (n_test, max_steps)
+STANDARD_EPISODES, STANDARD_MAX_STEPS = 500, 300  # Diffusion Policy's Push-T test protocol (LeRobot's 500 episodes)
 
 
 def _max_steps(protocol: str, max_steps: int) -> int:
@@ -53,8 +56,9 @@ _POLICY = None  # the policy of this worker process (inherited through fork)
 
 
 def _configuration(protocol: str, index: int, seed: int):
+    """Configuration ``index`` of ``protocol``: for ``standard`` the index is Diffusion Policy's env seed."""
     if protocol == "standard":
-        return split_config("in_distribution", index, seed, goal="fixed")
+        return standard_config(index)
     return split_config(protocol, index, seed, goal="random")
 
 
@@ -164,8 +168,12 @@ def run_pusht_experiment(
     workers: int = 2,
     videos: int = 1,
     progress: bool = True,
+    standard_episodes: int = STANDARD_EPISODES,
+    standard_first_seed: int = STANDARD_FIRST_SEED,
 ) -> dict:
-    """Evaluate ``policy`` on ``split`` (one of the splits, ``standard``, or ``all`` for the three splits).
+    """Evaluate ``policy`` on ``split`` (one of the splits, ``standard``, or ``all`` for the three splits):
+    ``n_configs`` configurations per split from index ``first_config``, or for ``standard`` ``standard_episodes``
+    episodes on Diffusion Policy's seeds from ``standard_first_seed`` (module docstring).
 
     Writes ``results.json`` (summary and every episode), ``results.md`` (the table), ``success.png`` and up to
     ``videos`` mp4s of successes and of failures per split into ``output_dir``; returns the results with a flat
@@ -175,14 +183,16 @@ def run_pusht_experiment(
     protocols = list(SPLITS) if split == "all" else [split]
     if any(p not in PROTOCOLS for p in protocols):
         raise ValueError(f"unknown split {split!r}; choose 'all' or one of {PROTOCOLS}")
-    if n_configs < 1 or workers < 1 or max_steps < 1:
-        raise ValueError(f"n_configs, workers and max_steps must be >= 1, got {n_configs}, {workers}, {max_steps}")
+    if n_configs < 1 or workers < 1 or max_steps < 1 or standard_episodes < 1:
+        raise ValueError(
+            f"n_configs, workers, max_steps and standard_episodes must be >= 1, got {n_configs}, {workers}, {max_steps}, {standard_episodes}"
+        )
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [
-        (p, first_config + i, seed, _max_steps(p, max_steps))
+        (p, (standard_first_seed if p == "standard" else first_config) + i, seed, _max_steps(p, max_steps))
         for p in protocols
-        for i in range(STANDARD_EPISODES if p == "standard" else n_configs)
+        for i in range(standard_episodes if p == "standard" else n_configs)
     ]
     _POLICY = policy
     episodes = map_jobs(_episode, jobs, workers, desc=f"evaluate {name}", unit="ep", progress=progress)

@@ -3,7 +3,8 @@
 * :mod:`.geometry` -- the T's boxes, its 12 keypoints (fixed order) and the coverage score.
 * :mod:`.workspace` -- the standard 512-px arena and the large 1024-px one with a 512-px training region.
 * :mod:`.physics` -- the pymunk space, built as the standard env builds it (quirks documented there).
-* :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it.
+* :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it, and
+  Diffusion Policy's standard start-state draw.
 * :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment.
 * :mod:`.render` -- RGB frames (videos: :mod:`kpflow.utils.video`).
 * :mod:`.routing` -- agent paths around the block, retimed into speed-bounded targets.
@@ -15,7 +16,7 @@
 from .env import PushTEnv
 from .geometry import KEYPOINT_NAMES, N_KEYPOINTS, coverage, observation_keypoints, t_keypoints
 from .physics import PushTPhysics
-from .splits import FIXED_GOAL, SPLITS, Config, make_split, sample_config, split_config
+from .splits import FIXED_GOAL, SPLITS, STANDARD_FIRST_SEED, Config, make_split, sample_config, split_config, standard_config
 from .workspace import WORKSPACES, Workspace, get_workspace
 
 __all__ = [
@@ -32,6 +33,8 @@ __all__ = [
     "make_split",
     "sample_config",
     "split_config",
+    "standard_config",
+    "STANDARD_FIRST_SEED",
     "WORKSPACES",
     "Workspace",
     "get_workspace",

@@ -9,7 +9,10 @@ Each split is a reproducible list: configuration ``i`` of a split depends only o
 * ``object_ood`` -- large workspace; the block origin is uniform in [100, 924]^2 and the T lies completely or
   partially outside the training region; agent in [50, 450]^2; goal in the training region.
 
-Unlike the standard env, a configuration is redrawn when the block would overlap a wall (every T vertex stays 5 px
+``standard_config(seed)`` is Diffusion Policy's own start-state draw (its test protocol, and gym-pusht's reset):
+fixed goal, no redraws, seeds from :data:`STANDARD_FIRST_SEED`.
+
+Unlike the standard env, a split's configuration is redrawn when the block would overlap a wall (every T vertex stays 5 px
 inside the walls), when the agent touches the block (5 px clearance), or when the block already covers 85% of the
 goal, so that no episode starts solved at either success threshold.
 """
@@ -84,6 +87,26 @@ def sample_config(split: str, rng: np.random.Generator, goal: str = "random") ->
             goal_pose=goal_pose,
             workspace=ws.name,
         )
+
+
+STANDARD_FIRST_SEED = 100_000  # the first test seed of Diffusion Policy's Push-T evaluation (LeRobot's too)
+
+
+def standard_config(seed: int) -> Config:
+    """Diffusion Policy's start state for ``seed`` (``PushTEnv.reset`` there, and gym-pusht's): with
+    ``rs = np.random.RandomState(seed)``, in this order,
+
+        agent = (rs.randint(50, 450), rs.randint(50, 450)),
+        block = (rs.randint(100, 400), rs.randint(100, 400), rs.randn() * 2 pi - pi),
+
+    and the fixed goal (256, 256, pi/4) in the 512-px workspace. Nothing is redrawn: the block may start against a
+    wall or the agent, or already near the goal, exactly as there."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
+        raise ValueError(f"seed must be an integer in [0, 2**32); got {seed!r}")
+    rs = np.random.RandomState(seed=int(seed))
+    agent = (float(rs.randint(50, 450)), float(rs.randint(50, 450)))
+    block = (float(rs.randint(100, 400)), float(rs.randint(100, 400)), float(rs.randn() * 2 * np.pi - np.pi))
+    return Config(agent_pos=agent, block_pose=block, goal_pose=FIXED_GOAL, workspace="standard")
 
 
 def split_config(split: str, i: int, seed: int = 0, goal: str = "random") -> Config:
