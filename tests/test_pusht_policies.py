@@ -196,3 +196,48 @@ def test_standard_config_is_diffusion_policys_draw():
     for bad in (-1, 2**32, 1.5, True):
         with pytest.raises(ValueError, match="seed must be an integer"):
             standard_config(bad)
+
+
+def test_query_k_is_the_sorted_weighted_distances():
+    rng = np.random.default_rng(3)
+    keypoints, chunks = rng.uniform(0, 512, (300, 25, 2)), rng.uniform(0, 512, (300, 20, 2))
+    w = pusht_weights(agent=4.0)
+    index = SourceIndex(keypoints, chunks, w)
+    q = rng.uniform(0, 512, (25, 2))
+    d = ((keypoints - q) ** 2 * w[:, None]).sum((1, 2))
+    idx, dist = index.query_k(q, 5)
+    np.testing.assert_array_equal(idx, np.argsort(d)[:5])
+    np.testing.assert_allclose(dist, np.sort(d)[:5], rtol=1e-4)
+    assert index.query_k(q, 1)[0][0] == index.query(q)[0]
+    assert len(SourceIndex(keypoints[:3], chunks[:3]).query_k(q, 5)[0]) == 3  # fewer sources than k
+    with pytest.raises(ValueError, match="k must be an integer >= 1"):
+        index.query_k(q, 0)
+
+
+def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
+    """candidates=5, temperature=1.2: rank i is drawn with probability exp(-i / 1.2) / Z (the authors' choice)."""
+    rng = np.random.default_rng(4)
+    keypoints = rng.uniform(0, 512, (50, 25, 2))
+    index = SourceIndex(keypoints, rng.uniform(0, 512, (50, 20, 2)))
+    q = keypoints[7] + 0.5
+    ranked, _ = index.query_k(q, 5)
+    policy = TransportationPolicy(index, candidates=5, temperature=1.2)
+    policy.reset(11)
+    draws = [policy.choose(q) for _ in range(20_000)]
+    freq = np.array([np.mean(np.array(draws) == i) for i in ranked])
+    p = np.exp(-np.arange(5) / 1.2)
+    np.testing.assert_allclose(freq, p / p.sum(), atol=0.012)  # ~4 standard errors
+    policy.reset(11)
+    assert [policy.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
+    assert TransportationPolicy(index).choose(q) == ranked[0]  # candidates=1: the nearest
+    for bad, match in (({"candidates": 0}, "candidates"), ({"temperature": 0.0}, "temperature"), ({"max_step_px": -1.0}, "max_step_px")):
+        with pytest.raises(ValueError, match=match):
+            TransportationPolicy(index, **bad)
+
+
+def test_clipped_steps_by_hand():
+    from kpflow.policies.transportation import clip_steps
+
+    targets = np.array([[10.0, 0.0], [10.0, 9.0], [0.0, 9.0]])
+    np.testing.assert_allclose(clip_steps(np.zeros(2), targets, 5.0), [[5, 0], [10, 5], [5, 9]])
+    np.testing.assert_allclose(clip_steps(np.zeros(2), targets, 100.0), targets)  # a wide limit changes nothing

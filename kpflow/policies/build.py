@@ -40,8 +40,12 @@ def transportation(
     execute: int = 8,
     weights: dict | None = None,
     frame: str = "block",
+    candidates: int = 1,
+    temperature: float = 1.2,
+    max_step_px: float | None = None,
 ):
-    return TransportationPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute)
+    index = pusht_index(demos, horizon, weights, frame)
+    return TransportationPolicy(index, make_map, execute, candidates, temperature, max_step_px)
 
 
 def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):

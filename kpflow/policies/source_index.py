@@ -95,12 +95,26 @@ class SourceIndex:
 
     def query(self, keypoints: np.ndarray) -> tuple[int, float]:
         """Index of the nearest source to ``keypoints [K, D]`` and its weighted squared distance."""
+        d = self._distances(keypoints)
+        i = int(np.argmin(d))
+        return i, float(max(d[i], 0.0))
+
+    def query_k(self, keypoints: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` nearest sources to ``keypoints [K, D]``, nearest first: indices ``[k]`` and weighted squared
+        distances ``[k]`` (ties in index order; fewer when the index holds fewer than ``k``)."""
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise ValueError(f"k must be an integer >= 1, got {k!r}")
+        d = self._distances(keypoints)
+        k = min(int(k), len(d))
+        part = np.argpartition(d, k - 1)[:k] if k < len(d) else np.arange(len(d))
+        order = part[np.lexsort((part, d[part]))]
+        return order, np.maximum(d[order], 0.0)
+
+    def _distances(self, keypoints: np.ndarray) -> np.ndarray:
         q = np.asarray(keypoints, dtype=np.float32)
         if q.shape != self.keypoints.shape[1:]:
             raise ValueError(f"query keypoints must have shape {self.keypoints.shape[1:]}, got {q.shape}")
         if not np.isfinite(q).all():
             raise ValueError("query keypoints contain NaN or inf")
         f = (self.canonical(q[None])[0] * self._scale).reshape(-1)
-        d = self._norms - 2.0 * (self._features @ f) + f @ f
-        i = int(np.argmin(d))
-        return i, float(max(d[i], 0.0))
+        return self._norms - 2.0 * (self._features @ f) + f @ f

@@ -1,8 +1,15 @@
-"""Policy transportation: the nearest demonstrated chunk, carried into the current scene by a keypoint map.
+"""Policy transportation: a near demonstrated chunk, carried into the current scene by a keypoint map.
 
-With ``S`` the nearest source's keypoints and ``T`` the observed ones, fit ``phi`` with ``phi(S) ~= T`` and execute
+With ``S`` the chosen source's keypoints and ``T`` the observed ones, fit ``phi`` with ``phi(S) ~= T`` and execute
 ``phi(a_1), ..., phi(a_H)`` for the source's chunk of absolute targets ``a`` (the paper's offline transport applied
 to one chunk at a time).
+
+Choosing the source. With ``candidates = 1`` it is the nearest (deterministic). With ``candidates = k > 1`` it is
+drawn among the ``k`` nearest, rank ``i = 0..k-1`` with probability ``exp(-i / temperature) / Z``, as the authors'
+public code does (k = 5, temperature 1.2): a deterministic choice can repeat the same chunk from the same state for
+ever (an agent parked at a corner of the T), a draw gets it out. ``max_step_px`` clips each executed step: target
+``j`` moves at most that far per axis from target ``j - 1`` (from the agent for the first), as their code clips
+actions to +-5 px.
 """
 
 from __future__ import annotations
@@ -17,25 +24,72 @@ from ..maps.base import TransportMap
 from .source_index import SourceIndex
 
 
-class TransportationPolicy:
-    """Nearest source by :class:`SourceIndex`, then its chunk transported by a map from ``make_map()`` (ILWR)."""
+def clip_steps(start: np.ndarray, targets: np.ndarray, max_step: float) -> np.ndarray:
+    """Targets ``[H, A]`` with each step clipped per axis: ``c_0 = start + clip(t_0 - start, -m, m)``,
+    ``c_j = c_{j-1} + clip(t_j - c_{j-1}, -m, m)``."""
+    out, prev = np.empty_like(targets), np.asarray(start, dtype=targets.dtype)
+    for j, t in enumerate(targets):
+        prev = prev + np.clip(t - prev, -max_step, max_step)
+        out[j] = prev
+    return out
 
-    def __init__(self, index: SourceIndex, make_map: Callable[[], TransportMap] = ILWRMap, execute: int = 20):
+
+class TransportationPolicy:
+    """A source chosen by :class:`SourceIndex` (module docstring), then its chunk transported by a map from
+    ``make_map()`` (ILWR).
+
+    Args:
+        execute: how many of the chunk's targets :meth:`act` returns.
+        candidates: draw the source among this many nearest (1: the nearest).
+        temperature: rank temperature of the draw (``exp(-rank / temperature)``).
+        max_step_px: clip every executed step to this many px per axis (None: no clipping).
+    """
+
+    def __init__(
+        self,
+        index: SourceIndex,
+        make_map: Callable[[], TransportMap] = ILWRMap,
+        execute: int = 20,
+        candidates: int = 1,
+        temperature: float = 1.2,
+        max_step_px: float | None = None,
+    ):
         if not 1 <= execute <= index.chunks.shape[1]:
             raise ValueError(f"execute must be in 1..{index.chunks.shape[1]} (the chunk length), got {execute}")
+        if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
+            raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
+        if not (np.isfinite(temperature) and temperature > 0):
+            raise ValueError(f"temperature must be a positive number, got {temperature!r}")
+        if max_step_px is not None and not (np.isfinite(max_step_px) and max_step_px > 0):
+            raise ValueError(f"max_step_px must be a positive number or None, got {max_step_px!r}")
         self.index, self.make_map, self.execute = index, make_map, execute
+        self.candidates, self.temperature, self.max_step_px = int(candidates), float(temperature), max_step_px
+        self.rng = np.random.default_rng(0)
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
 
     def reset(self, seed: int | None = None) -> None:
+        """Reseed the source draw with ``seed`` (0 when None)."""
+        self.rng = np.random.default_rng(0 if seed is None else int(seed))
         self.last_source, self.last_map = None, None
+
+    def choose(self, target: np.ndarray) -> int:
+        """The source for the observed keypoints ``target [K, D]`` (module docstring)."""
+        if self.candidates == 1:
+            return self.index.query(target)[0]
+        near, _ = self.index.query_k(target, self.candidates)
+        p = np.exp(-np.arange(len(near)) / self.temperature)
+        return int(near[self.rng.choice(len(near), p=p / p.sum())])
 
     def act(self, obs: dict) -> np.ndarray:
         target = np.asarray(obs["keypoints"], dtype=np.float64)
-        i, _ = self.index.query(target)
+        i = self.choose(target)
         source = self.index.keypoints[i].astype(np.float64)
         phi = self.make_map().fit(torch.from_numpy(source), torch.from_numpy(target))
         chunk = torch.from_numpy(self.index.chunks[i, : self.execute].astype(np.float64))
         self.last_source, self.last_map = i, phi
         with torch.no_grad():
-            return phi(chunk).numpy()
+            moved = phi(chunk).numpy()
+        if self.max_step_px is not None:
+            moved = clip_steps(np.asarray(obs["agent_pos"], np.float64), moved, self.max_step_px)
+        return moved
