@@ -5,8 +5,6 @@ Rolls the task's scripted expert out on seeded configurations and commits each s
 the resolved config and a few episode videos.
 """
 
-from pathlib import Path
-
 import hydra
 from omegaconf import DictConfig
 
@@ -14,10 +12,11 @@ from kpflow.data.collection import collect_pusht
 from kpflow.tasks.pusht.splits import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import Key
 from kpflow.utils.io import write_json
-from kpflow.utils.run import remove_unused_run_folder, start_run
+from kpflow.utils.run import start_run
 
 TASKS = ("pusht",)
 KEYS = {
+    "task.name": Key(str, choices=TASKS),
     "n_episodes": Key(int, lo=1),
     "seed": Key(int, lo=0),
     "max_steps": Key(int, lo=1),
@@ -31,9 +30,6 @@ KEYS = {
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
 def main(cfg: DictConfig) -> dict:
-    if cfg.task.name not in TASKS:
-        remove_unused_run_folder(Path(cfg.output_dir))
-        raise ValueError(f"collect: unknown task {cfg.task.name!r}; choose one of {TASKS}")
     out = start_run(cfg, KEYS)
     summary = collect_pusht(
         out / "episodes.zarr",

@@ -72,6 +72,8 @@ def test_planted_payload_is_refused_in_process(kcfm_run, tmp_path):
     with pytest.raises(UnsafeCheckpointError, match="was refused"):
         t.fit(KCFM(horizon=H), datamodule=ChunkDataModule(kcfm_run / "demos.zarr", horizon=H, batch_size=64), ckpt_path=evil)
     assert not marker.exists()
+    torch.load(evil, weights_only=False)  # control: the payload is live, an unsafe load does run it
+    assert marker.exists()
 
 
 @pytest.mark.parametrize("policy", ["kcfm", "transported_kcfm"])

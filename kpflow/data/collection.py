@@ -7,11 +7,11 @@ import os
 from itertools import count
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.expert import PushTExpert
+from ..utils.config_checks import Key
 from ..utils.video import write_video
 from ..tasks.pusht.rollout import EpisodeResult, run_episode
 from ..tasks.pusht.splits import GOAL_MODES, SPLITS, split_config
@@ -32,12 +32,6 @@ def expert_episode(
 def _job(args) -> tuple[int, EpisodeResult]:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     return expert_episode(*args)
-
-
-def _check_int(name: str, value, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}; got {value!r}")
-    return int(value)
 
 
 def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool) -> dict:
@@ -73,30 +67,28 @@ def collect_pusht(
 
     Returns a summary (episodes, resumed_from, attempts, successes, steps of the episodes collected now, paths).
     """
-    n_episodes = _check_int("n_episodes", n_episodes, 1)
-    workers = _check_int("workers", workers, 1)
-    max_steps = _check_int("max_steps", max_steps, 1)
-    videos = _check_int("videos", videos, 0)
-    seed = _check_int("seed", seed, 0)
+    for name, value, lo in (("n_episodes", n_episodes, 1), ("workers", workers, 1), ("max_steps", max_steps, 1), ("videos", videos, 0), ("seed", seed, 0)):
+        Key(int, lo=lo).check(name, value)
+    n_episodes, workers, max_steps, videos, seed = map(int, (n_episodes, workers, max_steps, videos, seed))  # plain ints for the attrs
     if split not in SPLITS:
         raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
     if goal not in GOAL_MODES:
         raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
     want = collection_attrs(n_episodes, split, goal, seed, max_steps, bool(keep_failures))
     if (Path(store_path) / "meta" / "episode_ends").exists():
-        check_collection(EpisodeStore(store_path), want, n_episodes)  # before the write lock repairs anything
+        check_collection(EpisodeStore(store_path), want)  # before the write lock repairs anything
     with EpisodeStore(store_path, mode="a", wait=None) as store:
         have = len(store)
-        check_collection(store, want, n_episodes)
+        check_collection(store, want)
         if not have:
             store.attrs.update(want)
         start = store.episode_attrs(have - 1)["config_index"] + 1 if have else 0
         return _collect(store, n_episodes, have, start, want, workers, videos, video_dir, progress)
 
 
-def check_collection(store: EpisodeStore, want: dict, n_episodes: int) -> None:
-    """Raise ``ValueError`` unless ``store`` is empty or a (partial) collection with the attrs ``want`` of at most
-    ``n_episodes`` episodes."""
+def check_collection(store: EpisodeStore, want: dict) -> None:
+    """Raise ``ValueError`` unless ``store`` is empty or a (partial) collection with the attrs ``want`` (see
+    :func:`collection_attrs`) holding at most ``want["n_episodes"]`` episodes."""
     if not len(store) and not store.attrs.get("task"):
         return
     attrs = store.attrs.asdict()
@@ -107,8 +99,8 @@ def check_collection(store: EpisodeStore, want: dict, n_episodes: int) -> None:
             f"{store.path} holds {len(store)} episodes of another collection ({', '.join(f'{k}: {a!r} there, {b!r} asked' for k, (a, b) in differ.items())}); "
             "collect into another path"
         )
-    if len(store) > n_episodes:
-        raise ValueError(f"{store.path} already holds {len(store)} episodes, more than the {n_episodes} asked for")
+    if len(store) > want["n_episodes"]:
+        raise ValueError(f"{store.path} already holds {len(store)} episodes, more than the {want['n_episodes']} asked for")
     if len(store) and "config_index" not in store.episode_attrs(len(store) - 1):
         raise ValueError(f"{store.path}: its last episode has no config_index, so the collection cannot be continued")
 

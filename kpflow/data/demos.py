@@ -40,7 +40,7 @@ def ensure_pusht_demos(
     if not (path / "meta" / "episode_ends").exists() or len(EpisodeStore(path)) < n_episodes:
         collect_pusht(path, n_episodes, split=split, goal=goal, seed=seed, max_steps=max_steps, workers=workers)
     store = EpisodeStore(path)
-    check_collection(store, want, n_episodes)
+    check_collection(store, want)
     return store
 
 

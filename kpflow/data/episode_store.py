@@ -75,19 +75,17 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: i
 
     ``rows``: the row count of every data array; ``n_attrs``: the length of the per-episode attrs list (None if
     absent)."""
-    n = len(raw)
-    if pending is not None:
+    n, extra_attrs = len(raw), 0
+    if pending is None:
+        limit = committed = int(raw[-1]) if n else 0
+    else:
         try:
             e, start, end = int(pending["episode"]), int(pending["start"]), int(pending["end"])
         except (KeyError, TypeError, ValueError):
             raise ValueError(f"{where}: meta/.zattrs holds a malformed {_PENDING} mark {pending!r}; nothing was changed") from None
-        if n == e + 1 and raw[-1] == end:  # committed; only the mark was left
-            n = e + 1
-        elif n == e + 1 and raw[-1] == 0:  # torn commit: .zarray grown, value not written
+        if n == e + 1 and raw[-1] == 0:  # torn commit: .zarray grown, value not written
             n = e
-        elif n == e:
-            pass
-        else:
+        elif not (n == e or (n == e + 1 and raw[-1] == end)):  # neither before the commit nor just after it
             raise ValueError(
                 f"{where}: an append of episode {e} was in progress, but meta/episode_ends holds {len(raw)} entries: "
                 "the index is damaged; nothing was changed"
@@ -95,10 +93,8 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: i
         prev = int(raw[e - 1]) if e else 0
         if prev != start:
             raise ValueError(f"{where}: the pending episode {e} starts at row {start} but episode {e - 1} ends at {prev}: the index is damaged")
-        limit = end if n == e else int(raw[n - 1])
         committed = int(raw[n - 1]) if n else 0
-    else:
-        limit = committed = int(raw[-1]) if n else 0
+        limit, extra_attrs = (end, 1) if n == e else (committed, 0)  # uncommitted: its rows and attrs may be there
     _check_ends(raw[:n], where)
     for name, count in rows.items():
         if count < committed:
@@ -109,7 +105,7 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: i
                 f"{where}: data/{name} has {count} rows but {what}, and no append was in progress that could have "
                 "left them: the index is damaged; nothing was changed"
             )
-    if n_attrs is not None and n_attrs > n + (pending is not None and n == int(pending["episode"])):
+    if n_attrs is not None and n_attrs > n + extra_attrs:
         raise ValueError(f"{where}: meta/.zattrs lists attrs for {n_attrs} episodes but the store holds {n}: the metadata is damaged")
     dirty = pending is not None or n < len(raw) or any(c > committed for c in rows.values())
     return n, dirty

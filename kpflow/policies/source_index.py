@@ -19,6 +19,7 @@ import torch
 from ..data.chunks import ChunkDataset
 from ..data.episode_store import EpisodeStore
 from ..maps.affine import fit_affine
+from ..utils.config_checks import Key
 
 PUSHT_BLOCK = tuple(range(12))  # the block's keypoints in a Push-T observation
 
@@ -102,8 +103,7 @@ class SourceIndex:
     def query_k(self, keypoints: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` nearest sources to ``keypoints [K, D]``, nearest first: indices ``[k]`` and weighted squared
         distances ``[k]`` (ties in index order; fewer when the index holds fewer than ``k``)."""
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ValueError(f"k must be an integer >= 1, got {k!r}")
+        Key(int, lo=1).check("k", k)
         d = self._distances(keypoints)
         k = min(int(k), len(d))
         part = np.argpartition(d, k - 1)[:k] if k < len(d) else np.arange(len(d))

@@ -21,6 +21,7 @@ import torch
 
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from ..utils.config_checks import Key
 from .source_index import SourceIndex
 
 
@@ -56,8 +57,7 @@ class TransportationPolicy:
     ):
         if not 1 <= execute <= index.chunks.shape[1]:
             raise ValueError(f"execute must be in 1..{index.chunks.shape[1]} (the chunk length), got {execute}")
-        if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
-            raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
+        Key(int, lo=1).check("candidates", candidates)
         if not (np.isfinite(temperature) and temperature > 0):
             raise ValueError(f"temperature must be a positive number, got {temperature!r}")
         if max_step_px is not None and not (np.isfinite(max_step_px) and max_step_px > 0):

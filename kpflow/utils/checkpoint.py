@@ -22,8 +22,6 @@ import lightning
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
-from kpflow.utils.io import atomic_path
-
 M = TypeVar("M", bound=lightning.LightningModule)
 
 
@@ -92,7 +90,8 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
 
 class SafeCheckpointIO(TorchCheckpointIO):
     """Lightning's checkpoint IO with reading through :func:`read_checkpoint` (``Trainer(plugins=[SafeCheckpointIO()])``),
-    so resuming a run never runs code from its checkpoint. Saving is Lightning's (atomic: see ``save_checkpoint``)."""
+    so resuming a run never runs code from its checkpoint. Saving stays Lightning's, which is already atomic (an
+    fsspec transaction: a temporary file moved into place)."""
 
     def load_checkpoint(self, path, map_location: Callable | None = lambda storage, loc: storage) -> dict[str, Any]:
         return read_checkpoint(path, map_location=map_location)

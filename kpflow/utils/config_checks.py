@@ -3,7 +3,7 @@
 Hydra passes ``n_configs=abc`` on as the string ``"abc"``, and the error would surface deep inside (a TypeError in
 a range, Lightning's bare AssertionError). Each entry point declares its scalar keys as :class:`Key` specs and
 :func:`check_config` refuses a wrong type or range with an error that names the key, the expected value and the
-given one.
+given one. :meth:`Key.check` does the same for a function's arguments.
 """
 
 from __future__ import annotations
@@ -52,6 +52,12 @@ class Key:
             ok = value in self.choices
         return ok
 
+    def check(self, name: str, value: Any) -> Any:
+        """``value`` if :meth:`accepts` it, else ``ValueError``: ``<name> must be <describe()>; got <value> (<type>)``."""
+        if not self.accepts(value):
+            raise ValueError(f"{name} must be {self.describe()}; got {value!r} ({type(value).__name__})")
+        return value
+
 
 def check_config(cfg: DictConfig, keys: Mapping[str, Key]) -> None:
     """Raise ``ValueError`` for the first dotted key of ``keys`` present in ``cfg`` whose value ``keys`` refuses
@@ -60,8 +66,7 @@ def check_config(cfg: DictConfig, keys: Mapping[str, Key]) -> None:
         value = OmegaConf.select(cfg, name, default=_ABSENT, throw_on_missing=False)
         if value is _ABSENT:
             continue
-        if not key.accepts(value):
-            raise ValueError(f"config key {name} must be {key.describe()}; got {value!r} ({type(value).__name__})")
+        key.check(f"config key {name}", value)
 
 
 # Keys of Lightning's Trainer that kpflow's trainer configs set or users commonly override.

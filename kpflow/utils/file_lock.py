@@ -58,10 +58,6 @@ class FileLock:
             return None
         return int(text) if text.isdigit() else None
 
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
     def release(self) -> None:
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor drops the flock
