@@ -20,12 +20,15 @@ osmesa:
 	    { $(SUDO) apt-get update -q >/dev/null 2>&1 && $(SUDO) apt-get install -y -q --no-install-recommends libosmesa6 >/dev/null 2>&1; }; } || \
 	  echo "libosmesa6 could not be installed: MuJoCo will render through EGL"; }
 
-# torch first, pinned exactly (the local CPU wheel); then the package and its pinned dependencies.
+# torch first, pinned exactly (the local CPU wheel); then the package and its pinned dependencies; then torchcfm
+# without its declared dependencies (they would replace torch and numpy; see pyproject.toml).
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip==24.3.1
 	$(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q --no-deps torchcfm==1.0.7
+	$(BIN)/python -c "import torch, numpy; assert torch.__version__ == '2.13.0+cpu' and numpy.__version__ == '1.26.4', (torch.__version__, numpy.__version__)"
 	touch $(STAMP)
 
 demo: $(STAMP) osmesa

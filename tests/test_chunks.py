@@ -129,3 +129,23 @@ def test_datamodule_max_episodes(store_path):
     dm.setup()
     assert sorted(dm.train_episodes + dm.val_episodes) == [0, 1, 2, 3] and len(dm.val_episodes) == 1
     assert len(dm.train_set) + len(dm.val_set) == sum(LENGTHS[:4])
+
+
+def test_observation_history_repeats_the_first_frame_at_episode_starts(store):
+    ds = ChunkDataset(store, [3, 2], horizon=H, n_obs=3)
+    raw = {i: store.episode(i)["keypoints"] for i in (2, 3)}
+    first = ds[0]  # episode 3, t = 0: the first frame three times
+    assert (first["episode"], first["t"]) == (3, 0) and first["history"].shape == (3, 25, 2)
+    for frame in first["history"]:
+        torch.testing.assert_close(frame, torch.from_numpy(raw[3][0]))
+    second = ds[1]  # t = 1: [o0, o0, o1]
+    torch.testing.assert_close(second["history"], torch.from_numpy(raw[3][[0, 0, 1]]))
+    later = ds[5]  # t = 5: [o3, o4, o5], never reaching into another episode
+    torch.testing.assert_close(later["history"], torch.from_numpy(raw[3][3:6]))
+    start_of_next = ds[LENGTHS[3]]  # episode 2's first item: its own first frame, not episode 3's last
+    assert start_of_next["episode"] == 2
+    torch.testing.assert_close(start_of_next["history"], torch.from_numpy(raw[2][[0, 0, 0]]))
+    torch.testing.assert_close(later["history"][-1], later["obs"])  # the last frame is the current observation
+    assert ChunkDataset(store, [2], horizon=H)[4]["history"].shape == (1, 25, 2)
+    with pytest.raises(ValueError, match="n_obs must be >= 1"):
+        ChunkDataset(store, [2], n_obs=0)

@@ -14,7 +14,7 @@ import torch
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.maps import AffineMap, ILWRMap
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm import KCFM, MAX_STEPS
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.protocol import Policy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
@@ -103,7 +103,7 @@ def test_kcfm_policy_shapes_and_seeding(untrained, index):
 
 
 def test_bad_arguments_raise(untrained, index):
-    for kwargs in ({"execute": 0}, {"execute": H + 1}, {"execute": 2.5}, {"execute": True}, {"steps": 0}, {"steps": 11}):
+    for kwargs in ({"execute": 0}, {"execute": H + 1}, {"execute": 2.5}, {"execute": True}, {"steps": 0}, {"steps": MAX_STEPS + 1}):
         name = next(iter(kwargs))
         with pytest.raises(ValueError, match=name):
             KCFMPolicy(untrained, **kwargs)

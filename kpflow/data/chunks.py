@@ -19,13 +19,15 @@ class ChunkDataset(Dataset):
 
     Each item is a dict: ``obs`` (float32, the field's trailing shape, e.g. ``[25, 2]``), ``actions``
     (float32 ``[H, A]``: ``a[t : t + H]``, padded past the episode end by repeating its last action),
-    ``mask`` (bool ``[H]``: True for real actions, False for padding), ``episode`` and ``t`` (ints).
-    The two fields are loaded into memory once.
+    ``mask`` (bool ``[H]``: True for real actions, False for padding), ``history`` (float32 ``[n_obs, ...]``: the
+    observations ``o[t - n_obs + 1 : t + 1]``, oldest first, the episode's first observation repeated before its
+    start, as Diffusion Policy pads), ``episode`` and ``t`` (ints). The two fields are loaded into memory once.
 
     Args:
         store: the episodes.
         episodes: indices of the episodes to use (``0 <= i < store.n_episodes``).
         horizon: chunk length ``H >= 1``.
+        n_obs: observation frames per item ``>= 1`` (``history``).
         obs_key, action_key: the store fields holding observations and actions.
     """
 
@@ -36,9 +38,12 @@ class ChunkDataset(Dataset):
         horizon: int = 20,
         obs_key: str = "keypoints",
         action_key: str = "action",
+        n_obs: int = 1,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1; got {horizon}")
+        if n_obs < 1:
+            raise ValueError(f"n_obs must be >= 1; got {n_obs}")
         for key in (obs_key, action_key):
             if key not in store.fields:
                 raise ValueError(f"field {key!r} not in {store.path}; available fields: {store.fields}")
@@ -46,7 +51,7 @@ class ChunkDataset(Dataset):
         bad = [i for i in episodes if not 0 <= i < store.n_episodes]
         if bad:
             raise ValueError(f"episode indices {bad} out of range 0..{store.n_episodes - 1} of {store.path}")
-        self.horizon = horizon
+        self.horizon, self.n_obs = horizon, n_obs
         self.obs = np.ascontiguousarray(store.field(obs_key), dtype=np.float32)
         self.actions = np.ascontiguousarray(store.field(action_key), dtype=np.float32)
         # Per item: its episode, local step t, and the episode's start/end rows in the concatenated arrays.
@@ -58,6 +63,7 @@ class ChunkDataset(Dataset):
         self._t = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
         self._row = np.repeat(starts, lengths) + self._t
         self._end = np.repeat(stops, lengths)
+        self._start = np.repeat(starts, lengths)
 
     def __len__(self) -> int:
         return len(self._row)
@@ -68,6 +74,12 @@ class ChunkDataset(Dataset):
         rows = row[..., None] + np.arange(self.horizon)
         return self.obs[row], self.actions[np.minimum(rows, end[..., None] - 1)], rows < end[..., None]
 
+    def history(self, items: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Observation histories ``[n, n_obs, ...]`` of ``items``: rows ``t - n_obs + 1 .. t``, clamped to the episode start."""
+        row, start = self._row[items], self._start[items]
+        rows = row[..., None] + np.arange(1 - self.n_obs, 1)
+        return self.obs[np.maximum(rows, start[..., None])]
+
     def __getitem__(self, k: int) -> dict[str, torch.Tensor | int]:
         if not -len(self) <= k < len(self):
             raise IndexError(f"item {k} out of range for {len(self)} items")
@@ -76,6 +88,7 @@ class ChunkDataset(Dataset):
             "obs": torch.from_numpy(obs.copy()),
             "actions": torch.from_numpy(actions),
             "mask": torch.from_numpy(mask),
+            "history": torch.from_numpy(self.history(k)),
             "episode": int(self._episode[k]),
             "t": int(self._t[k]),
         }
@@ -103,7 +116,7 @@ class ChunkDataModule(lightning.LightningDataModule):
 
     Args:
         path: episode store (opened read-only).
-        horizon, obs_key, action_key: see :class:`ChunkDataset`.
+        horizon, n_obs, obs_key, action_key: see :class:`ChunkDataset`.
         val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
         max_episodes: use only the first ``max_episodes`` episodes (all if None).
     """
@@ -119,13 +132,14 @@ class ChunkDataModule(lightning.LightningDataModule):
         num_workers: int = 0,
         seed: int = 0,
         max_episodes: int | None = None,
+        n_obs: int = 1,
     ) -> None:
         super().__init__()
         if max_episodes is not None and max_episodes < 1:
             raise ValueError(f"max_episodes must be >= 1 or None; got {max_episodes}")
         self.path, self.horizon, self.obs_key, self.action_key = Path(path), horizon, obs_key, action_key
         self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
-        self.seed, self.max_episodes = seed, max_episodes
+        self.seed, self.max_episodes, self.n_obs = seed, max_episodes, n_obs
         self.train_episodes: list[int] | None = None
         self.val_episodes: list[int] | None = None
         self.train_set: ChunkDataset | None = None
@@ -139,7 +153,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
         self.train_episodes, self.val_episodes = split_episodes(n, self.val_fraction, self.seed)
-        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key)
+        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs)
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
 

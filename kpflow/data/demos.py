@@ -52,8 +52,9 @@ def pusht_datamodule(
     horizon: int = 20,
     batch_size: int = 256,
     val_fraction: float = 0.1,
+    n_obs: int = 1,
 ) -> ChunkDataModule:
     """Chunks (keypoints -> next ``horizon`` actions) of the Push-T store at ``path`` (see :func:`ensure_pusht_demos`:
     expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there)."""
     ensure_pusht_demos(path, n_episodes, seed, workers)
-    return ChunkDataModule(path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed)
+    return ChunkDataModule(path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs)

@@ -41,6 +41,7 @@ class TimedPolicy:
 
     def __init__(self, policy):
         self.policy, self.latencies = policy, []
+        self.n_obs = getattr(policy, "n_obs", 1)  # the observation history it conditions on (run_episode reads it)
 
     def reset(self, seed=None):
         self.policy.reset(seed)

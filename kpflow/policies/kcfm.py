@@ -1,27 +1,26 @@
-"""K-CFM: keypoint-conditioned flow matching of action chunks.
+"""K-CFM: keypoint-conditioned generative policy of action chunks.
 
-A policy ``pi(a_{t:t+H} | k_t)`` that generates a chunk of ``H`` absolute agent targets (px) from the 25 Push-T
-keypoints ``k_t`` (block T, goal T, agent; see :mod:`kpflow.tasks.pusht.geometry`) by integrating a learned
-velocity field from Gaussian noise (``t = 0``) to an action chunk (``t = 1``).
+A policy ``pi(a_{t:t+H} | k_{t-n+1..t})`` that generates a chunk of ``H`` absolute agent targets (px) from the
+last ``n_obs`` observations of the 25 Push-T keypoints ``k`` (block T, goal T, agent; see
+:mod:`kpflow.tasks.pusht.geometry`) by denoising Gaussian noise with a conditional network.
 
-Training is conditional flow matching with the optimal-transport path and ``sigma_min = 0`` (Lipman et al. 2023,
-"Flow Matching for Generative Modeling", Sec. 4.1, eqs. 20-23; torchcfm's ``ConditionalFlowMatcher(sigma=0)``,
-the I-CFM of Tong et al. 2024): with ``x0 ~ N(0, I)``, ``x1`` a normalised data chunk and ``t ~ U(0, 1)``,
+The generative objective is injected by name (:mod:`kpflow.policies.objectives`): ``"icfm"`` (conditional flow
+matching, the straight path with ``sigma = 0``: Lipman et al. 2023 eqs. 20-23, the default), ``"otcfm"`` (with
+minibatch optimal-transport couplings, Tong et al. 2024) or ``"ddpm"`` (DDPM training and DDIM sampling as Diffusion
+Policy does it: with the same network, data and budget, the DP-equivalent baseline). The loss is the objective's
+regression target averaged over the real, unpadded steps of each chunk (:func:`masked_mse`).
 
-    x_t = t x1 + (1 - t) x0,        u_t(x_t | x0, x1) = x1 - x0,
-    L(theta) = E || v_theta(x_t, t, c) - u_t ||^2        (averaged over the real, unpadded steps of the chunk).
-
-Sampling solves ``dx/dt = v_theta(x, t, c)`` (Lipman et al. eq. 1) with ``steps`` explicit Euler steps.
-
-The velocity network is :class:`~kpflow.policies.unet1d.ConditionalUnet1D`; the condition ``c`` is the 25
-keypoints, flattened and standardised, optionally first expressed in the frame of the goal T (``goal_frame=True``:
-then the policy is equivariant to rotating and translating the whole scene by construction). Actions are expressed
-in the *action frame* of their observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a
-chunk is then the agent's offsets from where it stands, so its first targets start next to the agent whatever the
-scene), and scaled to [-1, 1] per dimension by their training min/max over every step of the chunks (as in
-Diffusion Policy). All statistics live in buffers and an
-exponential moving average of the weights is kept beside them, so a checkpoint is all a deployment needs:
-``load_checkpoint(KCFM, path).sample(keypoints)``.
+The network is injected by name too: the 1-D temporal U-Net with FiLM (:class:`~kpflow.policies.unet1d.ConditionalUnet1D`,
+any widths up to DP's (256, 512, 1024)) or a small transformer
+(:class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`). The condition ``c`` is the ``n_obs`` frames of
+keypoints, each standardised with the same per-coordinate statistics and flattened; with ``goal_frame=True`` every
+frame is first expressed in the frame of the current goal T (then the policy is equivariant to rotating and
+translating the whole scene by construction). Actions are expressed in the *action frame* of the current
+observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a chunk is then the agent's
+offsets from where it stands), and scaled to [-1, 1] per dimension by their training min/max over every step of the
+chunks (as in Diffusion Policy). All statistics live in buffers and an exponential moving average of the weights is
+kept beside them, so a checkpoint is all a deployment needs: ``load_checkpoint(KCFM, path).sample(keypoints)``.
+Hyper-parameters are plain names and numbers: loading a checkpoint never builds anything a file names.
 """
 
 from __future__ import annotations
@@ -34,35 +33,20 @@ import lightning
 import numpy as np
 import torch
 
+from kpflow.policies.objectives import OBJECTIVES, build_objective
+from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, N_T_KEYPOINTS, T_KEYPOINTS
 
-MAX_STEPS = 10  # most Euler steps :meth:`KCFM.sample` takes
+MAX_STEPS = 100  # most network calls :meth:`KCFM.sample` takes (Euler steps of a flow, DDIM steps of a diffusion)
+NETWORKS = ("unet", "transformer")
 LR_SCHEDULES = ("cosine", "constant")
 GOAL_SLICE = slice(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS)  # the goal T's 12 keypoints among the 25
 _MIN_STD = 1e-3  # px: a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
 _MIN_HALF_RANGE = 1e-6  # an action dimension with a smaller range is centred but not scaled
 
 
-# ------------------------------------------------------------------------------------------- flow matching
-
-
-def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:
-    """The conditional flow ``x_t = psi_t(x0) = t x1 + (1 - t) x0`` (Lipman et al. 2023, eq. 22 with
-    ``sigma_min = 0``; torchcfm ``ConditionalFlowMatcher.compute_mu_t`` with ``sigma = 0``).
-
-    ``t`` is a scalar or one time per batch item ``[B]``, broadcast over the trailing dims of ``x0``/``x1``.
-    """
-    t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
-    if t.ndim == 1:
-        t = t.reshape(-1, *(1,) * (x0.ndim - 1))
-    return t * x1 + (1 - t) * x0
-
-
-def target_velocity(x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
-    """The conditional velocity ``u_t(x_t | x0, x1) = d/dt psi_t(x0) = x1 - x0``, constant in ``t``
-    (Lipman et al. 2023, the regression target of eq. 23 with ``sigma_min = 0``)."""
-    return x1 - x0
+# ------------------------------------------------------------------------------------------------- losses
 
 
 def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -132,10 +116,12 @@ def _float64(x) -> torch.Tensor:
 
 
 class KCFM(lightning.LightningModule):
-    """Keypoint-conditioned flow matching policy for action chunks (see the module docstring).
+    """Keypoint-conditioned generative policy for action chunks (see the module docstring).
 
     Args:
         horizon: chunk length ``H`` (must match the datamodule's).
+        n_obs: observation frames it conditions on, oldest first and ending at the current one (must match the
+            datamodule's; Diffusion Policy uses 2).
         n_keypoints: keypoints per observation (25 for Push-T).
         action_dim: size of one action (2: an absolute agent target in px).
         goal_frame: express keypoints and actions in the frame of the goal T (keypoints 12..23), fitted by
@@ -143,7 +129,12 @@ class KCFM(lightning.LightningModule):
             2-D actions).
         relative: predict actions as offsets from the agent, the last keypoint (in the goal's axes with
             ``goal_frame``). Needs 2-D actions.
-        down_dims, kernel_size, n_groups, time_dim: the :class:`~kpflow.policies.unet1d.ConditionalUnet1D`.
+        objective: ``"icfm"``, ``"otcfm"`` or ``"ddpm"`` (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with
+            ``objective_options`` (e.g. ``{"train_steps": 100}`` for ``"ddpm"``).
+        network: ``"unet"`` or ``"transformer"``.
+        down_dims, kernel_size, n_groups: the :class:`~kpflow.policies.unet1d.ConditionalUnet1D`.
+        d_model, n_layers, n_heads: the :class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`.
+        time_dim: size of the network's time embedding.
         lr, weight_decay: AdamW.
         lr_schedule: ``"cosine"`` (to 0 over the trainer's ``estimated_stepping_batches``) or ``"constant"``.
         warmup_steps: linear LR warm-up before the schedule.
@@ -154,13 +145,20 @@ class KCFM(lightning.LightningModule):
     def __init__(
         self,
         horizon: int = 20,
+        n_obs: int = 1,
         n_keypoints: int = N_KEYPOINTS,
         action_dim: int = 2,
         goal_frame: bool = False,
         relative: bool = False,
+        objective: str = "icfm",
+        objective_options: dict | None = None,
+        network: str = "unet",
         down_dims: Sequence[int] = (32, 64),
         kernel_size: int = 5,
         n_groups: int = 8,
+        d_model: int = 128,
+        n_layers: int = 4,
+        n_heads: int = 4,
         time_dim: int = 64,
         lr: float = 1e-3,
         weight_decay: float = 1e-6,
@@ -169,8 +167,10 @@ class KCFM(lightning.LightningModule):
         ema_decay: float = 0.999,
     ) -> None:
         super().__init__()
-        if horizon < 1 or n_keypoints < 1 or action_dim < 1:
-            raise ValueError(f"need horizon, n_keypoints, action_dim >= 1; got {horizon}, {n_keypoints}, {action_dim}")
+        if horizon < 1 or n_obs < 1 or n_keypoints < 1 or action_dim < 1:
+            raise ValueError(f"need horizon, n_obs, n_keypoints, action_dim >= 1; got {horizon}, {n_obs}, {n_keypoints}, {action_dim}")
+        if network not in NETWORKS:
+            raise ValueError(f"network must be one of {NETWORKS}; got {network!r}")
         if goal_frame and (n_keypoints != N_KEYPOINTS or action_dim != 2):
             raise ValueError(f"goal_frame needs the Push-T layout ({N_KEYPOINTS} keypoints, 2-D actions); got {n_keypoints}, {action_dim}")
         if relative and action_dim != 2:
@@ -181,8 +181,13 @@ class KCFM(lightning.LightningModule):
             raise ValueError(f"ema_decay must be in [0, 1); got {ema_decay}")
         if warmup_steps < 0:
             raise ValueError(f"warmup_steps must be >= 0; got {warmup_steps}")
+        self.objective = build_objective(objective, **(objective_options or {}))  # validates the name and options
         self.save_hyperparameters()
-        self.net = ConditionalUnet1D(action_dim, 2 * n_keypoints, tuple(down_dims), kernel_size, n_groups, time_dim)
+        cond_dim = 2 * n_keypoints * n_obs
+        if network == "unet":
+            self.net = ConditionalUnet1D(action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim)
+        else:
+            self.net = ConditionalTransformer1D(action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         self.register_buffer("kp_mean", torch.zeros(2 * n_keypoints))
         self.register_buffer("kp_std", torch.ones(2 * n_keypoints))
@@ -245,15 +250,19 @@ class KCFM(lightning.LightningModule):
             )
         if getattr(ds, "horizon", self.hparams.horizon) != self.hparams.horizon:
             raise ValueError(f"the data's chunk horizon {ds.horizon} differs from the model's horizon={self.hparams.horizon}")
+        if getattr(ds, "n_obs", 1) != self.hparams.n_obs:
+            raise ValueError(f"the data's observation history n_obs={getattr(ds, 'n_obs', 1)} differs from the model's n_obs={self.hparams.n_obs}")
         obs, chunks, mask = ds.arrays()  # one row per step of the training episodes only
         self.set_normalisation(obs, chunks, mask)
 
-    def _condition(self, keypoints: torch.Tensor) -> torch.Tensor:
-        """Condition ``c [B, 2K]`` (float32) of world keypoints ``[B, K, 2]``: in the goal frame if ``goal_frame``."""
-        kp = keypoints.to(torch.float64)
+    def _condition(self, history: torch.Tensor) -> torch.Tensor:
+        """Condition ``c [B, n_obs 2K]`` (float32) of world keypoint frames ``[B, n_obs, K, 2]``: every frame in the
+        current (last) frame's goal frame if ``goal_frame``, standardised, concatenated oldest first."""
+        kp = history.to(torch.float64)
+        b, n = kp.shape[:2]
         if self.hparams.goal_frame:
-            kp = to_frame(kp, *goal_pose(kp[:, GOAL_SLICE]))
-        return ((kp.flatten(1) - self.kp_mean.double()) / self.kp_std.double()).float()
+            kp = to_frame(kp.flatten(1, 2), *goal_pose(kp[:, -1, GOAL_SLICE])).reshape(kp.shape)
+        return ((kp.reshape(b, n, -1) - self.kp_mean.double()) / self.kp_std.double()).reshape(b, -1).float()
 
     def action_frame(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The rigid frame ``(R [B, 2, 2], p [B, 2])`` that actions are predicted in, for keypoints ``[B, K, 2]``.
@@ -291,48 +300,46 @@ class KCFM(lightning.LightningModule):
         device = generator.device if generator is not None else self.device
         return torch.randn(shape, generator=generator, device=device).to(self.device)
 
-    def _rand(self, shape, generator: torch.Generator | None) -> torch.Tensor:
-        device = generator.device if generator is not None else self.device
-        return torch.rand(shape, generator=generator, device=device).to(self.device)
+    def _history(self, batch: dict) -> torch.Tensor:
+        """The batch's keypoint frames ``[B, n_obs, K, 2]``: ``batch["history"]``, or ``batch["obs"]`` as one frame."""
+        if "history" in batch:
+            return batch["history"]
+        if self.hparams.n_obs != 1:
+            raise ValueError(f"the model conditions on n_obs={self.hparams.n_obs} frames: the batch needs 'history' [B, n_obs, K, 2]")
+        return batch["obs"][:, None]
 
-    def loss(
-        self,
-        batch: dict,
-        net: torch.nn.Module | None = None,
-        x0: torch.Tensor | None = None,
-        t: torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> torch.Tensor:
-        """The masked conditional flow-matching loss of a :class:`~kpflow.data.chunks.ChunkDataset` batch.
+    def loss(self, batch: dict, net: torch.nn.Module | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The objective's masked regression loss on a :class:`~kpflow.data.chunks.ChunkDataset` batch.
 
-        ``L = masked_mse(v(x_t, t, c), x1 - x0, mask)`` with ``x_t = t x1 + (1 - t) x0`` (module docstring),
-        ``x1`` the normalised chunk (padding filled by :func:`fill_padding`), ``x0 ~ N(0, I)`` and ``t ~ U(0, 1)``
-        drawn with ``generator`` unless given. ``net`` defaults to the trained (non-EMA) network.
+        ``L = masked_mse(net(x_t, t, c[i]), target, mask[i])`` with ``(x_t, t, target, i)`` the objective's
+        :class:`~kpflow.policies.objectives.TrainingTarget` for ``x1``, the normalised chunks (padding filled by
+        :func:`fill_padding`); noise from ``generator``. ``net`` defaults to the trained (non-EMA) network.
         """
-        kp, actions, mask = batch["obs"], batch["actions"], batch["mask"]
-        k, h, a = self.hparams.n_keypoints, self.hparams.horizon, self.hparams.action_dim
-        b = len(kp)
-        if kp.shape != (b, k, 2) or actions.shape != (b, h, a) or mask.shape != (b, h):
+        actions, mask = batch["actions"], batch["mask"]
+        history = self._history(batch)
+        k, h, a, n = self.hparams.n_keypoints, self.hparams.horizon, self.hparams.action_dim, self.hparams.n_obs
+        b = len(actions)
+        if history.shape != (b, n, k, 2) or actions.shape != (b, h, a) or mask.shape != (b, h):
             raise ValueError(
-                f"batch must hold obs [B, {k}, 2], actions [B, {h}, {a}] and mask [B, {h}]; "
-                f"got {tuple(kp.shape)}, {tuple(actions.shape)}, {tuple(mask.shape)}"
+                f"batch must hold history [B, {n}, {k}, 2] (or obs [B, {k}, 2] when n_obs=1), actions [B, {h}, {a}] and "
+                f"mask [B, {h}]; got {tuple(history.shape)}, {tuple(actions.shape)}, {tuple(mask.shape)}"
             )
-        c = self._condition(kp)
-        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(kp))
-        x0 = self._randn(x1.shape, generator) if x0 is None else x0
-        t = self._rand(b, generator) if t is None else t
+        c = self._condition(history)
+        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(history[:, -1]))
+        target = self.objective.training_target(x1, generator)
         net = self.net if net is None else net
-        return masked_mse(net(interpolate(x0, x1, t), t, c), target_velocity(x0, x1), mask.bool())
+        i = target.index
+        return masked_mse(net(target.x_t, target.t, c[i]), target.target, mask.bool()[i])
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         loss = self.loss(batch)
-        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["obs"]))
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["actions"]))
         return loss
 
     def validation_step(self, batch, batch_idx: int) -> None:
         # EMA weights, and noise fixed per batch so that the validation loss compares across epochs.
         generator = torch.Generator(device=self.device).manual_seed(batch_idx)
-        self.log("val/loss", self.loss(batch, net=self.ema_net, generator=generator), prog_bar=True, batch_size=len(batch["obs"]))
+        self.log("val/loss", self.loss(batch, net=self.ema_net, generator=generator), prog_bar=True, batch_size=len(batch["actions"]))
 
     @torch.no_grad()
     def on_train_batch_end(self, outputs, batch, batch_idx: int) -> None:
@@ -365,7 +372,11 @@ class KCFM(lightning.LightningModule):
     # ---------------------------------------------------------------------------------------- inference
 
     def _check_keypoints(self, keypoints) -> torch.Tensor:
-        """``keypoints [K, 2]`` or ``[B, K, 2]`` as a finite float64 tensor ``[B, K, 2]`` on the model's device."""
+        """Keypoints as a finite float64 tensor ``[B, n_obs, K, 2]`` on the model's device.
+
+        Accepted: ``[B, n_obs, K, 2]``; one history ``[n_obs, K, 2]``; and, when ``n_obs = 1``, one frame ``[K, 2]``
+        or a batch of frames ``[B, K, 2]``.
+        """
         if isinstance(keypoints, torch.Tensor):
             kp = keypoints
             if kp.is_complex() or kp.dtype == torch.bool:
@@ -375,11 +386,14 @@ class KCFM(lightning.LightningModule):
                 kp = torch.as_tensor(np.asarray(keypoints, dtype=np.float64))
             except (TypeError, ValueError) as e:
                 raise ValueError(f"keypoints must be an array of numbers ({e})") from e
-        k, shape = self.hparams.n_keypoints, tuple(kp.shape)
-        if kp.ndim == 2:
-            kp = kp[None]
-        if kp.ndim != 3 or kp.shape[1:] != (k, 2) or len(kp) == 0:
-            raise ValueError(f"keypoints must have shape [{k}, 2] or [B, {k}, 2] with B >= 1; got {shape}")
+        k, n, shape = self.hparams.n_keypoints, self.hparams.n_obs, tuple(kp.shape)
+        if kp.ndim == 2 and n == 1:
+            kp = kp[None, None]
+        elif kp.ndim == 3:
+            kp = kp[:, None] if n == 1 else kp[None]
+        if kp.ndim != 4 or kp.shape[1:] != (n, k, 2) or len(kp) == 0:
+            single = f"[{k}, 2], [B, {k}, 2] or " if n == 1 else ""
+            raise ValueError(f"keypoints must have shape {single}[{n}, {k}, 2] or [B, {n}, {k}, 2] (n_obs={n} frames) with B >= 1; got {shape}")
         kp = kp.to(self.device, torch.float64)
         bad = ~torch.isfinite(kp).reshape(len(kp), -1).all(-1)
         if bad.any():
@@ -388,11 +402,11 @@ class KCFM(lightning.LightningModule):
 
     @torch.no_grad()
     def sample(self, keypoints, steps: int = 10, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Action chunks ``[B, H, A]`` (float32, world px) for keypoints ``[B, K, 2]`` or ``[K, 2]`` (then ``B = 1``).
+        """Action chunks ``[B, H, A]`` (float32, world px) for keypoint frames (shapes: :meth:`_check_keypoints`).
 
-        Euler integration of ``dx/dt = v_ema(x, t, c)`` from ``x(0) ~ N(0, I)`` (drawn with ``generator``, on the
-        generator's device) to ``t = 1`` in ``steps`` equal steps ``x <- x + v(x, k / steps, c) / steps``, with the
-        EMA weights. Deterministic given the generator's state.
+        The objective's sampler (Euler steps of the flow, or DDIM steps of the diffusion) with ``steps`` calls of
+        the EMA network, from ``x ~ N(0, I)`` drawn with ``generator`` (on the generator's device). Deterministic
+        given the generator's state.
 
         Raises:
             ValueError: ``steps`` not an integer in ``1..MAX_STEPS``; keypoints of the wrong shape or not finite.
@@ -400,12 +414,9 @@ class KCFM(lightning.LightningModule):
         if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
             raise ValueError(f"steps must be an integer in 1..{MAX_STEPS}; got {steps!r}")
         kp = self._check_keypoints(keypoints)
-        c, frame = self._condition(kp), self.action_frame(kp)
-        b = len(kp)
-        x = self._randn((b, self.hparams.horizon, self.hparams.action_dim), generator)
-        dt = 1.0 / int(steps)
-        for i in range(int(steps)):
-            x = x + dt * self.ema_net(x, torch.full((b,), i * dt, device=self.device), c)
+        c, frame = self._condition(kp), self.action_frame(kp[:, -1])
+        noise = self._randn((len(kp), self.hparams.horizon, self.hparams.action_dim), generator)
+        x = self.objective.sample(lambda x, t: self.ema_net(x, t, c), noise, int(steps))
         return self.denormalise_actions(x, frame)
 
     def forward(self, keypoints, steps: int = 10, generator: torch.Generator | None = None) -> torch.Tensor:

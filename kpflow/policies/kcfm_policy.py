@@ -1,7 +1,8 @@
 """A trained :class:`~kpflow.policies.kcfm.KCFM` behind the :class:`~kpflow.policies.protocol.Policy` protocol.
 
-``act(obs)`` samples one chunk for ``obs["keypoints"]`` with ``steps`` Euler steps and returns its first ``execute``
-absolute agent targets (px). The flow's starting noise comes from a CPU ``torch.Generator`` seeded by
+``act(obs)`` samples one chunk for ``obs["keypoints"]`` (``obs["keypoints_history"] [n_obs, K, 2]`` for a model with an
+observation history, as :func:`~kpflow.tasks.pusht.rollout.run_episode` provides) with ``steps`` network calls and
+returns its first ``execute`` absolute agent targets (px). The flow's starting noise comes from a CPU ``torch.Generator`` seeded by
 :meth:`KCFMPolicy.reset`, so an episode is reproducible from its seed (and does not depend on the model's device).
 """
 
@@ -29,13 +30,14 @@ class KCFMPolicy:
 
     Args:
         model: a trained K-CFM (put in eval mode).
-        steps: Euler steps of the flow (``1..MAX_STEPS``).
+        steps: network calls per chunk (Euler steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``).
         execute: how many of the chunk's ``horizon`` actions :meth:`act` returns.
     """
 
     def __init__(self, model: KCFM, steps: int = 10, execute: int = 8) -> None:
         check_steps_and_execute(model, steps, execute)
         self.model, self.steps, self.execute = model.eval(), int(steps), int(execute)
+        self.n_obs = int(model.hparams.n_obs)
         self.generator = torch.Generator()
         self.reset()
 
@@ -51,6 +53,13 @@ class KCFMPolicy:
         self.generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
 
     def act(self, obs: dict) -> np.ndarray:
-        """The first ``execute`` actions ``[execute, A]`` of a chunk sampled for ``obs["keypoints"] [K, 2]``."""
-        chunk = self.model.sample(obs["keypoints"], self.steps, self.generator)
+        """The first ``execute`` actions ``[execute, A]`` of a chunk sampled for ``obs["keypoints"] [K, 2]`` (or
+        ``obs["keypoints_history"] [n_obs, K, 2]``)."""
+        if self.n_obs == 1:
+            keypoints = obs["keypoints"]
+        elif "keypoints_history" in obs:
+            keypoints = obs["keypoints_history"]
+        else:
+            raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
+        chunk = self.model.sample(keypoints, self.steps, self.generator)
         return chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy()

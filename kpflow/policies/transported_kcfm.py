@@ -74,6 +74,8 @@ class TransportedKCFMPolicy:
         pull_back: str = "agent",
     ) -> None:
         self.policy = KCFMPolicy(model, steps, execute)  # validates steps and execute
+        if self.policy.n_obs != 1:
+            raise ValueError(f"online transport pulls back one observation: it needs a K-CFM with n_obs=1; this one has n_obs={self.policy.n_obs}")
         k = int(model.hparams.n_keypoints)
         if index.keypoints.shape[1:] != (k, 2):
             raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, 2)")

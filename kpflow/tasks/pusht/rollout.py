@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,8 +42,11 @@ def run_episode(
     """Reset ``env`` to ``config`` and run ``policy`` until success or ``max_steps`` steps.
 
     ``policy`` has ``reset(seed)`` and ``act(obs)`` returning one target ``[2]`` or a chunk ``[H, 2]``; a chunk is
-    executed open loop and the policy is asked again when it runs out. The episode ends on ``env``'s success
-    (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were first reached.
+    executed open loop and the policy is asked again when it runs out. A policy with ``n_obs > 1`` (observation
+    history) also gets ``obs["keypoints_history"] [n_obs, K, 2]``: the keypoints of the last ``n_obs`` steps, oldest
+    first, the first observation repeated before the episode's start (as its training data pads). The episode ends
+    on ``env``'s success (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were
+    first reached.
     """
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
@@ -52,10 +56,15 @@ def run_episode(
     frames = [env.render()] if render else None
     first = {th: None for th in thresholds}
     best, chunk, terminated = info["coverage"], [], False
+    n_obs = int(getattr(policy, "n_obs", 1))
+    history = deque([obs["keypoints"]] * n_obs, maxlen=n_obs)
     start = time.perf_counter()
     for step in range(max_steps):
+        if step:
+            history.append(obs["keypoints"])
         if not chunk:
-            chunk = list(np.atleast_2d(np.asarray(policy.act(obs), dtype=np.float64)))
+            seen = dict(obs, keypoints_history=np.stack(history)) if n_obs > 1 else obs
+            chunk = list(np.atleast_2d(np.asarray(policy.act(seen), dtype=np.float64)))
         action = chunk.pop(0)
         if log is not None:
             for k in RECORDED_FIELDS:

@@ -1,0 +1,57 @@
+"""The interface every generative objective of an action-chunk policy offers.
+
+An objective says two things about a denoising network ``net(x [B, H, A], t [B], c) -> [B, H, A]`` (``t`` in
+[0, 1]): what it is trained to predict for a batch of normalised data chunks ``x1`` (:meth:`Objective.training_target`)
+and how a sample is drawn with it from Gaussian noise (:meth:`Objective.sample`). The policy
+(:class:`~kpflow.policies.kcfm.KCFM`) owns the data, the condition, the mask and the network; the objective owns the
+probability path. Families: :mod:`.icfm`, :mod:`.otcfm` (flow matching, torchcfm) and :mod:`.ddpm` (diffusion,
+diffusers' schedulers, as Diffusion Policy trains and samples).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import torch
+
+#: ``net(x, t)`` with the condition already bound: the network as the sampler sees it.
+Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class TrainingTarget:
+    """One training example per batch row: regress ``net(x_t, t, c[index])`` onto ``target`` (masked by
+    ``mask[index]``). ``index [B]`` says which data row each example came from: the identity except for
+    objectives that re-pair noise and data (OT-CFM)."""
+
+    x_t: torch.Tensor  # [B, H, A] the corrupted chunk the network sees
+    t: torch.Tensor  # [B] in [0, 1]: the network's time input
+    target: torch.Tensor  # [B, H, A] what it must output
+    index: torch.Tensor  # [B] int64 rows of the data batch
+
+
+class Objective(Protocol):
+    """A generative objective (module docstring)."""
+
+    def training_target(self, x1: torch.Tensor, generator: torch.Generator | None = None) -> TrainingTarget:
+        """Corrupt normalised data chunks ``x1 [B, H, A]`` with noise drawn from ``generator``."""
+
+    def sample(self, net: Denoiser, noise: torch.Tensor, steps: int) -> torch.Tensor:
+        """Chunks ``[B, H, A]`` in the data's normalised space, from ``noise ~ N(0, I)`` in ``steps`` network calls."""
+
+
+def randn_like(x: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """``N(0, I)`` noise shaped like ``x``, drawn on the generator's device and moved to ``x``'s."""
+    device = generator.device if generator is not None else x.device
+    return torch.randn(x.shape, generator=generator, device=device, dtype=x.dtype).to(x.device)
+
+
+def rand(n: int, like: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """``n`` draws of ``U(0, 1)`` on ``like``'s device and dtype."""
+    device = generator.device if generator is not None else like.device
+    return torch.rand(n, generator=generator, device=device, dtype=like.dtype).to(like.device)
+
+
+def identity_index(x: torch.Tensor) -> torch.Tensor:
+    return torch.arange(len(x), device=x.device)
