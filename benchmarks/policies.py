@@ -15,7 +15,10 @@ Rows (medians over ``--reps`` decisions, after warm-up):
   (target: <= 5 ms with 50k chunks);
 * K-CFM, one chunk with 1 and 10 Euler steps (target: <= 10 ms with 10 steps); latency does not depend on training;
 * transported K-CFM (Eq. 5), one decision: search + ILWR fit + pull-back of the robot + K-CFM (10 steps) + push
-  forward of the chunk.
+  forward of the chunk;
+* learned-policy variants, one 16-action chunk each (issue 13's target: <= 20 ms per chunk): objective (I-CFM
+  Euler / DDPM with DDIM, 10 network calls), network (U-Net widths up to Diffusion Policy's (256, 512, 1024), the
+  small transformer) and observation history (1 or 2 frames), against the default K-CFM in the same run.
 
 The markdown table is printed and written atomically to ``--out`` (default ``outputs/benchmarks/policies.md``).
 """
@@ -47,6 +50,17 @@ from kpflow.policies.transportation import TransportationPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.utils.io import write_text
+
+
+VARIANTS = [
+    ("I-CFM, U-Net (32, 64) (default)", {}),
+    ("DDPM + DDIM, U-Net (32, 64)", {"objective": "ddpm"}),
+    ("I-CFM, U-Net (32, 64), 2 observation frames", {"n_obs": 2}),
+    ("I-CFM, U-Net (64, 128, 256)", {"down_dims": [64, 128, 256]}),
+    ("I-CFM, U-Net (128, 256, 512)", {"down_dims": [128, 256, 512]}),
+    ("I-CFM, U-Net (256, 512, 1024) (Diffusion Policy's)", {"down_dims": [256, 512, 1024]}),
+    ("I-CFM, transformer (d 128, 4 layers, 4 heads)", {"network": "transformer"}),
+]
 
 
 def median_ms(fn, inputs, warmup: int = 5) -> float:
@@ -114,6 +128,15 @@ def main(argv=None) -> str:
     transported.reset(0)
     tkcfm = median_ms(transported.act, queries)
 
+    variants = []
+    for label, kwargs in VARIANTS:
+        variant = KCFM(horizon=16, goal_frame=True, **kwargs)
+        variant.set_normalisation(keypoints[:5000], chunks[:5000, 0])
+        policy = KCFMPolicy(variant, steps=10, execute=8)
+        history = [dict(q, keypoints_history=np.stack([q["keypoints"]] * policy.n_obs)) for q in queries]
+        ms = median_ms(policy.act, history)
+        variants.append((label, sum(p.numel() for p in variant.net.parameters()), ms))
+
     verdict = lambda ok: "PASS" if ok else "MISS"  # noqa: E731
     lines = [
         f"## Policy decision latency ({len(index):,} source chunks, one CPU thread, median of {args.reps})",
@@ -128,6 +151,10 @@ def main(argv=None) -> str:
         "",
         f"The two searches return equally near sources (distances equal to 0.1%) in {100 * agree:.0f}% of {min(50, len(query_kps))} queries. K-CFM: {sum(p.numel() for p in model.net.parameters()):,}"
         f" parameters, channels {tuple(model.hparams.down_dims)}.",
+        "",
+        "| learned policy, one 16-action chunk, 10 network calls | parameters | ms per chunk | vs default | target |",
+        "|---|---|---|---|---|",
+        *[f"| {label} | {n:,} | {ms:.2f} | {ms / variants[0][2]:.2f}x | <= 20 ms: {verdict(ms <= 20)} |" for label, n, ms in variants],
         "",
         f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread.",
     ]

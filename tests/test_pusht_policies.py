@@ -241,3 +241,35 @@ def test_clipped_steps_by_hand():
     targets = np.array([[10.0, 0.0], [10.0, 9.0], [0.0, 9.0]])
     np.testing.assert_allclose(clip_steps(np.zeros(2), targets, 5.0), [[5, 0], [10, 5], [5, 9]])
     np.testing.assert_allclose(clip_steps(np.zeros(2), targets, 100.0), targets)  # a wide limit changes nothing
+
+
+def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
+    rng = np.random.default_rng(5)
+    keypoints = rng.uniform(0, 512, (80, 25, 2))
+    index = SourceIndex(keypoints, rng.uniform(0, 512, (80, 20, 2)), reference=PUSHT_BLOCK)
+    q = keypoints[3] + 0.1
+    policy = TransportationPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40)
+    policy.reset(0)
+    nearest = index.query(q)[0]
+    # the same scene four times: the first three decisions are not yet a window, the fourth is stuck
+    choices = [policy.choose(q) for _ in range(4)]
+    assert choices[:3] == [nearest] * 3 and policy.stuck_count == 1
+    assert choices[3] in index.query_k(q, 40)[0]
+    # the record starts again at the escape: stuck again 3 decisions after it, not before
+    assert [policy.choose(q) for _ in range(2)] == [nearest] * 2 and policy.stuck_count == 1
+    escapes = [policy.choose(q) for _ in range(3 * 60)][::3]
+    assert policy.stuck_count == 61 and len(set(escapes)) > 10  # a uniform draw among 40: many different sources
+    # the agent moving does not count; the object (block keypoints) moving does
+    policy.reset(0)
+    for step in range(12):
+        moved = q.copy()
+        moved[-1] += 30.0 * step  # only the agent
+        policy.choose(moved)
+    assert policy.stuck_count == 3
+    policy.reset(0)
+    for step in range(12):
+        policy.choose(q + np.r_[np.full((12, 2), 3.0 * step), np.zeros((13, 2))])  # the block slides 3 px a decision
+    assert policy.stuck_count == 0
+    for bad, match in (({"stuck_decisions": 0}, "stuck_decisions"), ({"stuck_px": -1.0}, "stuck_px"), ({"stuck_candidates": 0}, "stuck_candidates")):
+        with pytest.raises(ValueError, match=match):
+            TransportationPolicy(index, **bad)

@@ -43,9 +43,12 @@ def transportation(
     candidates: int = 1,
     temperature: float = 1.2,
     max_step_px: float | None = None,
+    stuck_decisions: int | None = None,
+    stuck_px: float = 2.0,
+    stuck_candidates: int = 50,
 ):
     index = pusht_index(demos, horizon, weights, frame)
-    return TransportationPolicy(index, make_map, execute, candidates, temperature, max_step_px)
+    return TransportationPolicy(index, make_map, execute, candidates, temperature, max_step_px, stuck_decisions, stuck_px, stuck_candidates)
 
 
 def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):

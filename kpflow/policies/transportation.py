@@ -10,6 +10,11 @@ public code does (k = 5, temperature 1.2): a deterministic choice can repeat the
 ever (an agent parked at a corner of the T), a draw gets it out. ``max_step_px`` clips each executed step: target
 ``j`` moves at most that far per axis from target ``j - 1`` (from the agent for the first), as their code clips
 actions to +-5 px.
+
+Stuck detection (``stuck_decisions = n``): when the object (the index's ``reference`` keypoints, else all of them)
+has moved less than ``stuck_px`` over the last ``n`` decisions, the same few sources are being replayed without
+effect. The policy then draws its source uniformly among ``stuck_candidates`` nearest for that decision, which
+takes it to a different demonstrated approach; it counts as stuck again only after another ``n`` decisions.
 """
 
 from __future__ import annotations
@@ -44,6 +49,11 @@ class TransportationPolicy:
         candidates: draw the source among this many nearest (1: the nearest).
         temperature: rank temperature of the draw (``exp(-rank / temperature)``).
         max_step_px: clip every executed step to this many px per axis (None: no clipping).
+        stuck_decisions: detect being stuck over this many decisions (None: never).
+        stuck_px: the object moving less than this (max over its keypoints, px) over them counts as stuck.
+        stuck_candidates: draw uniformly among this many nearest when stuck.
+
+    ``stuck_count`` counts the decisions of the episode taken as stuck.
     """
 
     def __init__(
@@ -54,6 +64,9 @@ class TransportationPolicy:
         candidates: int = 1,
         temperature: float = 1.2,
         max_step_px: float | None = None,
+        stuck_decisions: int | None = None,
+        stuck_px: float = 2.0,
+        stuck_candidates: int = 50,
     ):
         if not 1 <= execute <= index.chunks.shape[1]:
             raise ValueError(f"execute must be in 1..{index.chunks.shape[1]} (the chunk length), got {execute}")
@@ -62,7 +75,15 @@ class TransportationPolicy:
             raise ValueError(f"temperature must be a positive number, got {temperature!r}")
         if max_step_px is not None and not (np.isfinite(max_step_px) and max_step_px > 0):
             raise ValueError(f"max_step_px must be a positive number or None, got {max_step_px!r}")
+        if stuck_decisions is not None:
+            Key(int, lo=1).check("stuck_decisions", stuck_decisions)
+        Key(int, lo=1).check("stuck_candidates", stuck_candidates)
+        if not (np.isfinite(stuck_px) and stuck_px >= 0):
+            raise ValueError(f"stuck_px must be a number >= 0, got {stuck_px!r}")
         self.index, self.make_map, self.execute = index, make_map, execute
+        self.stuck_decisions, self.stuck_px, self.stuck_candidates = stuck_decisions, float(stuck_px), int(stuck_candidates)
+        self.history: list[np.ndarray] = []  # the object's keypoints at each decision since the last escape
+        self.stuck_count = 0
         self.candidates, self.temperature, self.max_step_px = int(candidates), float(temperature), max_step_px
         self.rng = np.random.default_rng(0)
         self.last_source: int | None = None
@@ -72,9 +93,28 @@ class TransportationPolicy:
         """Reseed the source draw with ``seed`` (0 when None)."""
         self.rng = np.random.default_rng(0 if seed is None else int(seed))
         self.last_source, self.last_map = None, None
+        self.history, self.stuck_count = [], 0
+
+    def stuck(self, target: np.ndarray) -> bool:
+        """Record the object's keypoints of this decision; True when it has moved less than ``stuck_px`` over the
+        last ``stuck_decisions`` decisions (the record then starts again)."""
+        if self.stuck_decisions is None:
+            return False
+        obj = target if self.index.reference is None else target[self.index.reference]
+        self.history = [*self.history[-self.stuck_decisions :], obj]
+        if len(self.history) <= self.stuck_decisions:
+            return False
+        moved = max(float(np.abs(h - obj).max()) for h in self.history)
+        if moved >= self.stuck_px:
+            return False
+        self.history, self.stuck_count = [obj], self.stuck_count + 1
+        return True
 
     def choose(self, target: np.ndarray) -> int:
         """The source for the observed keypoints ``target [K, D]`` (module docstring)."""
+        if self.stuck(target):
+            near, _ = self.index.query_k(target, min(self.stuck_candidates, len(self.index)))
+            return int(near[self.rng.integers(len(near))])
         if self.candidates == 1:
             return self.index.query(target)[0]
         near, _ = self.index.query_k(target, self.candidates)
