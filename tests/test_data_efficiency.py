@@ -1,0 +1,36 @@
+"""The data-efficiency figure reads real evaluation runs laid out as <policy>/<n_demos>/results.json."""
+
+import numpy as np
+import pytest
+
+from kpflow.eval.data_efficiency import main, read_points, table
+from kpflow.eval.pusht_experiment import run_pusht_experiment
+from kpflow.tasks.pusht.expert import PushTExpert
+
+
+class StandStill:
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs):
+        return np.asarray(obs["agent_pos"], dtype=np.float64)
+
+
+def test_points_table_and_figure_from_real_runs(tmp_path):
+    for policy, n, make in (("still", 5, StandStill), ("still", 20, StandStill), ("expert", 5, PushTExpert)):
+        run_pusht_experiment(make(), tmp_path / "runs" / policy / str(n), split="all", n_configs=2, max_steps=6, workers=1, videos=0, progress=False)
+    points = read_points(tmp_path / "runs")
+    assert {(p.policy, p.n_demos) for p in points} == {("still", 5), ("still", 20), ("expert", 5)}
+    assert len(points) == 9 and all(p.episodes == 2 and 0 <= p.ci[0] <= p.success <= p.ci[1] <= 1 for p in points)
+    assert all(p.success == 0.0 for p in points if p.policy == "still")  # six steps of standing still cover nothing
+    text = table(points)
+    assert "| still | 20 | 0.0% [" in text and text.count("\n| ") == 4
+    out = tmp_path / "fig.png"
+    main([str(tmp_path / "runs"), "--out", str(out)])
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.with_suffix(".md").read_text() == text
+    (tmp_path / "runs" / "still" / "many").mkdir()
+    (tmp_path / "runs" / "still" / "many" / "results.json").write_text("{}")
+    with pytest.raises(ValueError, match="number of demonstrations"):
+        read_points(tmp_path / "runs")
+    with pytest.raises(FileNotFoundError, match="no <policy>/<n_demos>/results.json"):
+        read_points(tmp_path / "empty")
