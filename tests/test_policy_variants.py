@@ -88,3 +88,19 @@ def test_history_length_must_match_the_data():
         KCFM(network="mlp")
     with pytest.raises(ValueError, match="unknown objective"):
         KCFM(objective="score")
+
+
+@pytest.mark.parametrize("experiment", ["pusht_kcfm", "pusht_kcfm_gpu"])
+def test_training_experiments_compose_into_a_matching_model(experiment):
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from tests.test_release import ROOT
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=[f"experiment={experiment}", "logger=none"])
+    model = instantiate(cfg.model, _convert_="all")
+    assert model.hparams.horizon == cfg.data.horizon and model.hparams.n_obs == cfg.data.n_obs
+    assert isinstance(model.hparams.down_dims, list)  # plain hparams: the checkpoint loads with weights_only
+    if experiment == "pusht_kcfm_gpu":
+        assert cfg.trainer.accelerator == "gpu" and model.hparams.down_dims == [256, 512, 1024] and model.hparams.n_obs == 2
