@@ -18,7 +18,7 @@ def _data(b=6, h=8, a=2, seed=0):
 def test_icfm_interpolant_and_target_are_the_straight_path():
     x1 = _data()
     g = torch.Generator().manual_seed(3)
-    target = ICFM().training_target(x1, g)
+    target = ICFM().training_target(x1, generator=g)
     # the draw order: x0 ~ N(0, I) first, then t ~ U(0, 1)
     g = torch.Generator().manual_seed(3)
     x0, t = torch.randn(x1.shape, generator=g), torch.rand(len(x1), generator=g)
@@ -43,24 +43,41 @@ def test_otcfm_pairs_noise_with_its_nearest_data_row():
     # data rows far apart, noise rows = data rows + tiny offsets in shuffled order: the OT plan is that matching
     x1 = torch.arange(5.0)[:, None, None].expand(5, 3, 2) * 10.0
     perm = torch.tensor([3, 0, 4, 1, 2])
-    objective = OTCFM()
+    objective = OTCFM(condition_weight=0.0)
     x0 = x1[perm] + 0.01
     paired, j = objective.pair(x0, x1, torch.Generator().manual_seed(0))
     torch.testing.assert_close(paired - 0.01, x1[j])  # every drawn pair is a matched pair
-    target = objective.training_target(x1, torch.Generator().manual_seed(0))
+    target = objective.training_target(x1, generator=torch.Generator().manual_seed(0))
     x0_used = (target.x_t - target.t[:, None, None] * x1[target.index]) / (1 - target.t[:, None, None])
     torch.testing.assert_close(target.target, x1[target.index] - x0_used, atol=1e-4, rtol=1e-4)
     # reproducible with the generator
-    again = objective.training_target(x1, torch.Generator().manual_seed(0))
+    again = objective.training_target(x1, generator=torch.Generator().manual_seed(0))
     assert torch.equal(again.index, target.index) and torch.equal(again.x_t, target.x_t)
 
 
 def test_otcfm_straightens_the_coupling():
     x1 = _data(b=64, seed=1)
     x0 = torch.randn(x1.shape, generator=torch.Generator().manual_seed(2))
-    paired, j = OTCFM().pair(x0, x1, torch.Generator().manual_seed(0))
+    paired, j = OTCFM(condition_weight=0.0).pair(x0, x1, torch.Generator().manual_seed(0))
     independent = (x1 - x0).square().sum((1, 2)).mean()
     assert (x1[j] - paired).square().sum((1, 2)).mean() < 0.8 * independent
+
+
+def test_otcfm_pairs_only_within_a_condition():
+    # two conditions far apart: every pair keeps noise of its own condition, so each condition's noise stays N(0, I)
+    x1 = _data(b=64, seed=3)
+    cond = torch.cat([torch.zeros(32, 4), torch.full((32, 4), 3.0)])
+    x0 = torch.randn(x1.shape, generator=torch.Generator().manual_seed(4))
+    objective = OTCFM(condition_weight=10.0)
+    a = objective.plan.get_map(torch.cat([x0.flatten(1), 10**0.5 * cond], 1), torch.cat([x1.flatten(1), 10**0.5 * cond], 1))
+    assert a[:32, 32:].sum() == 0 and a[32:, :32].sum() == 0  # no mass across conditions
+    paired, j = objective.pair(x0, x1, torch.Generator().manual_seed(0), cond)
+    source = torch.cdist(paired.flatten(1), x0.flatten(1)).argmin(1)  # which noise row each pair used
+    assert torch.equal(source < 32, j < 32)
+    # within a condition it still re-pairs: straighter than independent pairs
+    assert (x1[j] - paired).square().sum((1, 2)).mean() < (x1 - x0).square().sum((1, 2)).mean()
+    with pytest.raises(ValueError, match="condition_weight"):
+        OTCFM(condition_weight=-1.0)
 
 
 def test_ddpm_forward_noising_is_the_squared_cosine_schedule():
@@ -73,7 +90,7 @@ def test_ddpm_forward_noising_is_the_squared_cosine_schedule():
     np.testing.assert_allclose(objective.alphas_cumprod.numpy(), np.cumprod(1 - betas), rtol=1e-4)  # float32
 
     x1 = _data()
-    target = objective.training_target(x1, torch.Generator().manual_seed(5))
+    target = objective.training_target(x1, generator=torch.Generator().manual_seed(5))
     g = torch.Generator().manual_seed(5)
     eps = torch.randn(x1.shape, generator=g)
     k = torch.randint(0, T, (len(x1),), generator=g)

@@ -326,7 +326,7 @@ class KCFM(lightning.LightningModule):
             )
         c = self._condition(history)
         x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(history[:, -1]))
-        target = self.objective.training_target(x1, generator)
+        target = self.objective.training_target(x1, c, generator)
         net = self.net if net is None else net
         i = target.index
         return masked_mse(net(target.x_t, target.t, c[i]), target.target, mask.bool()[i])

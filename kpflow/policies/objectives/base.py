@@ -34,8 +34,9 @@ class TrainingTarget:
 class Objective(Protocol):
     """A generative objective (module docstring)."""
 
-    def training_target(self, x1: torch.Tensor, generator: torch.Generator | None = None) -> TrainingTarget:
-        """Corrupt normalised data chunks ``x1 [B, H, A]`` with noise drawn from ``generator``."""
+    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None) -> TrainingTarget:
+        """Corrupt normalised data chunks ``x1 [B, H, A]`` (conditions ``cond [B, C]``, which a coupling may use)
+        with noise drawn from ``generator``."""
 
     def sample(self, net: Denoiser, noise: torch.Tensor, steps: int) -> torch.Tensor:
         """Chunks ``[B, H, A]`` in the data's normalised space, from ``noise ~ N(0, I)`` in ``steps`` network calls."""

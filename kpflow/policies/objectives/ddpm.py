@@ -45,7 +45,7 @@ class DDPM:
         """``alpha_bar_k`` for ``k = 0..T-1`` (float32)."""
         return self.noise_scheduler.alphas_cumprod
 
-    def training_target(self, x1: torch.Tensor, generator: torch.Generator | None = None) -> TrainingTarget:
+    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None) -> TrainingTarget:
         eps = randn_like(x1, generator)
         device = generator.device if generator is not None else x1.device
         k = torch.randint(0, self.train_steps, (len(x1),), generator=generator, device=device).to(x1.device)

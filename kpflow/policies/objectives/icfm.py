@@ -32,12 +32,12 @@ class ICFM:
     def __init__(self) -> None:
         self.matcher = ConditionalFlowMatcher(sigma=0.0)
 
-    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The coupling of noise and data rows: independent, so every row keeps its own."""
         return x0, identity_index(x1)
 
-    def training_target(self, x1: torch.Tensor, generator: torch.Generator | None = None) -> TrainingTarget:
-        x0, index = self.pair(randn_like(x1, generator), x1, generator)
+    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None) -> TrainingTarget:
+        x0, index = self.pair(randn_like(x1, generator), x1, generator, cond)
         t, x_t, u_t = self.matcher.sample_location_and_conditional_flow(x0, x1[index], t=rand(len(x1), x1, generator))
         return TrainingTarget(x_t, t, u_t, index)
 

@@ -1,14 +1,22 @@
 """OT-CFM: conditional flow matching with minibatch optimal-transport couplings (Tong et al. 2024, "Improving and
-generalizing flow-based generative models with minibatch optimal transport", Sec. 3.2, Alg. 2).
+generalizing flow-based generative models with minibatch optimal transport", Sec. 3.2, Alg. 2), made conditional
+as in Kerrigan et al. 2024 ("Dynamic conditional optimal transport through simulation-free flows", Sec. 3).
 
-Per batch, the exact OT plan ``pi`` between the noise rows ``x0_i`` and the data rows ``x1_j`` under the squared
-Euclidean cost is solved (torchcfm's ``OTPlanSampler("exact")``, POT's network simplex); ``B`` pairs ``(i, j)``
-are drawn from ``pi`` with replacement (as torchcfm does); then, as in I-CFM,
+Each noise row ``x0_i`` is given the condition ``c_i`` of its own batch row; the exact OT plan ``pi`` between the
+pairs ``(x0_i, c_i)`` and ``(x1_j, c_j)`` under the cost
 
-    x_t = t x1_j + (1 - t) x0_i,     u_t = x1_j - x0_i,     L = E || v(x_t, t, c_j) - u_t ||^2,
+    C_ij = || x0_i - x1_j ||^2 + beta || c_i - c_j ||^2
 
-so each pair keeps its data row's condition and mask. Straighter paths than independent pairs: fewer integration
-steps for the same error. The pairs are drawn with the objective's torch generator, so training is reproducible.
+is solved (torchcfm's ``OTPlanSampler("exact")`` on the two stacked vectors, POT's network simplex), ``B`` pairs
+``(i, j)`` are drawn from ``pi`` with replacement (as torchcfm does), and as in I-CFM
+
+    x_t = t x1_j + (1 - t) x0_i,     u_t = x1_j - x0_i,     L = E || v(x_t, t, c_j) - u_t ||^2.
+
+The condition term is what keeps the noise of every condition standard normal: with ``beta = 0`` (torchcfm's plain
+``ExactOptimalTransportConditionalFlowMatcher``) a chunk's noise is the one nearest to it whatever its keypoints,
+the network learns to stay near its starting noise, and at inference, from unmatched noise, it ignores the
+condition (measured on Push-T: score 0.118 against 0.712 for I-CFM). With a large ``beta`` rows are re-paired only
+among near-identical conditions. The pairs are drawn with the objective's torch generator: training is reproducible.
 """
 
 from __future__ import annotations
@@ -20,15 +28,26 @@ from .icfm import ICFM
 
 
 class OTCFM(ICFM):
-    """Minibatch-OT conditional flow matching (module docstring)."""
+    """Conditional minibatch-OT flow matching (module docstring).
 
-    def __init__(self) -> None:
+    Args:
+        condition_weight: ``beta``, the weight of the condition distance in the coupling's cost.
+    """
+
+    def __init__(self, condition_weight: float = 10.0) -> None:
         super().__init__()
+        if not condition_weight >= 0:
+            raise ValueError(f"condition_weight must be >= 0; got {condition_weight!r}")
+        self.condition_weight = float(condition_weight)
         self.plan = OTPlanSampler(method="exact")
 
-    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``B`` pairs ``(i, j) ~ pi`` with replacement: returns ``(x0[i], j)``."""
-        pi = torch.as_tensor(self.plan.get_map(x0.detach().float(), x1.detach().float()), dtype=torch.float64).flatten()
+        a, b = x0.detach().flatten(1).float(), x1.detach().flatten(1).float()
+        if cond is not None and self.condition_weight > 0:
+            c = self.condition_weight**0.5 * cond.detach().flatten(1).float()
+            a, b = torch.cat([a, c], 1), torch.cat([b, c], 1)
+        pi = torch.as_tensor(self.plan.get_map(a, b), dtype=torch.float64).flatten()
         draws = torch.multinomial(pi / pi.sum(), len(x1), replacement=True, generator=_cpu(generator))
         i, j = draws // len(x1), draws % len(x1)
         return x0[i.to(x0.device)], j.to(x1.device)
