@@ -33,7 +33,7 @@ import lightning
 import numpy as np
 import torch
 
-from kpflow.policies.objectives import OBJECTIVES, build_objective
+from kpflow.policies.objectives import build_objective
 from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, N_T_KEYPOINTS, T_KEYPOINTS

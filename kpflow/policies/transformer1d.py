@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .unet1d import SinusoidalEmbedding
+from .unet1d import SinusoidalEmbedding, time_and_condition
 
 
 class ConditionalTransformer1D(nn.Module):
@@ -58,12 +58,8 @@ class ConditionalTransformer1D(nn.Module):
         """Output ``[B, H, A]`` at chunk ``x [B, H, A]``, time ``t`` (``[B]`` or a scalar) and condition ``c [B, C]``."""
         if x.ndim != 3 or x.shape[-1] != self.action_dim or not 1 <= x.shape[1] <= self.horizon:
             raise ValueError(f"x must have shape [B, H <= {self.horizon}, {self.action_dim}]; got {tuple(x.shape)}")
-        b, h = x.shape[:2]
-        t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(b)
-        if c is None:
-            c = x.new_zeros(b, 0)
-        if c.shape != (b, self.cond_dim):
-            raise ValueError(f"condition must have shape [{b}, {self.cond_dim}]; got {tuple(c.shape)}")
+        h = x.shape[1]
+        t, c = time_and_condition(x, t, c, self.cond_dim)
         cond = self.cond_token(torch.cat([self.time_emb(t), c], dim=-1))[:, None]
         tokens = torch.cat([cond, self.embed(x)], dim=1) + self.position[:, : h + 1]
         return self.head(self.encoder(tokens)[:, 1:])

@@ -39,6 +39,18 @@ class SinusoidalEmbedding(nn.Module):
         return torch.cat([s.sin(), s.cos()], dim=-1)
 
 
+def time_and_condition(x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None, cond_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A denoiser's time ``[B]`` (a scalar broadcast) and condition ``[B, cond_dim]`` (None: an empty one) for the
+    chunks ``x [B, H, A]``; a condition of another shape raises ``ValueError``."""
+    b = len(x)
+    t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(b)
+    if c is None:
+        c = x.new_zeros(b, 0)
+    if c.shape != (b, cond_dim):
+        raise ValueError(f"condition must have shape [{b}, {cond_dim}]; got {tuple(c.shape)}")
+    return t, c
+
+
 class Conv1dBlock(nn.Module):
     """``Conv1d`` (same length) -> ``GroupNorm`` -> ``Mish``."""
 
@@ -137,11 +149,7 @@ class ConditionalUnet1D(nn.Module):
         if x.ndim != 3 or x.shape[-1] != self.action_dim:
             raise ValueError(f"x must have shape [B, H, {self.action_dim}]; got {tuple(x.shape)}")
         b, h = x.shape[:2]
-        t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(b)
-        if c is None:
-            c = x.new_zeros(b, 0)
-        if c.shape != (b, self.cond_dim):
-            raise ValueError(f"condition must have shape [{b}, {self.cond_dim}]; got {tuple(c.shape)}")
+        t, c = time_and_condition(x, t, c, self.cond_dim)
         films = iter(self.film(torch.cat([self.time_mlp(t), c], dim=-1)).split(self.film_sizes, dim=-1))
 
         z = x.transpose(1, 2)  # [B, A, H]: time is the conv axis
