@@ -32,8 +32,7 @@ def test_release_keeps_weights_and_config_only(tmp_path):
     assert set(small) <= {*KEEP, "release"} and small["release"]["note"] == "tiny"
     assert "optimizer_states" in torch.load(tmp_path / "full.ckpt", weights_only=True)
     assert (tmp_path / "out" / "small.ckpt").stat().st_size < (tmp_path / "full.ckpt").stat().st_size
-    kp = split_config("in_distribution", 0)
-    obs = PushTEnv().reset(options={"config": kp})[0]
+    obs = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})[0]
     a, b = load_policy(tmp_path / "full.ckpt"), load_policy(tmp_path / "out" / "small.ckpt")
     a.reset(3), b.reset(3)
     np.testing.assert_array_equal(a.act(obs), b.act(obs))  # the same policy

@@ -82,7 +82,7 @@ class TransportationPolicy:
             raise ValueError(f"stuck_px must be a number >= 0, got {stuck_px!r}")
         self.index, self.make_map, self.execute = index, make_map, execute
         self.stuck_decisions, self.stuck_px, self.stuck_candidates = stuck_decisions, float(stuck_px), int(stuck_candidates)
-        self.history: list[np.ndarray] = []  # the object's keypoints at each decision since the last escape
+        self.object_track: list[np.ndarray] = []  # the object's keypoints at each decision since the last escape
         self.stuck_count = 0
         self.candidates, self.temperature, self.max_step_px = int(candidates), float(temperature), max_step_px
         self.rng = np.random.default_rng(0)
@@ -93,7 +93,7 @@ class TransportationPolicy:
         """Reseed the source draw with ``seed`` (0 when None)."""
         self.rng = np.random.default_rng(0 if seed is None else int(seed))
         self.last_source, self.last_map = None, None
-        self.history, self.stuck_count = [], 0
+        self.object_track, self.stuck_count = [], 0
 
     def stuck(self, target: np.ndarray) -> bool:
         """Record the object's keypoints of this decision; True when it has moved less than ``stuck_px`` over the
@@ -101,13 +101,13 @@ class TransportationPolicy:
         if self.stuck_decisions is None:
             return False
         obj = target if self.index.reference is None else target[self.index.reference]
-        self.history = [*self.history[-self.stuck_decisions :], obj]
-        if len(self.history) <= self.stuck_decisions:
+        self.object_track = [*self.object_track[-self.stuck_decisions :], obj]
+        if len(self.object_track) <= self.stuck_decisions:
             return False
-        moved = max(float(np.abs(h - obj).max()) for h in self.history)
+        moved = max(float(np.abs(h - obj).max()) for h in self.object_track)
         if moved >= self.stuck_px:
             return False
-        self.history, self.stuck_count = [obj], self.stuck_count + 1
+        self.object_track, self.stuck_count = [obj], self.stuck_count + 1
         return True
 
     def choose(self, target: np.ndarray) -> int:
