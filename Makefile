@@ -7,7 +7,7 @@ export OMP_NUM_THREADS ?= 1
 export MPLBACKEND ?= Agg
 export WANDB_MODE ?= offline
 
-.PHONY: venv osmesa demo test bench clean
+.PHONY: venv osmesa demo test test-fast lint bench clean
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 venv: $(STAMP)
@@ -34,14 +34,23 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) osmesa
 	$(BIN)/python evaluate.py experiment=pusht_demo
 
-test: $(STAMP) osmesa
+# ruff (pyflakes, import order, complexity; see pyproject.toml), then every test. `make test-fast` leaves out the
+# tests marked slow (CLI subprocesses, MuJoCo scenes, long rollouts) for the inner loop.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: lint osmesa
 	$(BIN)/python -m pytest -q
+
+test-fast: lint
+	$(BIN)/python -m pytest -q -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/maps.py
 	$(BIN)/python benchmarks/pusht_env.py
 	$(BIN)/python benchmarks/pusht_replay.py
 	$(BIN)/python benchmarks/pusht_expert.py
+	$(BIN)/python benchmarks/metrics.py
 
 clean:
 	rm -rf $(VENV) outputs multirun

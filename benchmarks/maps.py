@@ -68,6 +68,7 @@ except RuntimeError:  # already set
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # for `import baselines` when run from anywhere
 
 import baselines  # noqa: E402
+
 from kpflow.maps import AffineMap, EnsembleMap, FlowMap, GPMap, ILWRMap, MLPMap  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 

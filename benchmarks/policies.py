@@ -51,7 +51,6 @@ from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.utils.io import write_text
 
-
 VARIANTS = [
     ("I-CFM, U-Net (32, 64) (default)", {}),
     ("DDPM + DDIM, U-Net (32, 64)", {"objective": "ddpm"}),

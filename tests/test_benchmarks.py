@@ -33,3 +33,12 @@ def test_pusht_benchmarks_write_their_tables(tmp_path):
         assert "| " in out.read_text() and "steps" in out.read_text()
     assert "kpflow" in (tmp_path / "pusht_env.md").read_text()
     assert "object outside training region" in (tmp_path / "pusht_expert.md").read_text()
+
+
+def test_metrics_benchmark_checks_itself_against_the_double_loop(tmp_path):
+    out = tmp_path / "metrics.md"
+    done = subprocess.run([sys.executable, "benchmarks/metrics.py", "--sizes", "12", "--repeats", "1", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| discrete") or line.startswith("| DTW")]
+    assert len(rows) == 2
+    assert all(float(row[6]) < 1e-6 for row in rows)  # kpflow's value agrees with the cell-by-cell recursion

@@ -76,6 +76,7 @@ def test_planted_payload_is_refused_in_process(kcfm_run, tmp_path):
     assert marker.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy", ["kcfm", "transported_kcfm"])
 def test_planted_payload_is_refused_by_evaluate(kcfm_run, tmp_path, policy):
     marker = tmp_path / "pwned"
@@ -87,6 +88,7 @@ def test_planted_payload_is_refused_by_evaluate(kcfm_run, tmp_path, policy):
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_planted_payload_is_refused_when_resuming_training(tmp_path):
     marker = tmp_path / "pwned"
     run = tmp_path / "run"

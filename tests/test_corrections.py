@@ -77,6 +77,7 @@ def test_leaving_the_training_region_triggers_a_takeover():
         corrected_episode(env, GoTo((0.0, 0.0)), PushTExpert("standard"), config, 10)
 
 
+@pytest.mark.slow
 def test_collect_corrections_grows_a_readable_store(tmp_path):
     path = tmp_path / "demos.zarr"
     collect_pusht(path, 3, workers=1, progress=False)

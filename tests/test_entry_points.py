@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -23,6 +24,7 @@ def test_every_map_config_builds_a_working_map():
         assert phi(src).shape == src.shape
 
 
+@pytest.mark.slow
 def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=frames", "map=ilwr", "logger=csv", "seed=3",
@@ -43,6 +45,7 @@ def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
     assert list((tmp_path / "csv").rglob("metrics.csv")), "CSV logger wrote nothing"
 
 
+@pytest.mark.slow
 def test_same_seed_same_numbers(tmp_path):
     def run(d):
         cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=gp", "logger=none", "experiment.n_configs=2", "experiment.n_points=50", f"hydra.run.dir={d}"]
@@ -52,6 +55,7 @@ def test_same_seed_same_numbers(tmp_path):
     assert run(tmp_path / "a") == run(tmp_path / "b")
 
 
+@pytest.mark.slow
 def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "-m", "experiment=frames", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
@@ -64,6 +68,7 @@ def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     assert all((tmp_path / str(k) / "results.json").exists() for k in (0, 1))
 
 
+@pytest.mark.slow
 def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "policy=nearest", "split=all", "n_configs=2", "workers=2", "logger=csv",
@@ -83,6 +88,7 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     assert (run / "success.png").stat().st_size > 0 and list(run.glob("*.mp4"))
 
 
+@pytest.mark.slow
 def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "policy=nearest,transport",
@@ -100,6 +106,7 @@ def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
     assert any(line.startswith("| transport | in_distribution | 2 |") for line in table)
 
 
+@pytest.mark.slow
 def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     demos = tmp_path / "demos.zarr"
     cmd = [

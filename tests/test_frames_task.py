@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from kpflow.rotations import so3_exp, so3_log
 from kpflow.tasks.frames import (
     LASA_SHAPES,
     Demonstration,
@@ -15,7 +16,6 @@ from kpflow.tasks.frames import (
     random_frame,
     scene_keypoints,
 )
-from kpflow.rotations import so3_exp, so3_log
 
 
 def _angle_between(u, v):

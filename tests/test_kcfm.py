@@ -197,6 +197,7 @@ def _trainer(tmp_path, max_steps: int) -> lightning.Trainer:
     )
 
 
+@pytest.mark.slow
 def test_train_sample_checkpoint_reload_and_resume(tmp_path):
     path = tmp_path / "demos.zarr"
     walk_to_block_store(path)

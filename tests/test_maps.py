@@ -5,7 +5,7 @@ import functools
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kpflow.maps import AffineMap, EnsembleMap, FlowMap, GPMap, ILWRMap, MLPMap
@@ -169,7 +169,7 @@ def test_cuda_follows_data(name):
 
 
 # ------------------------------------------------------------------ property-based
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=25)
 @given(seed=st.integers(0, 10_000), n=st.integers(3, 40), d=st.sampled_from([2, 3]), amp=st.floats(0.0, 0.3))
 def test_ilwr_is_a_diffeomorphism_for_random_keypoints(seed, n, d, amp):
     g = torch.Generator().manual_seed(seed)
@@ -184,7 +184,7 @@ def test_ilwr_is_a_diffeomorphism_for_random_keypoints(seed, n, d, amp):
     assert (phi(src) - tgt).square().sum() <= (rigid(src) - tgt).square().sum() + 1e-12
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 10_000), angle=st.floats(-3.1, 3.1), d=st.sampled_from([2, 3]), scale=st.floats(0.2, 5.0))
 def test_umeyama_recovers_random_similarity(seed, angle, d, scale):
     g = torch.Generator().manual_seed(seed)

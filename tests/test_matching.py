@@ -90,6 +90,7 @@ def check_result(result: MatchResult, n: int, d: int) -> None:
 
 
 # ------------------------------------------------------------------ 3-D: asymmetric set (one true order)
+@pytest.mark.slow
 def test_asymmetric_box_true_order_under_any_yaw_with_2mm_noise():
     hits, ambiguous = 0, 0
     for seed in range(N_TRIALS):
@@ -108,7 +109,7 @@ def test_asymmetric_box_true_order_under_any_yaw_with_2mm_noise():
     assert ambiguous == 0, f"the asymmetric set was reported ambiguous in {ambiguous} trials"
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15)
 @given(seed=st.integers(0, 100_000), yaw=st.floats(-math.pi, math.pi, exclude_max=True))
 def test_asymmetric_box_exact_without_noise(seed, yaw):
     g = torch.Generator().manual_seed(seed)
@@ -124,6 +125,7 @@ def test_asymmetric_box_exact_without_noise(seed, yaw):
 
 
 # ------------------------------------------------------------------ 3-D: plain box (order up to its symmetry)
+@pytest.mark.slow
 def test_box_corners_equivalent_order_under_any_yaw_with_2mm_noise():
     valid, true_hits = 0, 0
     for seed in range(N_TRIALS):

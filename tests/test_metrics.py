@@ -1,5 +1,4 @@
 import math
-import time
 
 import numpy as np
 import pytest
@@ -146,17 +145,6 @@ def test_numpy_input_and_gradients():
     assert torch.isfinite(at.grad).all() and at.grad.abs().sum() > 0
 
 
-def test_200_by_200_is_fast():
-    g = torch.Generator().manual_seed(5)
-    a, b = torch.randn(200, 2, generator=g), torch.randn(200, 2, generator=g)
-    discrete_frechet(a, b)  # warm-up
-    t0 = time.perf_counter()
-    discrete_frechet(a, b)
-    dtw(a, b)
-    # ~7 ms each on one CPU thread; the bound leaves room for slow CI machines.
-    assert time.perf_counter() - t0 < 0.5
-
-
 def test_bad_input_raises():
     a = torch.zeros(5, 2)
     with pytest.raises(ValueError, match="same point dimension"):
@@ -169,7 +157,7 @@ def test_bad_input_raises():
         dtw(torch.zeros(0, 2), a)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(
     st.lists(st.tuples(st.floats(-10, 10), st.floats(-10, 10)), min_size=1, max_size=12),
     st.lists(st.tuples(st.floats(-10, 10), st.floats(-10, 10)), min_size=1, max_size=12),

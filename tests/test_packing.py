@@ -79,6 +79,7 @@ def test_backprojection_and_box_geometry():
     assert np.all(corners[4:, 2] == 0.3)
 
 
+@pytest.mark.slow
 def test_env_resets_to_a_scene_and_steps(env):
     scene = Scene("box_small", (0.0, -0.3, 0.7), (-0.05, 0.36, 0.3))
     env.reset_to(scene)
@@ -96,6 +97,7 @@ def test_env_resets_to_a_scene_and_steps(env):
     assert not env.holding() and not env.object_in_container() and not env.suction_on()  # too far to seal
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(OBJECT_TYPES))
 def test_object_box_from_the_camera_matches_the_simulator(env, kind):
     scene = Scene(kind, (-0.05, -0.2, 0.9), SOURCE_SCENE.container_pose)
@@ -113,6 +115,7 @@ def test_object_box_from_the_camera_matches_the_simulator(env, kind):
 # ----------------------------------------------------------------------------------- demonstration, transport
 
 
+@pytest.mark.slow
 def test_scripted_demonstration_packs_the_source_object(source):
     assert source["result"]["success"] and source["result"]["grasp_step"] is not None
     phases = list(dict.fromkeys(source["trajectory"]["phases"]))
@@ -121,6 +124,7 @@ def test_scripted_demonstration_packs_the_source_object(source):
     assert steps.max() <= 0.015 + 1e-9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make_map", [GPMap, ILWRMap, AffineMap])
 def test_identical_scenes_reproduce_the_demonstration(source, make_map):
     moved = transport_source(source, source["keypoints"], make_map)
@@ -131,6 +135,7 @@ def test_identical_scenes_reproduce_the_demonstration(source, make_map):
         transport_source(source, source["keypoints"][:31], make_map)
 
 
+@pytest.mark.slow
 def test_a_transported_demonstration_packs_a_moved_object(env, source):
     trial = run_trial(env, source, sample_scene("relocation", 0), GPMap)
     assert trial["success"], trial["failure"]
@@ -139,6 +144,7 @@ def test_a_transported_demonstration_packs_a_moved_object(env, source):
     assert np.linalg.norm(tip[0] - source["trajectory"]["positions"][0]) < 0.05  # starts where the source started
 
 
+@pytest.mark.slow
 def test_execute_reports_why_a_trial_failed(env, source):
     env.reset_to(sample_scene("relocation", 1))
     result = execute(env, source["trajectory"])  # the source's motion, untransported: the object is elsewhere
@@ -148,6 +154,7 @@ def test_execute_reports_why_a_trial_failed(env, source):
         execute(env, bad)
 
 
+@pytest.mark.slow
 def test_evaluate_packing_cli_writes_table_plot_video_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=packing", "experiment.n_trials=1", "workers=1", "logger=none",

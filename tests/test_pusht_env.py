@@ -536,7 +536,7 @@ def test_reset_rejects_positions_outside_the_arena(split, size):
         assert env.observation_space.contains(obs), state
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     agent=st.tuples(st.floats(0.0, 512.0), st.floats(0.0, 512.0)),
     block=st.tuples(st.floats(0.0, 512.0), st.floats(0.0, 512.0), st.floats(-1e3, 1e3)),

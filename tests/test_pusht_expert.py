@@ -12,9 +12,9 @@ import yaml
 
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.tasks.pusht import PushTEnv, make_split, split_config
+from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.expert import CONTACTS, NORMALS, PushTExpert
-from kpflow.tasks.pusht.geometry import AGENT_RADIUS, OUTLINE, N_KEYPOINTS, to_world
+from kpflow.tasks.pusht.geometry import AGENT_RADIUS, N_KEYPOINTS, OUTLINE, to_world
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.routing import padded_obstacle, path_length, retime, shortest_path, smooth
 
@@ -137,6 +137,7 @@ def test_collect_commits_successful_episodes_deterministically(tmp_path):
         collect_pusht(tmp_path / "c.zarr", 0, progress=False)
 
 
+@pytest.mark.slow
 def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
     cmd = [sys.executable, "-m", "kpflow.collect", "task=pusht", "n_episodes=2", "workers=1", "videos=1",
            "seed=1", f"hydra.run.dir={tmp_path}"]  # fmt: skip
@@ -148,6 +149,7 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
     assert (tmp_path / "episode_000.mp4").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_collect_cli_names_an_unknown_task(tmp_path):
     cmd = [sys.executable, "-m", "kpflow.collect", "task=packing", f"hydra.run.dir={tmp_path}"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)

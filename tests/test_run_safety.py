@@ -78,6 +78,7 @@ def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
     ("-m", "kpflow.correct", "rounds=0"),
     ("train.py", "trainer.max_epochs=abc"),
 ], ids=["evaluate", "collect", "correct", "train"])  # fmt: skip
+@pytest.mark.slow
 def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
     out = tmp_path / "run"
     done = run(*cmd, f"hydra.run.dir={out}")
@@ -85,6 +86,7 @@ def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_path):
     out = tmp_path / "run"
     base = ("train.py", "logger=csv", f"hydra.run.dir={out}", "data.n_points=60", "trainer.enable_progress_bar=false")
@@ -113,6 +115,7 @@ def same_store(a: Path, b: Path) -> None:
     assert [x.episode_attrs(i) for i in range(len(x))] == [y.episode_attrs(i) for i in range(len(y))]
 
 
+@pytest.mark.slow
 def test_an_interrupted_collection_continues_where_it_stopped(tmp_path, monkeypatch):
     partial, whole = tmp_path / "partial.zarr", tmp_path / "whole.zarr"
     add = EpisodeStore.add_episode
@@ -158,6 +161,7 @@ ensure_pusht_demos(sys.argv[1], 4, workers=1)
 """
 
 
+@pytest.mark.slow
 def test_a_killed_first_use_collection_is_resumed_by_the_next_run(tmp_path):
     path, whole = tmp_path / "demos.zarr", tmp_path / "whole.zarr"
     proc = subprocess.Popen([sys.executable, "-c", COLLECT, str(path)], cwd=ROOT, stderr=subprocess.DEVNULL)

@@ -12,12 +12,12 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from kpflow.eval.stats import wilson_interval
 from kpflow.maps import GPMap
+from kpflow.tasks.arm.motion import cup_down
 from kpflow.tasks.stacking.env import StackingEnv
 from kpflow.tasks.stacking.keypoints import BACKGROUND, labels_at, lift, true_targets
 from kpflow.tasks.stacking.objects import CHEESE, LETTUCE, SIZES
-from kpflow.eval.stats import wilson_interval
-from kpflow.tasks.arm.motion import cup_down
 from kpflow.tasks.stacking.scene import AREA_X, SIDE_Y, SOURCE_SCENE, YAW_RANGE, Scene, sample_scene
 from kpflow.tasks.stacking.trajectory import execute, nearest_half_turn
 from kpflow.tasks.stacking.trial import grasp_errors, record_source, run_trial
@@ -55,6 +55,7 @@ def test_scenes_are_seeded_and_keep_or_swap_the_sides():
         sample_scene("full", 0)
 
 
+@pytest.mark.slow
 def test_env_puts_the_blocks_where_the_scene_says(env):
     scene = sample_scene("swapped", 2)
     env.reset_to(scene)
@@ -69,6 +70,7 @@ def test_env_puts_the_blocks_where_the_scene_says(env):
     assert all(image["masks"][name].sum() > 500 for name in (CHEESE, LETTUCE))
 
 
+@pytest.mark.slow
 def test_lifted_pixels_land_on_the_simulators_blocks(env):
     env.reset_to(sample_scene("moved", 1))
     image = env.render_topdown()
@@ -112,18 +114,21 @@ def test_half_turns_and_grasp_errors_in_closed_form():
     assert grasp_errors(source, off, now) == pytest.approx((np.rad2deg(0.1), 5.0))
 
 
+@pytest.mark.slow
 def test_scripted_demonstration_stacks_the_cheese(source, env):
     assert source["result"]["success"] and source["result"]["failure"] is None
     assert source["result"]["grasped"] == CHEESE
     assert set(source["trajectory"]["phases"]) >= {"approach", "seal", "carry", "release"}
 
 
+@pytest.mark.slow
 def test_identical_scene_with_exact_pairs_reproduces_the_demonstration(env, source):
     r = run_trial(env, source, SOURCE_SCENE, "oracle", GPMap)
     assert r["success"] and r["grasp_error_deg"] < 1.0 and r["grasp_error_mm"] < 1.0
     assert np.allclose(r["trajectory"]["positions"], source["trajectory"]["positions"], atol=2e-3)
 
 
+@pytest.mark.slow
 def test_a_stacking_trial_end_to_end_with_image_correspondences(env, source):
     consistency = {"radius": 0.12, "tolerance": 0.015}
     r = run_trial(env, source, sample_scene("moved", 0), SiftBackbone(colour_weight=2.0), GPMap, consistency=consistency)
@@ -137,6 +142,7 @@ def test_a_stacking_trial_end_to_end_with_image_correspondences(env, source):
     assert r["grasp_error_mm"] < 20.0 and r["grasp_error_deg"] < 45.0
 
 
+@pytest.mark.slow
 def test_execute_reports_why_a_trial_failed(env, source):
     env.reset_to(sample_scene("moved", 3))  # the cheese is elsewhere: the untransported demonstration misses it
     result = execute(env, source["trajectory"])
@@ -148,6 +154,7 @@ def test_execute_reports_why_a_trial_failed(env, source):
         run_trial(env, source, SOURCE_SCENE, "orcale", GPMap)
 
 
+@pytest.mark.slow
 def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=stacking", "experiment.n_trials=1", "workers=1", "logger=none",

@@ -20,6 +20,7 @@ def train(tmp: Path, *extra: str) -> subprocess.CompletedProcess:
     return done
 
 
+@pytest.mark.slow
 def test_train_resume_and_reload(tmp_path):
     train(tmp_path, "trainer.max_epochs=2")
     first = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
@@ -37,6 +38,7 @@ def test_train_resume_and_reload(tmp_path):
     assert not torch.allclose(model.x_std, torch.ones(2))  # standardisation travelled in the checkpoint
 
 
+@pytest.mark.slow
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
     cmd = [sys.executable, "train.py", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -60,6 +62,7 @@ def test_bad_data_config_is_a_clear_error():
         TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)
 
 
+@pytest.mark.slow
 def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     import json
 

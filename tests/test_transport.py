@@ -271,7 +271,7 @@ def test_nearest_rotation_is_identity_on_rotations_and_ignores_positive_scale(d)
     torch.testing.assert_close(nearest_rotation(r @ random_spd(50, d, 4)), r, atol=1e-10, rtol=0)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(seed=st.integers(0, 100_000), d=st.sampled_from([2, 3]), shape=st.sampled_from([(), (4,), (2, 3)]))
 def test_nearest_rotation_property(seed, d, shape):
     m = torch.randn(*shape, d, d, generator=torch.Generator().manual_seed(seed), dtype=F64)

@@ -119,6 +119,7 @@ def test_bad_arguments_raise(untrained, index):
         KCFMPolicy.from_checkpoint("/nonexistent/kcfm.ckpt")
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_gives_identical_actions(trained, index):
     model, ckpt = trained
     for make in (

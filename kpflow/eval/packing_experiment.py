@@ -18,18 +18,18 @@ import numpy as np
 from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import success_cells, success_summary
-from kpflow.utils.video import write_video
 from kpflow.utils.io import save_figure, write_json, write_text
+from kpflow.utils.video import write_video
 
 _WORKER: dict = {}  # this process's simulator, source demonstration and map factories
 
 
 def _init(maps: dict, source: dict | None, camera_size) -> None:
+    import torch
+
     from kpflow.tasks.packing.env import PackingEnv
     from kpflow.tasks.packing.scene import SOURCE_SCENE, Scene
     from kpflow.tasks.packing.trial import record_source
-
-    import torch
 
     torch.set_num_threads(1)
     env = PackingEnv(camera_size=tuple(camera_size))

@@ -22,10 +22,10 @@ from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
 from kpflow.tasks.pusht.env import PushTEnv
-from kpflow.utils.video import write_video
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.splits import SPLITS, STANDARD_FIRST_SEED, split_config, standard_config
 from kpflow.utils.io import save_figure, write_json, write_text
+from kpflow.utils.video import write_video
 
 THRESHOLDS = (0.85, 0.95)
 PROTOCOLS = (*SPLITS, "standard")

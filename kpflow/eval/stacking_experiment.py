@@ -30,11 +30,11 @@ _WORKER: dict = {}  # this process's simulator, source demonstration, backbones 
 
 
 def _init(backbones: dict, maps: dict, source: dict | None, camera_size, pairs: dict) -> None:
+    import torch
+
     from kpflow.tasks.stacking.env import StackingEnv
     from kpflow.tasks.stacking.scene import SOURCE_SCENE, Scene
     from kpflow.tasks.stacking.trial import record_source
-
-    import torch
 
     torch.set_num_threads(1)
     env = StackingEnv(camera_size=tuple(camera_size))

@@ -68,7 +68,7 @@ def match_keypoints(
     check_finite(tgt, "target")
     s, y = src.detach().cpu().double().numpy(), tgt.detach().cpu().double().numpy()
     n, d = s.shape
-    sc, yc = s - s.mean(0), y - y.mean(0)
+    sc = s - s.mean(0)
     spread = math.sqrt((sc**2).sum(1).mean()) or 1.0
     results = []
     for r0 in _initial_rotations(d, n_starts):

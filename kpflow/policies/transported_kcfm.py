@@ -43,7 +43,6 @@ from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
 from .source_index import SourceIndex
 
-
 PULL_BACK = ("agent", "all")
 
 

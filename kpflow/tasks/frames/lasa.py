@@ -17,9 +17,9 @@ import os
 import numpy as np
 import torch
 
-from .demonstrator import Demonstration
 from kpflow.rotations import rotation_2d
 
+from .demonstrator import Demonstration
 from .frames import Frame
 
 __all__ = ["LASA_SHAPES", "load_lasa", "lasa_frames", "end_heading"]

@@ -16,7 +16,16 @@
 from .env import PushTEnv
 from .geometry import KEYPOINT_NAMES, N_KEYPOINTS, coverage, observation_keypoints, t_keypoints
 from .physics import PushTPhysics
-from .splits import FIXED_GOAL, SPLITS, STANDARD_FIRST_SEED, Config, make_split, sample_config, split_config, standard_config
+from .splits import (
+    FIXED_GOAL,
+    SPLITS,
+    STANDARD_FIRST_SEED,
+    Config,
+    make_split,
+    sample_config,
+    split_config,
+    standard_config,
+)
 from .workspace import WORKSPACES, Workspace, get_workspace
 
 __all__ = [

@@ -22,7 +22,7 @@ import shapely
 
 from .geometry import AGENT_RADIUS, OUTLINE, T_KEYPOINTS, to_world
 from .physics import DT, KP, KV, SUBSTEPS, PushTPhysics
-from .routing import padded_obstacle, path_length, retime, shortest_path, smooth
+from .routing import padded_obstacle, retime, shortest_path, smooth
 from .workspace import Workspace, get_workspace
 
 ANGLES = np.deg2rad([-35.0, 0.0, 35.0])
