@@ -1,5 +1,5 @@
 """Train: ``python train.py experiment=frames_field``. Builds the datamodule, model and trainer from ``conf/``,
-checkpoints the best and last epochs under the run folder, and with ``run_name=NAME resume=true`` continues
+checkpoints the best and last epochs under the run folder (``conf/callbacks``), and with ``run_name=NAME resume=true`` continues
 that run from its last checkpoint.
 
 A run folder belongs to one run: reusing it without ``resume=true`` is refused, and the resolved config is written
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig
 
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
@@ -47,7 +47,9 @@ def check_resumable(model, last: Path) -> None:
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS, write=False)
-    last = out / "checkpoints" / "last.ckpt"
+    if "model_checkpoint" not in cfg.get("callbacks", {}):
+        raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see conf/callbacks/default.yaml)")
+    last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
     if cfg.resume and not last.exists():
         raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")
     if not cfg.resume and (used := run_folder_contents(out)):
@@ -58,9 +60,10 @@ def main(cfg: DictConfig) -> dict:
     model = instantiate(cfg.model, _convert_="all")  # plain lists and dicts as hparams: checkpoints load with weights_only
     if cfg.resume:
         check_resumable(model, last)
-    checkpoints = ModelCheckpoint(dirpath=out / "checkpoints", monitor="val/loss", save_top_k=2, save_last=True, filename="epoch{epoch:03d}", auto_insert_metric_name=False)
+    callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
+    checkpoints = callbacks["model_checkpoint"]
     trainer = instantiate(
-        cfg.trainer, logger=make_loggers(cfg) or False, callbacks=[checkpoints, WriteConfig(cfg)], plugins=[SafeCheckpointIO()],
+        cfg.trainer, logger=make_loggers(cfg) or False, callbacks=[*callbacks.values(), WriteConfig(cfg)], plugins=[SafeCheckpointIO()],
         default_root_dir=out,
     )
     trainer.fit(model, datamodule=datamodule, ckpt_path=str(last) if cfg.resume else None)

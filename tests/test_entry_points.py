@@ -7,21 +7,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from hydra import compose, initialize_config_dir
-from hydra.utils import instantiate
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def test_every_map_config_builds_a_working_map():
-    from tests.helpers import keypoint_pair
-
-    src, tgt = keypoint_pair(2)
-    for name in ["affine", "ilwr", "gp", "flow", "mlp", "ensemble"]:
-        with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose("evaluate", overrides=[f"map={name}", "logger=none"] + (["map.steps=5"] if name in ("flow", "mlp") else []))
-        phi = instantiate(cfg.map)().fit(src, tgt)
-        assert phi(src).shape == src.shape
 
 
 @pytest.mark.slow

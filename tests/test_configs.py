@@ -1,0 +1,141 @@
+"""Every option of every ``conf/`` group composes with its entry point and instantiates into what it names
+(lightning-hydra-template's config tests). A new file in ``conf/`` must be added here, or the coverage test fails."""
+
+from functools import partial
+from pathlib import Path
+
+import lightning
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import get_class, instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
+from omegaconf import OmegaConf, open_dict
+
+from kpflow.maps.base import TransportMap
+from tests.helpers import keypoint_pair, walk_to_block_store
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
+
+# group -> {option: entry point that composes it}
+ENTRIES = {
+    "map": dict.fromkeys(["affine", "ilwr", "gp", "flow", "mlp", "ensemble"], "evaluate"),
+    "logger": dict.fromkeys(["csv", "default", "none"], "train"),
+    "trainer": dict.fromkeys(["cpu", "gpu", "ddp"], "train"),
+    "callbacks": {"default": "train"},
+    "data": {"frames_transported": "train", "pusht_expert": "train", "pusht_human": "train", "pusht_store": "train"},
+    "model": {"kcfm": "train", "neural_field": "train"},
+    "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
+    "task": dict.fromkeys(["pusht", "packing", "stacking"], "evaluate"),
+    "experiment": {
+        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
+        **dict.fromkeys(["frames_field", "pusht_kcfm", "pusht_kcfm_gpu"], "train"),
+    },
+}
+
+
+def _compose(entry: str, overrides: list[str], tmp_path):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose(entry, overrides=overrides, return_hydra_config=True)
+    with open_dict(cfg):  # what Hydra's runtime would fill in
+        cfg.hydra.runtime.output_dir = str(tmp_path)
+        cfg.hydra.runtime.choices = OmegaConf.create({k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None})
+    from hydra.core.hydra_config import HydraConfig
+
+    HydraConfig.instance().set_config(cfg)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("configs") / "demos.zarr"
+    walk_to_block_store(path)
+    return path
+
+
+def test_every_config_file_is_covered():
+    on_disk = {group.name: {f.stem for f in group.glob("*.yaml")} for group in CONF.iterdir() if group.is_dir()}
+    assert on_disk == {group: set(options) for group, options in ENTRIES.items()}
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["map"]))
+def test_map_options_build_a_fitted_map(name, tmp_path):
+    src, tgt = keypoint_pair(2)
+    cfg = _compose("evaluate", [f"map={name}", "logger=none"] + (["map.steps=5"] if name in ("flow", "mlp") else []), tmp_path)
+    phi = instantiate(cfg.map)().fit(src, tgt)
+    assert isinstance(phi, TransportMap) and phi(src).shape == src.shape
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["logger"]))
+def test_logger_options_build_lightning_loggers(name, tmp_path):
+    cfg = _compose("train", [f"logger={name}"], tmp_path)
+    loggers = [instantiate(node) for node in (cfg.logger or {}).values()]
+    assert all(isinstance(lg, lightning.pytorch.loggers.Logger) for lg in loggers)
+    assert len(loggers) == {"none": 0, "csv": 1, "default": 2}[name]
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["trainer"]))
+def test_trainer_options_name_a_lightning_trainer(name, tmp_path):
+    cfg = _compose("train", [f"trainer={name}", "logger=none"], tmp_path)
+    assert get_class(cfg.trainer._target_) is lightning.Trainer
+    if cfg.trainer.accelerator == "cpu" or torch.cuda.is_available():
+        trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
+        assert trainer.max_epochs == cfg.trainer.max_epochs
+
+
+def test_callbacks_checkpoint_into_the_run_folder(tmp_path):
+    cfg = _compose("train", ["logger=none"], tmp_path)
+    callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
+    assert isinstance(callbacks["model_checkpoint"], ModelCheckpoint)
+    assert Path(callbacks["model_checkpoint"].dirpath) == tmp_path / "checkpoints"
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["data"]))
+def test_data_options_build_datamodules(name, store, tmp_path):
+    path = [f"data.path={store}", "data.n_episodes=null"] if name.startswith("pusht") else []
+    cfg = _compose("train", [f"data={name}", "logger=none", *path], tmp_path)
+    datamodule = instantiate(cfg.data)
+    assert isinstance(datamodule, lightning.LightningDataModule)
+    datamodule.setup("fit")
+    batch = next(iter(datamodule.train_dataloader()))
+    assert all(torch.isfinite(v).all() for v in (batch.values() if isinstance(batch, dict) else batch))
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["model"]))
+def test_model_options_build_lightning_modules(name, tmp_path):
+    data = ["data=pusht_expert"] if name == "kcfm" else []  # K-CFM's horizon and history come from the Push-T data
+    cfg = _compose("train", [f"model={name}", "logger=none", *data], tmp_path)
+    model = instantiate(cfg.model, _convert_="all")
+    assert isinstance(model, lightning.LightningModule) and sum(p.numel() for p in model.parameters()) > 0
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["policy"]))
+def test_policy_options_build_policies_that_act(name, store, tmp_path):
+    from kpflow.tasks.pusht import PushTEnv, split_config
+
+    checkpoint = [f"policy.checkpoint={RELEASED}"] if "kcfm" in name else []
+    cfg = _compose("evaluate", [f"policy={name}", "data=pusht_store", f"data.path={store}", "logger=none", *checkpoint], tmp_path)
+    policy = instantiate(cfg.policy)
+    env = PushTEnv()
+    obs, _ = env.reset(options={"config": split_config("in_distribution", 0)})
+    policy.reset()
+    chunk = policy.act(obs)
+    assert chunk.ndim == 2 and chunk.shape[1] == 2 and torch.isfinite(torch.as_tensor(chunk)).all()
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["task"]))
+def test_task_options_compose(name, tmp_path):
+    cfg = _compose("evaluate", [f"+task={name}", "logger=none"], tmp_path)
+    assert cfg.task.name == name
+
+
+@pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))
+def test_experiment_options_compose_and_instantiate(name, entry, tmp_path):
+    cfg = _compose(entry, [f"experiment={name}", "logger=none"], tmp_path)
+    if entry == "evaluate":
+        run = instantiate(cfg.experiment)
+        assert isinstance(run, partial) and callable(run)
+    else:
+        assert isinstance(instantiate(cfg.model, _convert_="all"), lightning.LightningModule)
