@@ -14,7 +14,7 @@ import pytest  # noqa: E402
 
 from kpflow.data.episode_store import EpisodeStore  # noqa: E402
 from kpflow.tasks.pusht.env import PushTEnv  # noqa: E402
-from kpflow.tasks.pusht.teleop import KeyboardTeleop, main  # noqa: E402
+from kpflow.teleop import KeyboardTeleop, main  # noqa: E402
 
 FIELDS = {"keypoints": (25, 2), "action": (2,), "agent_pos": (2,), "block_pose": (3,), "goal_pose": (3,)}
 

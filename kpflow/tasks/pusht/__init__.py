@@ -10,7 +10,6 @@
 * :mod:`.routing` -- agent paths around the block, retimed into speed-bounded targets.
 * :mod:`.expert` -- :class:`~.expert.PushTExpert`, the scripted demonstrator.
 * :mod:`.rollout` -- one episode with any policy, recorded in the Diffusion Policy convention.
-* :mod:`.teleop` -- keyboard teleoperation (pygame, optional).
 """
 
 from .env import PushTEnv

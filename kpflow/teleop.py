@@ -2,7 +2,7 @@
 
 Needs pygame, an optional extra: ``pip install 'kpflow[teleop]'``. Run::
 
-    python -m kpflow.tasks.pusht.teleop --store demos.zarr --split in_distribution --goal random --episodes 5
+    python -m kpflow.teleop --store demos.zarr --split in_distribution --goal random --episodes 5
 
 Keys: arrows or WASD move the agent's absolute target (10 px per control step while held, 3 px with shift held);
 space pauses/resumes; Enter saves the episode and starts the next one; Backspace discards it and restarts the same
@@ -23,9 +23,9 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ...data.episode_store import EpisodeStore
-from .env import PushTEnv
-from .splits import GOAL_MODES, SPLITS
+from .data.episode_store import EpisodeStore
+from .tasks.pusht.env import PushTEnv
+from .tasks.pusht.splits import GOAL_MODES, SPLITS
 
 OBS_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")
 _STATUS_PX = 28  # height of the status line under the scene
