@@ -1,10 +1,15 @@
 """kpflow: generalise robot skills with sparse semantic keypoints.
 
 Fit a smooth map phi from the keypoints of a demonstration's scene to those of a new scene
-(:mod:`kpflow.maps`) and push the demonstration through it (:mod:`kpflow.transport`).
+(:mod:`kpflow.maps`) and push the demonstration through it (:mod:`kpflow.transport`). Importing kpflow registers
+its Gymnasium ids; :func:`load_policy` loads a trained K-CFM for deployment.
 """
 
+from kpflow.tasks.pusht.registration import register_envs
+
 __version__ = "0.1.0"
+
+register_envs()  # gymnasium.make("kpflow/PushT-v0") and the split ids (kpflow/tasks/pusht/registration.py)
 
 
 def load_policy(path, steps: int = 10, execute: int = 8):

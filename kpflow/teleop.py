@@ -227,7 +227,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--window", type=int, default=512, help="window size in pixels")
     args = parser.parse_args(argv)
 
-    env = PushTEnv(split=args.split, goal=args.goal, max_steps=args.max_steps)
+    env = PushTEnv(split=args.split, goal=args.goal, max_steps=args.max_steps, render_mode="rgb_array")
     store = EpisodeStore(args.store, mode="a")
     teleop = KeyboardTeleop(env, store, args.step_px, args.fine_px, args.fps, args.window)
     try:

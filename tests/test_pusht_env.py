@@ -4,6 +4,7 @@ import math
 import re
 import warnings
 
+import gymnasium as gym
 import imageio.v2 as imageio
 import numpy as np
 import pymunk
@@ -15,9 +16,11 @@ from hypothesis import strategies as st
 
 from kpflow.maps.affine import fit_affine
 from kpflow.tasks.pusht import (
+    ENV_IDS,
     FIXED_GOAL,
     KEYPOINT_NAMES,
     SPLITS,
+    STANDARD_FIRST_SEED,
     Config,
     PushTEnv,
     PushTPhysics,
@@ -25,6 +28,7 @@ from kpflow.tasks.pusht import (
     get_workspace,
     make_split,
     split_config,
+    standard_config,
     t_keypoints,
 )
 from kpflow.tasks.pusht.geometry import (
@@ -397,10 +401,43 @@ def test_gymnasium_check_env_passes(split):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        check_env(PushTEnv(split=split), skip_render_check=False)
+        check_env(PushTEnv(split=split, render_mode="rgb_array"), skip_render_check=False)
     # Benign: absolute pixel targets are not a [-1, 1] box by design; no spec without gymnasium.make.
     benign = ("symmetric and normalized space", "not having a spec")
     assert [str(w.message) for w in caught if not any(b in str(w.message) for b in benign)] == []
+
+
+@pytest.mark.parametrize("env_id", sorted(ENV_IDS))
+def test_registered_ids_make_checked_envs_with_a_time_limit(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    kwargs, limit = ENV_IDS[env_id]
+    env = gym.make(env_id, render_mode="rgb_array")
+    assert env.spec.max_episode_steps == limit and env.unwrapped.split == kwargs["split"] and env.render_mode == "rgb_array"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped, skip_render_check=False)
+    assert [str(w.message) for w in caught if "symmetric and normalized space" not in str(w.message)] == []
+    spaces = (env.observation_space, env.action_space)
+    obs, _ = env.reset(seed=1)
+    for step in range(1, limit + 1):  # the agent holds still: TimeLimit truncates at the registered limit
+        obs, _, terminated, truncated, info = env.step(obs["agent_pos"])
+        assert not terminated and truncated == (step == limit)
+        if step in (1, limit):
+            assert env.observation_space.contains(obs)
+    assert (env.observation_space, env.action_space) == spaces and env.render().shape == (512, 512, 3)
+
+
+def test_the_standard_id_resets_to_diffusion_policys_start_states():
+    env = gym.make("kpflow/PushT-v0")
+    for seed in (STANDARD_FIRST_SEED, STANDARD_FIRST_SEED + 1, 7):
+        obs, _ = env.reset(seed=seed)
+        c = standard_config(seed)
+        np.testing.assert_allclose(obs["agent_pos"], c.agent_pos, atol=1e-6)
+        np.testing.assert_allclose(obs["goal_pose"], FIXED_GOAL, atol=1e-12)
+        assert angle_diff(obs["block_pose"][2], c.block_pose[2]) < 1e-9
+    env.reset(seed=0)
+    assert env.render() is None  # render_mode defaults to None
 
 
 def test_reset_with_a_seed_is_reproducible():
@@ -459,11 +496,14 @@ def test_reset_does_not_depend_on_earlier_episodes():
         np.testing.assert_array_equal(again, fresh)
 
 
-def test_reset_to_a_config_places_the_block_and_switches_workspace():
-    env = PushTEnv()  # in_distribution: standard workspace
-    assert env.workspace.name == "standard"
+def test_reset_to_a_config_places_the_block_in_the_envs_workspace():
+    envs = {"standard": PushTEnv(), "large": PushTEnv("object_ood")}
+    assert {name: env.workspace.name for name, env in envs.items()} == {"standard": "standard", "large": "large"}
     for c in make_split("object_ood", 3, seed=4) + make_split("in_distribution", 2, seed=4):
+        env = envs[c.workspace]
+        spaces = (env.observation_space, env.action_space)
         obs, info = env.reset(options={"config": c})
+        assert (env.observation_space, env.action_space) == spaces and env.observation_space.contains(obs)
         assert env.workspace.name == c.workspace
         assert env.physics.workspace.name == c.workspace
         np.testing.assert_allclose(obs["block_pose"][:2], c.block_pose[:2], rtol=0, atol=1e-9)
@@ -479,6 +519,8 @@ def test_reset_to_a_config_places_the_block_and_switches_workspace():
             np.testing.assert_allclose(obs["block_pose"][:2], c.block_pose[:2], rtol=0, atol=1e-9)
     with pytest.raises(ValueError, match="Config"):
         env.reset(options={"config": {"agent_pos": (1, 2)}})
+    with pytest.raises(ValueError, match="large workspace but this env's is standard"):
+        envs["standard"].reset(options={"config": make_split("robot_ood", 1)[0]})
 
 
 def test_reset_to_a_state():
@@ -634,7 +676,7 @@ def pixel(img, world_xy, world_size):
 
 @pytest.mark.parametrize("size", [512, 96])
 def test_render_shows_goal_block_and_agent(size):
-    env = PushTEnv(render_size=size)
+    env = PushTEnv(render_size=size, render_mode="rgb_array")
     block = (380.0, 80.0, 0.0)  # away from the goal ghost at (256, 256, pi/4)
     env.reset(options={"state": [450.0, 450.0, *block]})
     img = env.render()
@@ -645,11 +687,11 @@ def test_render_shows_goal_block_and_agent(size):
     assert pixel(img, (450.0, 450.0), 512) == AGENT
     assert pixel(img, (40.0, 450.0), 512) == WHITE
     assert not np.any(np.all(img == KEYPOINT, axis=-1))  # no keypoints unless asked for
-    assert PushTEnv(render_mode=None).render() is None
+    assert PushTEnv().render() is None  # render_mode defaults to None, as Gymnasium asks
 
 
 def test_render_large_workspace_and_keypoints():
-    env = PushTEnv(split="object_ood", render_size=256, render_keypoints=True)
+    env = PushTEnv(split="object_ood", render_size=256, render_keypoints=True, render_mode="rgb_array")
     env.reset(options={"state": [800.0, 150.0, 700.0, 700.0, 0.0]})
     assert env.workspace.name == "large"
     img = env.render()
@@ -667,7 +709,7 @@ def test_render_large_workspace_and_keypoints():
 
 
 def test_write_video(tmp_path):
-    env = PushTEnv(render_size=96)
+    env = PushTEnv(render_size=96, render_mode="rgb_array")
     env.reset(seed=0)
     frames = [env.render()]
     for k in range(5):

@@ -45,7 +45,7 @@ def scripted(script: dict[int, list], teleop: KeyboardTeleop | None = None, targ
 
 
 def make_teleop(path, **env_kwargs) -> KeyboardTeleop:
-    env = PushTEnv(render_size=96, **env_kwargs)
+    env = PushTEnv(render_size=96, render_mode="rgb_array", **env_kwargs)
     teleop = KeyboardTeleop(env, EpisodeStore(path, mode="a"), step_px=10, fine_px=3, fps=0, window_size=128)
     pygame.event.clear()
     return teleop

@@ -23,7 +23,7 @@ def expert_episode(
 ) -> tuple[int, EpisodeResult]:
     """Roll out the expert on configuration ``index`` of ``split`` (expert seeded by ``seed`` and ``index``)."""
     config = split_config(split, index, seed, goal)
-    env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256)
+    env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
     expert = PushTExpert(config.workspace)
     result = run_episode(env, expert, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
     return index, result

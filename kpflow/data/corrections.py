@@ -153,7 +153,7 @@ def collect_corrections(
     store = EpisodeStore(store_path, mode="a")
     if not len(store):
         raise ValueError(f"{store_path} holds no episodes: collect demonstrations first")
-    env = PushTEnv(split=split, goal=goal, render_mode=None)
+    env = PushTEnv(split=split, goal=goal)
     first = _next_round(store)
     reports = []
     bar = tqdm(total=rounds * episodes_per_round, desc="corrections", unit="ep", disable=not progress)

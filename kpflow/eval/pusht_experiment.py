@@ -67,7 +67,7 @@ def _episode(args) -> dict:
     protocol, index, seed, max_steps = args
     config = _configuration(protocol, index, seed)
     policy = TimedPolicy(_POLICY)
-    env = PushTEnv(split="in_distribution" if protocol == "standard" else protocol)
+    env = PushTEnv(split=protocol)
     result = run_episode(env, policy, config, max_steps, seed=index, thresholds=THRESHOLDS)
     return {
         "protocol": protocol,
@@ -151,7 +151,7 @@ def _videos(policy, episodes: list[dict], seed: int, max_steps: int, per_kind: i
         for kind, chosen in (("success", [e for e in mine if e["success_095"]]), ("failure", [e for e in mine if not e["success_095"]])):
             for e in chosen[:per_kind]:
                 config = _configuration(protocol, e["config_index"], seed)
-                env = PushTEnv(split="in_distribution" if protocol == "standard" else protocol, render_size=256)
+                env = PushTEnv(split=protocol, render_size=256, render_mode="rgb_array")
                 result = run_episode(env, policy, config, _max_steps(protocol, max_steps), seed=e["config_index"], render=True)
                 paths.append(str(write_video(result.frames, out / f"{protocol}_{kind}_{e['config_index']:04d}.mp4")))
     return paths

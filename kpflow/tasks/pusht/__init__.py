@@ -5,7 +5,8 @@
 * :mod:`.physics` -- the pymunk space, built as the standard env builds it (quirks documented there).
 * :mod:`.splits` -- seeded reset configurations: in-distribution, robot out of it, object out of it, and
   Diffusion Policy's standard start-state draw.
-* :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment.
+* :mod:`.env` -- :class:`PushTEnv`, the Gymnasium environment; :mod:`.registration` -- its ids
+  (``gymnasium.make("kpflow/PushT-v0")``), registered on import.
 * :mod:`.render` -- RGB frames (videos: :mod:`kpflow.utils.video`).
 * :mod:`.routing` -- agent paths around the block, retimed into speed-bounded targets.
 * :mod:`.expert` -- :class:`~.expert.PushTExpert`, the scripted demonstrator.
@@ -15,6 +16,7 @@
 from .env import PushTEnv
 from .geometry import KEYPOINT_NAMES, N_KEYPOINTS, coverage, observation_keypoints, t_keypoints
 from .physics import PushTPhysics
+from .registration import ENV_IDS, register_envs
 from .splits import (
     FIXED_GOAL,
     SPLITS,
@@ -29,6 +31,7 @@ from .workspace import WORKSPACES, Workspace, get_workspace
 
 __all__ = [
     "PushTEnv",
+    "ENV_IDS",
     "PushTPhysics",
     "KEYPOINT_NAMES",
     "N_KEYPOINTS",
@@ -47,3 +50,5 @@ __all__ = [
     "Workspace",
     "get_workspace",
 ]
+
+register_envs()

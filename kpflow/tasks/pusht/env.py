@@ -11,10 +11,12 @@ from gymnasium import spaces
 from .geometry import N_KEYPOINTS, OUTLINE, T_KEYPOINTS, outline_coverage, t_keypoints, t_polygon, to_world
 from .physics import DT, PushTPhysics
 from .render import render_scene
-from .splits import FIXED_GOAL, GOAL_MODES, SPLITS, Config, sample_config
+from .splits import FIXED_GOAL, GOAL_MODES, SPLITS, Config, sample_config, split_workspace, standard_config
 from .workspace import get_workspace
 
 _BODY_POINTS = np.concatenate([T_KEYPOINTS, OUTLINE])  # one transform gives keypoints and outline
+#: the env's splits: Table 1's three and Diffusion Policy's protocol
+ENV_SPLITS = (*SPLITS, "standard")
 #: the keys ``reset(options=...)`` understands
 RESET_OPTIONS = ("config", "state", "goal_pose")
 
@@ -57,11 +59,18 @@ class PushTEnv(gym.Env):
     when coverage >= ``success_threshold``; ``truncated`` after ``max_steps`` steps (never when ``None``).
     ``info`` carries ``is_success``, ``coverage``, ``block_pose`` and ``n_steps``.
 
-    ``reset(seed=s)`` draws a configuration of ``split`` (see :mod:`.splits`); ``options={"config": Config}`` or
-    ``options={"state": [ax, ay, bx, by, theta]}`` (plus optional ``"goal_pose"`` ``(x, y, theta)``, default
-    :data:`~.splits.FIXED_GOAL`) resets to a given one. Positions must lie in the arena ``[0, size]`` and every entry
-    must be finite; a bad value, an unknown option key, or a combination that would ignore one (``config`` with
-    ``state`` or ``goal_pose``) raises ``ValueError``.
+    ``split`` fixes the workspace, and with it the spaces, for the instance's lifetime: the 512-px arena for
+    ``in_distribution`` and ``standard``, the 1024-px one for ``robot_ood`` and ``object_ood``. ``reset(seed=s)``
+    draws a configuration of ``split`` (see :mod:`.splits`); with ``split="standard"`` it is Diffusion Policy's start
+    state for seed ``s`` (:func:`~.splits.standard_config`). ``options={"config": Config}`` (of the instance's
+    workspace) or ``options={"state": [ax, ay, bx, by, theta]}`` (plus optional ``"goal_pose"`` ``(x, y, theta)``,
+    default :data:`~.splits.FIXED_GOAL`) resets to a given one. Positions must lie in the arena ``[0, size]`` and
+    every entry must be finite; a bad value, an unknown option key, a config of another workspace, or a combination
+    that would ignore one (``config`` with ``state`` or ``goal_pose``) raises ``ValueError``.
+
+    Registered ids (``gymnasium.make``, after ``import kpflow``): ``kpflow/PushT-v0`` (Diffusion Policy's protocol:
+    ``split="standard"``, fixed goal, 300 steps), ``kpflow/PushT-InDistribution-v0``, ``kpflow/PushT-RobotOOD-v0``
+    and ``kpflow/PushT-ObjectOOD-v0`` (random goals, 1200 steps, Table 1's splits).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -75,10 +84,10 @@ class PushTEnv(gym.Env):
         physically_correct: bool = False,
         render_size: int = 512,
         render_keypoints: bool = False,
-        render_mode: str | None = "rgb_array",
+        render_mode: str | None = None,
     ):
-        if split not in SPLITS:
-            raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
+        if split not in ENV_SPLITS:
+            raise ValueError(f"unknown Push-T split {split!r}; choose one of {ENV_SPLITS}")
         if goal not in GOAL_MODES:
             raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
         if not 0.0 < success_threshold <= 1.0:
@@ -90,13 +99,13 @@ class PushTEnv(gym.Env):
         self.max_steps = max_steps
         self.physically_correct = physically_correct
         self.render_size, self.render_keypoints, self.render_mode = render_size, render_keypoints, render_mode
-        self._build(get_workspace("standard" if split == "in_distribution" else "large"))
+        self._build(get_workspace(split_workspace(split)))
         self.goal_pose = np.array(FIXED_GOAL)
         self.n_steps: int | None = None  # None until the first reset
         self._last_target = None
 
     def _build(self, workspace) -> None:
-        """Physics and spaces for ``workspace`` (a reset to a configuration of another workspace rebuilds them)."""
+        """Physics and spaces for ``workspace``, once per instance."""
         self.workspace = workspace
         self.physics = PushTPhysics(workspace, self.physically_correct)
         s = float(workspace.size)
@@ -129,7 +138,12 @@ class PushTEnv(gym.Env):
             config = options["config"]
             if not isinstance(config, Config):
                 raise ValueError(f"options['config'] must be a kpflow Config, got {type(config).__name__}")
-            ws = get_workspace(config.workspace)
+            if config.workspace != self.workspace.name:
+                raise ValueError(
+                    f"options['config'] is a configuration of the {config.workspace} workspace but this env's is"
+                    f" {self.workspace.name} (fixed by split={self.split!r}): make the env with a split of that workspace"
+                )
+            ws = self.workspace
             pose = "3 finite numbers (x, y, angle)"
             _checked(config.agent_pos, "config.agent_pos", "2 finite numbers (x, y)", ("agent x", "agent y"), ws)
             _checked(config.block_pose, "config.block_pose", pose, ("block x", "block y", "angle"), ws)
@@ -138,10 +152,10 @@ class PushTEnv(gym.Env):
             state = _checked(options["state"], *_STATE, self.workspace)
             goal = _checked(options.get("goal_pose", FIXED_GOAL), *_GOAL, self.workspace)
             config = Config(tuple(state[:2]), tuple(state[2:]), tuple(goal), self.workspace.name)
+        elif self.split == "standard":
+            config = standard_config(int(self.np_random.integers(2**32)) if seed is None else int(seed))
         else:
             config = sample_config(self.split, self.np_random, self.goal_mode)
-        if config.workspace != self.workspace.name:
-            self._build(get_workspace(config.workspace))
         self.config = config
         self.goal_pose = np.array(config.goal_pose, float)
         self._goal_keypoints = t_keypoints(self.goal_pose)

@@ -50,6 +50,8 @@ def run_episode(
     """
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if render and env.render_mode != "rgb_array":
+        raise ValueError(f"render=True needs an env made with render_mode='rgb_array', not {env.render_mode!r}")
     obs, info = env.reset(options={"config": config})
     policy.reset(seed)
     log = {k: [] for k in (*RECORDED_FIELDS, "action")} if record else None

@@ -31,7 +31,14 @@ SPLITS = ("in_distribution", "robot_ood", "object_ood")
 GOAL_MODES = ("random", "fixed")
 FIXED_GOAL = (256.0, 256.0, np.pi / 4)  # the standard env's goal
 GOAL_MARGIN = 40.0  # goal T vertices stay this far inside the training region: the agent fits between it and a wall
-_WORKSPACE = {"in_distribution": "standard", "robot_ood": "large", "object_ood": "large"}
+_WORKSPACE = {"in_distribution": "standard", "robot_ood": "large", "object_ood": "large", "standard": "standard"}
+
+
+def split_workspace(split: str) -> str:
+    """The workspace (``"standard"`` 512 px or ``"large"`` 1024 px) whose configurations ``split`` draws."""
+    if split not in _WORKSPACE:
+        raise ValueError(f"unknown Push-T split {split!r}; choose one of {tuple(_WORKSPACE)}")
+    return _WORKSPACE[split]
 
 
 @dataclass(frozen=True)
