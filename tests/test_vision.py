@@ -14,6 +14,7 @@ from kpflow.vision import (
     VisionTransformer,
     ViTBackbone,
     best_buddies,
+    dino_backbone,
     dino_vits8,
     find_correspondences,
     grid_centres,
@@ -353,13 +354,14 @@ def test_sift_colour_term_tells_apart_blocks_that_grey_sift_confuses():
 
 
 def test_dino_vits8_is_seeded_and_loads_user_weights(tmp_path):
-    a, b, c = dino_vits8(seed=0), dino_vits8(seed=0), dino_vits8(seed=1)
+    assert isinstance(dino_vits8(seed=0), VisionTransformer)
+    a, b, c = dino_backbone(seed=0), dino_backbone(seed=0), dino_backbone(seed=1)
     state = a.model.state_dict()
     assert all(torch.equal(state[k], v) for k, v in b.model.state_dict().items())
     assert not torch.equal(state["cls_token"], c.model.state_dict()["cls_token"])
     path = tmp_path / "dino_deitsmall8_pretrain.pth"
     torch.save(c.model.state_dict(), path)
-    loaded = dino_vits8(weights=str(path), seed=0)
+    loaded = dino_backbone(weights=str(path), seed=0)
     assert all(torch.equal(v, loaded.model.state_dict()[k]) for k, v in c.model.state_dict().items())
     assert loaded.layer == 9 and loaded.resize == 224
 

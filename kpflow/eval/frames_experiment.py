@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
-from kpflow.policies.rollout import euler_rollout
+from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
 from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, moved, random_scenes

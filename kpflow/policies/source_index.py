@@ -19,9 +19,10 @@ import torch
 from ..data.chunks import ChunkDataset
 from ..data.episode_store import EpisodeStore
 from ..maps.affine import fit_affine
+from ..tasks.pusht.geometry import N_T_KEYPOINTS
 from ..utils.config_checks import Key
 
-PUSHT_BLOCK = tuple(range(12))  # the block's keypoints in a Push-T observation
+PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
 
 
 def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:
@@ -29,7 +30,7 @@ def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> 
     for name, w in (("block", block), ("goal", goal), ("agent", agent)):
         if not np.isfinite(w) or w < 0:
             raise ValueError(f"keypoint weight {name} must be finite and >= 0, got {w}")
-    return np.concatenate([np.full(12, block), np.full(12, goal), [agent]]).astype(np.float32)
+    return np.concatenate([np.full(N_T_KEYPOINTS, block), np.full(N_T_KEYPOINTS, goal), [agent]]).astype(np.float32)
 
 
 class SourceIndex:

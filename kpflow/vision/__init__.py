@@ -1,6 +1,6 @@
 """Semantic correspondences between two images, and their lifting to 3-D.
 
-- :mod:`kpflow.vision.vit`: DINO's ViT (Caron et al. 2021) with the official checkpoint names.
+- :mod:`kpflow.vision.vit`: DINO's ViT (Caron et al. 2021) with the official checkpoint names (:func:`dino_vits8`).
 - :mod:`kpflow.vision.descriptors`: dense key-facet descriptors with log-binning and CLS-attention saliency
   (Amir et al. 2021), and the :class:`DenseBackbone` interface.
 - :mod:`kpflow.vision.sift`: an offline dense-SIFT backbone.
@@ -18,14 +18,14 @@ from kpflow.vision.descriptors import (
     DenseFeatures,
     ViTBackbone,
     cls_saliency,
-    dino_vits8,
+    dino_backbone,
     grid_centres,
     log_bin,
     vit_descriptors,
 )
 from kpflow.vision.lifting import lift_pixels, project_points, sample_depth
 from kpflow.vision.sift import SiftBackbone, border_saliency
-from kpflow.vision.vit import VisionTransformer, vit_small
+from kpflow.vision.vit import VisionTransformer, dino_vits8, vit_small
 
 __all__ = [
     "Correspondences",
@@ -37,6 +37,7 @@ __all__ = [
     "best_buddies",
     "border_saliency",
     "cls_saliency",
+    "dino_backbone",
     "dino_vits8",
     "find_correspondences",
     "grid_centres",

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from kpflow.vision.vit import VisionTransformer, vit_small
+from kpflow.vision.vit import VisionTransformer, dino_vits8
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -177,7 +177,7 @@ class ViTBackbone:
         return DenseFeatures(desc[0].cpu(), sal[0].cpu(), centres)
 
 
-def dino_vits8(
+def dino_backbone(
     weights: str | None = None,
     seed: int = 0,
     layer: int = 9,
@@ -185,12 +185,6 @@ def dino_vits8(
     hierarchy: int = 2,
     resize: int | tuple[int, int] | None = 224,
 ) -> ViTBackbone:
-    """A :class:`ViTBackbone` on DINO's ViT-S/8: ``weights`` is a checkpoint file the user provides
-    (:meth:`VisionTransformer.load_weights`; nothing is downloaded); without one the network is randomly initialised
-    from ``seed`` (an untrained control: its descriptors carry no semantics)."""
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        model = vit_small(patch_size=8)
-    if weights is not None:
-        model.load_weights(weights)
-    return ViTBackbone(model, layer=layer, stride=stride, hierarchy=hierarchy, resize=resize)
+    """A :class:`ViTBackbone` on DINO's ViT-S/8 (:func:`kpflow.vision.vit.dino_vits8`: the user's ``weights`` file,
+    or random from ``seed``), with the descriptor settings of Amir et al. (layer 9 keys, log-binning)."""
+    return ViTBackbone(dino_vits8(weights, seed), layer=layer, stride=stride, hierarchy=hierarchy, resize=resize)

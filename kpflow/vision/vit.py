@@ -225,6 +225,18 @@ def vit_small(patch_size: int = 8, img_size: int = 224) -> VisionTransformer:
     return VisionTransformer(img_size=img_size, patch_size=patch_size, embed_dim=384, depth=12, num_heads=6)
 
 
+def dino_vits8(weights: str | None = None, seed: int = 0) -> VisionTransformer:
+    """DINO's ViT-S/8 under its official name (``torch.hub`` ``dino_vits8``): ``weights`` is a checkpoint file the user
+    provides (:meth:`VisionTransformer.load_weights`; nothing is downloaded); without one the network is randomly
+    initialised from ``seed`` (an untrained control: its descriptors carry no semantics)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = vit_small(patch_size=8)
+    if weights is not None:
+        model.load_weights(weights)
+    return model
+
+
 def _init_weights(m: nn.Module) -> None:
     """DINO's initialisation: truncated-normal linear weights (std 0.02), zero biases, unit LayerNorms."""
     if isinstance(m, nn.Linear):
