@@ -16,7 +16,7 @@ from kpflow.utils.run import start_run
 
 TASKS = ("pusht",)
 KEYS = {
-    "task.name": Key(str, choices=TASKS),
+    "collector": Key(str, choices=TASKS),
     "n_episodes": Key(int, lo=1),
     "seed": Key(int, lo=0),
     "max_steps": Key(int, lo=1),

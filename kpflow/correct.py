@@ -19,7 +19,7 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from kpflow.data.corrections import collect_corrections
 from kpflow.data.demos import ensure_pusht_demos
@@ -114,7 +114,8 @@ def main(cfg: DictConfig) -> list[dict]:
     def make_policy(store: EpisodeStore):
         if not rebuilt:
             return instantiate(cfg.policy)
-        return instantiate(cfg.policy, demos={**demos, "path": str(store_path), "n_episodes": None})  # the grown store as it is
+        grown = OmegaConf.merge(cfg.data, {"path": str(store_path), "n_episodes": None})  # the grown store as it is
+        return instantiate(cfg.policy, demos=grown)
 
     def evaluate(label: str) -> dict | None:
         if not (cfg.eval_configs and rebuilt):

@@ -126,9 +126,12 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["task"]))
-def test_task_options_compose(name, tmp_path):
+def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
     cfg = _compose("evaluate", [f"+task={name}", "logger=none"], tmp_path)
-    assert cfg.task.name == name
+    task = instantiate(cfg.task, _convert_="all")
+    assert task.name == name
+    scenes = [task.sample_scene(task.conditions[-1], i) for i in range(3)]
+    assert scenes[0] == task.sample_scene(task.conditions[-1], 0) and scenes[0] != scenes[1]
 
 
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))

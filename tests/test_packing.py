@@ -1,6 +1,7 @@
 """Packing with a UR5e in robosuite (real MuJoCo, rendering headless): scenes, perception, the scripted
 demonstration, transport and one transported trial end to end."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -11,27 +12,34 @@ import pytest
 import torch
 import yaml
 
+from kpflow.eval.reports.packing import PackingReport, box_corner_error
+from kpflow.eval.trials import run_trial
 from kpflow.maps import AffineMap, GPMap, ILWRMap
-from kpflow.tasks.packing.env import START_POS, PackingEnv
+from kpflow.policies.demo_transport import DemoTransportPolicy
+from kpflow.tasks.base import Keypoints
+from kpflow.tasks.packing.demonstrator import execute
+from kpflow.tasks.packing.env import START_POS
 from kpflow.tasks.packing.keypoints import GROUPS, LIFT, N_KEYPOINTS, packing_keypoints
 from kpflow.tasks.packing.objects import OBJECT_TYPES
 from kpflow.tasks.packing.perception import backproject, box_corners, canonical_box
 from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
-from kpflow.tasks.packing.trajectory import execute
-from kpflow.tasks.packing.trial import box_corner_error, record_source, run_trial, transport_source
+from kpflow.tasks.packing.task import PackingTask
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+TASK = PackingTask()
 
 
 @pytest.fixture(scope="module")
 def env():
     torch.set_num_threads(1)
-    return PackingEnv()
+    return TASK.make_env()
 
 
 @pytest.fixture(scope="module")
 def source(env):
-    return record_source(env)
+    return TASK.demonstrate(env)
 
 
 # ------------------------------------------------------------------------------------------------ scenes
@@ -117,41 +125,42 @@ def test_object_box_from_the_camera_matches_the_simulator(env, kind):
 
 @pytest.mark.slow
 def test_scripted_demonstration_packs_the_source_object(source):
-    assert source["result"]["success"] and source["result"]["grasp_step"] is not None
-    phases = list(dict.fromkeys(source["trajectory"]["phases"]))
+    assert source.execution.success and source.execution.grasp_step is not None
+    phases = list(dict.fromkeys(source.trajectory.phases))
     assert phases == ["approach", "descend", "seal", "lift", "carry", "lower", "release", "retreat"]
-    steps = np.linalg.norm(np.diff(source["trajectory"]["positions"], axis=0), axis=-1)
+    steps = np.linalg.norm(np.diff(source.trajectory.positions, axis=0), axis=-1)
     assert steps.max() <= 0.015 + 1e-9
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("make_map", [GPMap, ILWRMap, AffineMap])
 def test_identical_scenes_reproduce_the_demonstration(source, make_map):
-    moved = transport_source(source, source["keypoints"], make_map)
-    np.testing.assert_allclose(moved["positions"], source["trajectory"]["positions"], atol=1e-5)
-    np.testing.assert_allclose(moved["rotations"], source["trajectory"]["rotations"], atol=1e-5)
-    np.testing.assert_array_equal(moved["suction"], source["trajectory"]["suction"])
-    with pytest.raises(ValueError, match="target keypoints"):
-        transport_source(source, source["keypoints"][:31], make_map)
+    kp = source.observation.keypoints
+    moved, _ = DemoTransportPolicy(make_map).plan(source.trajectory, Keypoints(kp, kp))
+    np.testing.assert_allclose(moved.positions, source.trajectory.positions, atol=1e-5)
+    np.testing.assert_allclose(moved.rotations, source.trajectory.rotations, atol=1e-5)
+    np.testing.assert_array_equal(moved.suction, source.trajectory.suction)
+    assert moved.std.shape == (len(moved), 3)
+    with pytest.raises(ValueError, match="source and target keypoints"):
+        Keypoints(kp, kp[:31])
 
 
 @pytest.mark.slow
 def test_a_transported_demonstration_packs_a_moved_object(env, source):
-    trial = run_trial(env, source, sample_scene("relocation", 0), GPMap)
-    assert trial["success"], trial["failure"]
-    assert trial["box_error_mm"] < 3.0
-    tip = trial["tip"]
-    assert np.linalg.norm(tip[0] - source["trajectory"]["positions"][0]) < 0.05  # starts where the source started
+    trial = run_trial(TASK, PackingReport(), env, source, sample_scene("relocation", 0), "camera", GPMap, variant={"map": "gp"})
+    assert trial.success, trial.failure
+    assert trial.scores["box_error_mm"] < 3.0 and trial.record()["map"] == "gp"
+    tip = trial.artefacts["execution"].tip
+    assert np.linalg.norm(tip[0] - source.trajectory.positions[0]) < 0.05  # starts where the source started
 
 
 @pytest.mark.slow
 def test_execute_reports_why_a_trial_failed(env, source):
     env.reset_to(sample_scene("relocation", 1))
-    result = execute(env, source["trajectory"])  # the source's motion, untransported: the object is elsewhere
-    assert not result["success"] and result["failure"] == "not grasped"
-    bad = dict(source["trajectory"], positions=np.full_like(source["trajectory"]["positions"], np.nan))
+    result = execute(env, source.trajectory)  # the source's motion, untransported: the object is elsewhere
+    assert not result.success and result.failure == "not grasped"
     with pytest.raises(ValueError, match="NaN"):
-        execute(env, bad)
+        dataclasses.replace(source.trajectory, positions=np.full_like(source.trajectory.positions, np.nan))
 
 
 @pytest.mark.slow

@@ -8,9 +8,9 @@ from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.maps import AffineMap
 from kpflow.policies.nearest import NearestNeighbourPolicy
-from kpflow.policies.protocol import Policy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transportation import TransportationPolicy
+from kpflow.tasks.base import Policy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.rollout import run_episode
 

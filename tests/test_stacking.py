@@ -1,6 +1,7 @@
 """Stacking with keypoints from images (real MuJoCo, rendering headless): scenes, the environment's ground truth,
 lifting against it, the scripted demonstration, transport through exact and image-found pairs, and the CLI."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -12,29 +13,39 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from kpflow.eval.reports.stacking import StackingReport, grasp_errors
 from kpflow.eval.stats import wilson_interval
+from kpflow.eval.trials import run_trial
 from kpflow.maps import GPMap
 from kpflow.tasks.arm.motion import cup_down
-from kpflow.tasks.stacking.env import StackingEnv
-from kpflow.tasks.stacking.keypoints import BACKGROUND, labels_at, lift, true_targets
+from kpflow.tasks.base import Demonstration, Trajectory
+from kpflow.tasks.stacking.demonstrator import execute, nearest_half_turn
+from kpflow.tasks.stacking.keypoints import BACKGROUND, Matcher, labels_at, lift, true_targets
 from kpflow.tasks.stacking.objects import CHEESE, LETTUCE, SIZES
 from kpflow.tasks.stacking.scene import AREA_X, SIDE_Y, SOURCE_SCENE, YAW_RANGE, Scene, sample_scene
-from kpflow.tasks.stacking.trajectory import execute, nearest_half_turn
-from kpflow.tasks.stacking.trial import grasp_errors, record_source, run_trial
+from kpflow.tasks.stacking.task import StackingTask, StackingView
 from kpflow.vision import SiftBackbone, project_points
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+TASK = StackingTask(camera_size=(480, 480))
+
+
 @pytest.fixture(scope="module")
 def env():
     torch.set_num_threads(1)
-    return StackingEnv(camera_size=(480, 480))
+    return TASK.make_env()
 
 
 @pytest.fixture(scope="module")
 def source(env):
-    return record_source(env)
+    return TASK.demonstrate(env)
+
+
+def trial(env, source, scene, keypoint_source, task=TASK):
+    """One trial with the GP map in ``scene``."""
+    return run_trial(task, StackingReport(), env, source, scene, keypoint_source, GPMap)
 
 
 def test_scenes_are_seeded_and_keep_or_swap_the_sides():
@@ -100,58 +111,57 @@ def test_half_turns_and_grasp_errors_in_closed_form():
     assert nearest_half_turn(-0.2, 0.1) == pytest.approx(-0.2)
     assert nearest_half_turn(np.pi / 2, 0.0) == pytest.approx(-np.pi / 2)  # the boundary: [ref - pi/2, ref + pi/2)
     turn = Rotation.from_euler("z", 0.5).as_matrix()
-    source = {
-        "poses": {CHEESE: (np.array([0.1, -0.2, 0.82]), np.eye(3))},
-        "trajectory": {"phases": np.array(["approach", "seal"]), "positions": np.array([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]]),
-                       "rotations": np.stack([cup_down(0.0), cup_down(0.0)])},
-    }  # fmt: skip
+    def path(positions, rotations):
+        return Trajectory(np.array(positions, float), np.stack(rotations), np.array([False, True]), np.array(["approach", "seal"]))
+
+    view = StackingView(image={}, poses={CHEESE: (np.array([0.1, -0.2, 0.82]), np.eye(3))}, boxes={}, start_box=np.zeros((8, 3)))
+    source = Demonstration(None, view, path([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]], [cup_down(0.0), cup_down(0.0)]), None)
     now = {CHEESE: (np.array([-0.1, 0.1, 0.82]), turn)}
-    ideal = {"positions": np.array([[0.0, 0.0, 1.0], [-0.1, 0.1, 0.84]]), "rotations": np.stack([np.eye(3), cup_down(0.5)])}
+    ideal = path([[0.0, 0.0, 1.0], [-0.1, 0.1, 0.84]], [np.eye(3), cup_down(0.5)])
     assert grasp_errors(source, ideal, now) == pytest.approx((0.0, 0.0), abs=1e-9)
-    flipped = dict(ideal, rotations=np.stack([np.eye(3), cup_down(0.5 + np.pi)]))  # a box grasped turned by pi
+    flipped = dataclasses.replace(ideal, rotations=np.stack([np.eye(3), cup_down(0.5 + np.pi)]))  # a box grasped turned by pi
     assert grasp_errors(source, flipped, now)[0] == pytest.approx(0.0, abs=1e-6)
-    off = {"positions": ideal["positions"] + [0.0, 0.003, 0.004], "rotations": np.stack([np.eye(3), cup_down(0.6)])}
+    off = path(ideal.positions + [0.0, 0.003, 0.004], [np.eye(3), cup_down(0.6)])
     assert grasp_errors(source, off, now) == pytest.approx((np.rad2deg(0.1), 5.0))
 
 
 @pytest.mark.slow
 def test_scripted_demonstration_stacks_the_cheese(source, env):
-    assert source["result"]["success"] and source["result"]["failure"] is None
-    assert source["result"]["grasped"] == CHEESE
-    assert set(source["trajectory"]["phases"]) >= {"approach", "seal", "carry", "release"}
+    assert source.execution.success and source.execution.failure is None
+    assert source.execution.grasped == CHEESE
+    assert set(source.trajectory.phases) >= {"approach", "seal", "carry", "release"}
 
 
 @pytest.mark.slow
 def test_identical_scene_with_exact_pairs_reproduces_the_demonstration(env, source):
-    r = run_trial(env, source, SOURCE_SCENE, "oracle", GPMap)
-    assert r["success"] and r["grasp_error_deg"] < 1.0 and r["grasp_error_mm"] < 1.0
-    assert np.allclose(r["trajectory"]["positions"], source["trajectory"]["positions"], atol=2e-3)
+    r = trial(env, source, SOURCE_SCENE, "oracle")
+    assert r.success and r.scores["grasp_error_deg"] < 1.0 and r.scores["grasp_error_mm"] < 1.0
+    assert np.allclose(r.artefacts["trajectory"].positions, source.trajectory.positions, atol=2e-3)
 
 
 @pytest.mark.slow
 def test_a_stacking_trial_end_to_end_with_image_correspondences(env, source):
-    consistency = {"radius": 0.12, "tolerance": 0.015}
-    r = run_trial(env, source, sample_scene("moved", 0), SiftBackbone(colour_weight=2.0), GPMap, consistency=consistency)
-    pairs = r["pairs"]
-    assert r["n_pairs"] + r["rejected"] == 7 and r["pairs_on"][CHEESE] >= 1 and sum(r["pairs_on"].values()) == r["n_pairs"]
-    assert pairs["pixels_before"].shape == pairs["pixels_now"].shape == (7, 2)
-    assert pairs["source"].shape == pairs["target"].shape == (7, 3)
-    assert r["pair_error_mm"] < 15.0
-    assert r["success"], r["failure"]
+    task = StackingTask(camera_size=(480, 480), matcher=Matcher(consistency={"radius": 0.12, "tolerance": 0.015}))
+    r = trial(env, source, sample_scene("moved", 0), SiftBackbone(colour_weight=2.0), task=task)
+    pairs, s = r.artefacts["view"].pairs, r.scores
+    assert s["n_pairs"] + s["rejected"] == 7 and s["pairs_on"][CHEESE] >= 1 and sum(s["pairs_on"].values()) == s["n_pairs"]
+    assert pairs.pixels_before.shape == pairs.pixels_now.shape == (7, 2)
+    assert pairs.source.shape == pairs.target.shape == (7, 3)
+    assert s["pair_error_mm"] < 15.0
+    assert r.success, r.failure
     # one pair on the cheese fixes where it is but not how it turned: the grasp's yaw is only roughly right
-    assert r["grasp_error_mm"] < 20.0 and r["grasp_error_deg"] < 45.0
+    assert s["grasp_error_mm"] < 20.0 and s["grasp_error_deg"] < 45.0
 
 
 @pytest.mark.slow
 def test_execute_reports_why_a_trial_failed(env, source):
     env.reset_to(sample_scene("moved", 3))  # the cheese is elsewhere: the untransported demonstration misses it
-    result = execute(env, source["trajectory"])
-    assert not result["success"] and result["failure"] == "not grasped"
+    result = execute(env, source.trajectory)
+    assert not result.success and result.failure == "not grasped"
     with pytest.raises(ValueError, match="NaN"):
-        bad = dict(source["trajectory"], positions=np.full_like(source["trajectory"]["positions"], np.nan))
-        execute(env, bad)
+        dataclasses.replace(source.trajectory, positions=np.full_like(source.trajectory.positions, np.nan))
     with pytest.raises(ValueError, match="oracle"):
-        run_trial(env, source, SOURCE_SCENE, "orcale", GPMap)
+        trial(env, source, SOURCE_SCENE, "orcale")
 
 
 @pytest.mark.slow
@@ -159,7 +169,7 @@ def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=stacking", "experiment.n_trials=1", "workers=1", "logger=none",
         "experiment.conditions=[moved]", "~experiment.backbones.sift", "~experiment.maps.gp_translation",
-        "experiment.match_images=1", "experiment.videos=0", f"hydra.run.dir={tmp_path}",
+        "experiment.report.examples=1", "experiment.videos=0", f"hydra.run.dir={tmp_path}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -167,7 +177,7 @@ def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     assert cfg["experiment"]["n_trials"] == 1 and cfg["task"]["source"]["cheese_pose"] == list(SOURCE_SCENE.cheese_pose)
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["source"]["success"]
-    assert {(s["backbone"], s["map"]) for s in results["summary"]} == {("sift_colour", "gp"), ("vit_random", "gp"), ("oracle", "gp")}
+    assert {(s["keypoints"], s["map"]) for s in results["summary"]} == {("sift_colour", "gp"), ("vit_random", "gp"), ("oracle", "gp")}
     reasons = {None, "not grasped", "unreachable", "near-singular", "grasped the lettuce", "missed the lettuce", "no correspondences"}
     assert all((t["failure"] is None) == t["success"] and t["failure"] in reasons for t in results["trials"])
     assert all(len(t["pair_errors_mm"]) == t["n_pairs"] for t in results["trials"])

@@ -10,11 +10,11 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
-from ..tasks.pusht.expert import PushTExpert
-from ..utils.config_checks import Key
-from ..utils.video import write_video
 from ..tasks.pusht.rollout import EpisodeResult, run_episode
 from ..tasks.pusht.splits import GOAL_MODES, SPLITS, split_config
+from ..tasks.pusht.task import PushTTask
+from ..utils.config_checks import Key
+from ..utils.video import write_video
 from .episode_store import EpisodeStore
 
 
@@ -24,7 +24,7 @@ def expert_episode(
     """Roll out the expert on configuration ``index`` of ``split`` (expert seeded by ``seed`` and ``index``)."""
     config = split_config(split, index, seed, goal)
     env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
-    expert = PushTExpert(config.workspace)
+    expert = PushTTask().demonstrator(config)
     result = run_episode(env, expert, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
     return index, result
 

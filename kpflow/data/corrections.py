@@ -18,6 +18,7 @@ from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.expert import PushTExpert
 from ..tasks.pusht.rollout import RECORDED_FIELDS
 from ..tasks.pusht.splits import Config, split_config
+from ..tasks.pusht.task import PushTTask
 from .episode_store import EpisodeStore
 
 #: Correction round ``r`` uses configuration indices ``CONFIG_OFFSET * (r + 1) + e``: never a demonstration's
@@ -28,6 +29,26 @@ _FIELDS = (*RECORDED_FIELDS, "action")
 
 def _stack(segment: dict[str, list]) -> dict[str, np.ndarray]:
     return {k: np.asarray(v, dtype=np.float32) for k, v in segment.items()}
+
+
+def _check_budgets(max_steps: int, stuck_steps: int, takeover_steps: int) -> None:
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if stuck_steps < 1 or takeover_steps < 1:
+        raise ValueError(f"stuck_steps and takeover_steps must be >= 1, got {stuck_steps} and {takeover_steps}")
+
+
+def _record(segment: dict[str, list], obs: dict, action: np.ndarray) -> None:
+    """Append the observation before ``action`` (``RECORDED_FIELDS``) and the action to ``segment``."""
+    for k in RECORDED_FIELDS:
+        segment[k].append(obs[k])
+    segment["action"].append(action)
+
+
+def _wandered(obs: dict, region: float) -> bool:
+    """The agent is outside the training region ``[0, region]^2``."""
+    agent = np.asarray(obs["agent_pos"], float)
+    return bool(np.any(agent < 0.0) or np.any(agent > region))
 
 
 def corrected_episode(
@@ -61,10 +82,7 @@ def corrected_episode(
         step in between) share one segment. ``info``: ``success``, ``steps``, ``n_takeovers``,
         ``expert_steps``, ``coverage`` (final) and ``max_coverage``.
     """
-    if max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    if stuck_steps < 1 or takeover_steps < 1:
-        raise ValueError(f"stuck_steps and takeover_steps must be >= 1, got {stuck_steps} and {takeover_steps}")
+    _check_budgets(max_steps, stuck_steps, takeover_steps)
     obs, info = env.reset(options={"config": config})
     if expert.workspace.name != env.workspace.name:
         raise ValueError(f"the expert's workspace {expert.workspace.name!r} is not the env's {env.workspace.name!r}")
@@ -78,9 +96,7 @@ def corrected_episode(
     terminated, step = False, 0
     for step in range(max_steps):
         if not expert_left:
-            agent = np.asarray(obs["agent_pos"], float)
-            wandered = bool(np.any(agent < 0.0) or np.any(agent > region))
-            if wandered or step - last_progress >= stuck_steps:
+            if _wandered(obs, region) or step - last_progress >= stuck_steps:
                 expert.reset(None if seed is None else seed * 1_009 + n_takeovers)
                 if expert_end != step:  # a policy step since the last takeover: start a new segment
                     segments.append({k: [] for k in _FIELDS})
@@ -88,9 +104,7 @@ def corrected_episode(
                 n_takeovers += 1
         if expert_left:
             action = np.asarray(expert.act(obs), dtype=np.float64)
-            for k in RECORDED_FIELDS:
-                segments[-1][k].append(obs[k])
-            segments[-1]["action"].append(action)
+            _record(segments[-1], obs, action)
             expert_left -= 1
             expert_steps += 1
             if not expert_left:  # hand back: the policy gets a fresh stuck budget
@@ -165,7 +179,7 @@ def collect_corrections(
             for e in range(episodes_per_round):
                 index = CONFIG_OFFSET * (r + 1) + e
                 config = split_config(split, index, seed, goal)
-                expert = PushTExpert(config.workspace)
+                expert = PushTTask().demonstrator(config)
                 ep_seed = seed * 100_003 + index
                 segments, info = corrected_episode(
                     env, policy, expert, config, max_steps, stuck_steps, takeover_steps, seed=ep_seed

@@ -342,42 +342,31 @@ class EpisodeStore:
 
     def _validate(self, episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Check ``episode`` against the store's fields; return its arrays in the stored dtypes."""
-        if not isinstance(episode, Mapping) or not episode:
-            raise ValueError("empty episode: expected a non-empty dict {field: array [T, ...]}")
-        values = {}
-        for name, value in episode.items():
-            if not isinstance(name, str) or not name or "/" in name:
-                raise ValueError(f"field name {name!r} must be a non-empty string without '/'")
-            v = np.asarray(value)
-            if v.ndim == 0:
-                raise ValueError(f"field {name!r} is a scalar; expected an array [T, ...] with a leading time axis")
-            if v.dtype.kind not in "biufc":
-                raise ValueError(f"field {name!r} has dtype {v.dtype}; only bool and numeric arrays are stored")
-            values[name] = v
-        lengths = {name: len(v) for name, v in values.items()}
-        if len(set(lengths.values())) > 1:
-            raise ValueError(f"length mismatch: fields must share the leading length T; got {lengths}")
-        if not next(iter(lengths.values())):
-            raise ValueError(f"empty episode: length T = 0 (fields {sorted(values)})")
-
-        fields = self.fields
-        if fields:
-            missing, extra = sorted(set(fields) - set(values)), sorted(set(values) - set(fields))
-            if missing:
-                raise ValueError(f"missing field(s) {missing}; the store's fields are {fields}")
-            if extra:
-                raise ValueError(f"extra field(s) {extra} not in the store; its fields are {fields}")
-            for name in fields:
-                array, v = self._data[name], values[name]
-                if v.shape[1:] != array.shape[1:]:
-                    raise ValueError(f"field {name!r} has trailing shape {v.shape[1:]}; the store has {array.shape[1:]}")
-                if not np.can_cast(v.dtype, array.dtype, casting="same_kind"):
-                    raise ValueError(f"field {name!r} has dtype {v.dtype}, which does not cast to the store's {array.dtype}")
-                values[name] = v.astype(array.dtype, copy=False)
+        values = _episode_arrays(episode)
+        if self.fields:
+            values = self._as_stored(values)
         for name, v in values.items():
             if v.dtype.kind in "fc" and not np.isfinite(v).all():
                 raise ValueError(f"field {name!r} contains NaN or inf")
         return values
+
+    def _as_stored(self, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``values`` with exactly the store's fields, trailing shapes and (castable) dtypes, cast to those dtypes."""
+        fields = self.fields
+        missing, extra = sorted(set(fields) - set(values)), sorted(set(values) - set(fields))
+        if missing:
+            raise ValueError(f"missing field(s) {missing}; the store's fields are {fields}")
+        if extra:
+            raise ValueError(f"extra field(s) {extra} not in the store; its fields are {fields}")
+        out = {}
+        for name in fields:
+            array, v = self._data[name], values[name]
+            if v.shape[1:] != array.shape[1:]:
+                raise ValueError(f"field {name!r} has trailing shape {v.shape[1:]}; the store has {array.shape[1:]}")
+            if not np.can_cast(v.dtype, array.dtype, casting="same_kind"):
+                raise ValueError(f"field {name!r} has dtype {v.dtype}, which does not cast to the store's {array.dtype}")
+            out[name] = v.astype(array.dtype, copy=False)
+        return out
 
 
 def _acquire(path: Path, wait: float | None) -> FileLock:
@@ -399,3 +388,26 @@ def _remove_partials(path: Path) -> None:
     (only ever called with the write lock held, so no live writer owns them)."""
     for leftover in path.rglob(".*.partial"):
         leftover.unlink(missing_ok=True)
+
+
+def _episode_arrays(episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``episode``'s fields as arrays, checked: string names without '/', numeric or bool arrays with one shared,
+    non-zero leading length T."""
+    if not isinstance(episode, Mapping) or not episode:
+        raise ValueError("empty episode: expected a non-empty dict {field: array [T, ...]}")
+    values = {}
+    for name, value in episode.items():
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ValueError(f"field name {name!r} must be a non-empty string without '/'")
+        v = np.asarray(value)
+        if v.ndim == 0:
+            raise ValueError(f"field {name!r} is a scalar; expected an array [T, ...] with a leading time axis")
+        if v.dtype.kind not in "biufc":
+            raise ValueError(f"field {name!r} has dtype {v.dtype}; only bool and numeric arrays are stored")
+        values[name] = v
+    lengths = {name: len(v) for name, v in values.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"length mismatch: fields must share the leading length T; got {lengths}")
+    if not next(iter(lengths.values())):
+        raise ValueError(f"empty episode: length T = 0 (fields {sorted(values)})")
+    return values

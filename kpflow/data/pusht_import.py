@@ -35,11 +35,11 @@ from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.zarr_checks import check_chunks, open_array, read
-from kpflow.utils.io import atomic_dir
 from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
 from kpflow.tasks.pusht.splits import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES
+from kpflow.utils.io import atomic_dir
 
 #: Arrays of the standard layout that the import reads, with their trailing shapes.
 REQUIRED = {
@@ -68,6 +68,27 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
         raise FileNotFoundError(f"no Push-T replay buffer at {path}")
     if max_episodes is not None and (int(max_episodes) != max_episodes or max_episodes < 1):
         raise ValueError(f"max_episodes must be a positive integer or None; got {max_episodes!r}")
+    arrays = _replay_arrays(path)
+    ends = _episode_ends(arrays, path)
+    if max_episodes is not None:
+        ends = ends[: int(max_episodes)]
+
+    n = int(ends[-1])
+    for name in ("data/state", "data/action"):
+        check_chunks(arrays[name], n, str(path), name)
+    state = np.asarray(read(arrays["data/state"], slice(0, n), str(path), "data/state"), dtype=np.float64)
+    action = np.asarray(read(arrays["data/action"], slice(0, n), str(path), "data/action"), dtype=np.float64)
+    for name, values in (("data/state", state), ("data/action", action)):
+        rows = np.flatnonzero(~np.isfinite(values).all(axis=1))
+        if len(rows):
+            episode = int(np.searchsorted(ends, rows[0], side="right"))
+            raise ValueError(f"{path}: {name} contains NaN or inf ({len(rows)} rows; first row {rows[0]}, episode {episode})")
+    return state, action, ends
+
+
+def _replay_arrays(path: Path) -> dict:
+    """The replay buffer's arrays (``data/state``, ``data/action``, ``meta/episode_ends``), each checked for
+    presence, shape and dtype."""
     try:
         root = zarr.open_group(store=zarr.DirectoryStore(str(path)), mode="r")
     except (zarr.errors.GroupNotFoundError, zarr.errors.ContainsArrayError) as e:
@@ -89,6 +110,11 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
             raise ValueError(f"{path}: {name} has dtype {array.dtype}; expected {'an integer' if kinds == 'iu' else 'a numeric'} dtype")
         arrays[name] = array
 
+    return arrays
+
+
+def _episode_ends(arrays: dict, path: Path) -> np.ndarray:
+    """``meta/episode_ends``, checked: non-empty, strictly increasing from 0, within the rows of both data arrays."""
     n_rows = arrays["data/state"].shape[0]
     if arrays["data/action"].shape[0] != n_rows:
         raise ValueError(f"{path}: data/action has {arrays['data/action'].shape[0]} rows but data/state has {n_rows}")
@@ -100,20 +126,7 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
         raise ValueError(f"{path}: meta/episode_ends is not strictly increasing from 0 at index {bad[0]} (episode lengths must be >= 1)")
     if ends[-1] > n_rows:
         raise ValueError(f"{path}: meta/episode_ends[-1] = {ends[-1]} exceeds the {n_rows} rows of data/state")
-    if max_episodes is not None:
-        ends = ends[: int(max_episodes)]
-
-    n = int(ends[-1])
-    for name in ("data/state", "data/action"):
-        check_chunks(arrays[name], n, str(path), name)
-    state = np.asarray(read(arrays["data/state"], slice(0, n), str(path), "data/state"), dtype=np.float64)
-    action = np.asarray(read(arrays["data/action"], slice(0, n), str(path), "data/action"), dtype=np.float64)
-    for name, values in (("data/state", state), ("data/action", action)):
-        rows = np.flatnonzero(~np.isfinite(values).all(axis=1))
-        if len(rows):
-            episode = int(np.searchsorted(ends, rows[0], side="right"))
-            raise ValueError(f"{path}: {name} contains NaN or inf ({len(rows)} rows; first row {rows[0]}, episode {episode})")
-    return state, action, ends
+    return ends
 
 
 def _episodes(ends: np.ndarray):

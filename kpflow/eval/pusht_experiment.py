@@ -21,9 +21,9 @@ import numpy as np
 from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
-from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.tasks.pusht.rollout import run_episode
-from kpflow.tasks.pusht.splits import SPLITS, STANDARD_FIRST_SEED, split_config, standard_config
+from kpflow.tasks.pusht.splits import SPLITS, STANDARD_FIRST_SEED
+from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.video import write_video
 
@@ -56,18 +56,14 @@ class TimedPolicy:
 _POLICY = None  # the policy of this worker process (inherited through fork)
 
 
-def _configuration(protocol: str, index: int, seed: int):
-    """Configuration ``index`` of ``protocol``: for ``standard`` the index is Diffusion Policy's env seed."""
-    if protocol == "standard":
-        return standard_config(index)
-    return split_config(protocol, index, seed, goal="random")
+TASK = PushTTask()
 
 
 def _episode(args) -> dict:
     protocol, index, seed, max_steps = args
-    config = _configuration(protocol, index, seed)
+    config = TASK.sample_scene(protocol, index, seed)
     policy = TimedPolicy(_POLICY)
-    env = PushTEnv(split=protocol)
+    env = TASK.make_env(protocol)
     result = run_episode(env, policy, config, max_steps, seed=index, thresholds=THRESHOLDS)
     return {
         "protocol": protocol,
@@ -150,8 +146,8 @@ def _videos(policy, episodes: list[dict], seed: int, max_steps: int, per_kind: i
         mine = [e for e in episodes if e["protocol"] == protocol]
         for kind, chosen in (("success", [e for e in mine if e["success_095"]]), ("failure", [e for e in mine if not e["success_095"]])):
             for e in chosen[:per_kind]:
-                config = _configuration(protocol, e["config_index"], seed)
-                env = PushTEnv(split=protocol, render_size=256, render_mode="rgb_array")
+                config = TASK.sample_scene(protocol, e["config_index"], seed)
+                env = TASK.make_env(protocol, render_size=256, render_mode="rgb_array")
                 result = run_episode(env, policy, config, _max_steps(protocol, max_steps), seed=e["config_index"], render=True)
                 paths.append(str(write_video(result.frames, out / f"{protocol}_{kind}_{e['config_index']:04d}.mp4")))
     return paths

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Callable
 
-from ..data.demos import ensure_pusht_demos
+from ..data.chunks import ChunkDataModule
+from ..data.episode_store import EpisodeStore
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .nearest import NearestNeighbourPolicy
@@ -14,16 +16,18 @@ from .transportation import TransportationPolicy
 FRAMES = {"world": None, "block": PUSHT_BLOCK}
 
 
-def pusht_index(demos: dict, horizon: int = 20, weights: dict | None = None, frame: str = "block") -> SourceIndex:
-    """A :class:`SourceIndex` over every step of the expert demonstrations described by ``demos``."""
+def pusht_index(demos: ChunkDataModule, horizon: int = 20, weights: dict | None = None, frame: str = "block") -> SourceIndex:
+    """A :class:`SourceIndex` over every step of the demonstrations of ``demos`` (the configured data node, whose
+    store exists once it is built: ``conf/data/pusht_*.yaml``)."""
     if frame not in FRAMES:
         raise ValueError(f"unknown search frame {frame!r}; choose one of {sorted(FRAMES)}")
-    store = ensure_pusht_demos(**demos)
-    return SourceIndex.from_store(store, horizon, pusht_weights(**(weights or {})), FRAMES[frame])
+    if not isinstance(demos, ChunkDataModule):
+        raise ValueError(f"demos must be a Push-T data node (a ChunkDataModule, data=pusht_*), got {type(demos).__name__}")
+    return SourceIndex.from_store(EpisodeStore(demos.path), horizon, pusht_weights(**(weights or {})), FRAMES[frame])
 
 
 def nearest(
-    demos: dict,
+    demos: ChunkDataModule,
     horizon: int = 20,
     execute: int = 8,
     weights: dict | None = None,
@@ -34,7 +38,7 @@ def nearest(
 
 
 def transportation(
-    demos: dict,
+    demos: ChunkDataModule,
     make_map: Callable[[], TransportMap] = ILWRMap,
     horizon: int = 20,
     execute: int = 8,
@@ -59,17 +63,20 @@ def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):
 
 def transported_kcfm(
     checkpoint: str,
-    demos: dict,
-    make_map: Callable[[], TransportMap] = ILWRMap,
+    demos: ChunkDataModule | Mapping,
+    make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
     steps: int = 10,
     execute: int = 8,
     weights: dict | None = None,
     frame: str = "block",
     pull_back: str = "agent",
 ):
+    from hydra.utils import instantiate
+
     from .kcfm_policy import KCFMPolicy
     from .transported_kcfm import TransportedKCFMPolicy
 
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model
+    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model  # first: a refused file collects nothing
+    demos, make_map = (instantiate(x) if isinstance(x, Mapping) and "_target_" in x else x for x in (demos, make_map))
     index = pusht_index(demos, model.hparams.horizon, weights, frame)
     return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back)

@@ -1,29 +1,18 @@
-"""Running an end-effector trajectory on a :class:`~kpflow.tasks.arm.env.SuctionArmEnv` and recording how the arm
-followed it.
-
-A trajectory is a dict of per-control-step arrays: ``positions [T, 3]`` and ``rotations [T, 3, 3]`` of the cup's tip
-(absolute targets for the operational-space controller) and ``suction [T]`` (whether the vacuum is on).
-"""
+"""Running an end-effector :class:`~kpflow.tasks.base.Trajectory` on a :class:`~kpflow.tasks.arm.env.SuctionArmEnv`
+and recording how the arm followed it."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from kpflow.tasks.base import Trajectory
+
 TRACKING_LIMIT = 0.03  # m: a larger error between target and tip means the arm could not follow
 SINGULAR_LIMIT = 0.02  # smallest singular value of the arm's Jacobian below which a configuration is near-singular
 
 
-def check_trajectory(trajectory: dict) -> None:
-    """``ValueError`` unless ``trajectory`` has finite positions ``[T, 3]``, rotations ``[T, 3, 3]`` and suction ``[T]``."""
-    positions, rotations, suction = (np.asarray(trajectory[k]) for k in ("positions", "rotations", "suction"))
-    if not (len(positions) == len(rotations) == len(suction)) or positions.shape[1:] != (3,) or rotations.shape[1:] != (3, 3):
-        raise ValueError("a trajectory needs positions [T, 3], rotations [T, 3, 3] and suction [T] of one length T")
-    if not (np.isfinite(positions).all() and np.isfinite(rotations).all()):
-        raise ValueError("the trajectory contains NaN or inf")
-
-
 def follow(
-    env, trajectory: dict, settle: int = 20, touching: set[int] = frozenset(), frames: list | None = None, frame_every: int = 2
+    env, trajectory: Trajectory, settle: int = 20, touching: set[int] = frozenset(), frames: list | None = None, frame_every: int = 2
 ) -> dict:
     """Command each step of ``trajectory`` on ``env`` (after ``reset_to``), then hold the last pose ``settle`` steps.
 
@@ -33,8 +22,9 @@ def follow(
     ``min_singular_value`` (of the arm's Jacobian, over the run). Appends a side-view frame every ``frame_every``
     steps to ``frames`` if given.
     """
-    check_trajectory(trajectory)
-    positions, rotations, suction = trajectory["positions"], trajectory["rotations"], trajectory["suction"]
+    if not isinstance(trajectory, Trajectory):
+        raise ValueError(f"follow needs a kpflow.tasks.base.Trajectory, got {type(trajectory).__name__}")
+    positions, rotations, suction = trajectory.positions, trajectory.rotations, trajectory.suction
     tip, error = [], []
     grasp_step, grasped, collided, min_sv = None, None, False, np.inf
     for t in range(len(positions)):

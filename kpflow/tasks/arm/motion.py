@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from kpflow.tasks.base import Trajectory
+
 MAX_STEP, MAX_TURN = 0.015, 0.1  # m and rad per control step (20 Hz): larger jumps can flip the UR5e's elbow
 DOWN = Rotation.from_euler("x", np.pi).as_matrix()  # the cup pointing down
 PRESS = 0.004  # m: a contact target lies this far below an object's top, so the cup touches it
@@ -41,10 +43,10 @@ def interpolate(p0, r0, p1, r1) -> tuple[np.ndarray, np.ndarray]:
     return p0 + a[:, None] * (p1 - p0), rots
 
 
-def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> dict:
+def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> Trajectory:
     """A trajectory from ``segments`` of ``(phase, target position, rotation, settle steps, suction)``: each moves
     in :func:`interpolate`'s steps to its target (``"seal"`` and ``"release"`` stay where they are) and holds it for
-    ``settle`` steps. Returns ``positions [T, 3]``, ``rotations [T, 3, 3]``, ``suction [T]`` and ``phases [T]``."""
+    ``settle`` steps. Returns the :class:`~kpflow.tasks.base.Trajectory`."""
     pos, rot = np.asarray(start_pos, float), np.asarray(start_rot, float)
     out = {"positions": [], "rotations": [], "suction": [], "phases": []}
     for phase, target, target_rot, settle, suction in segments:
@@ -60,4 +62,4 @@ def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> dict:
         out["suction"].append(np.full(len(ps), suction))
         out["phases"] += [phase] * len(ps)
         pos, rot = target, target_rot
-    return {k: (np.concatenate(v) if k != "phases" else np.array(v)) for k, v in out.items()}
+    return Trajectory(**{k: (np.concatenate(v) if k != "phases" else np.array(v)) for k, v in out.items()})

@@ -13,14 +13,65 @@ upper bound for what correspondences can give.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 import torch
 
-from kpflow.vision import DenseBackbone, find_correspondences, lift_pixels, project_points, sample_depth
+from kpflow.vision import (
+    DenseBackbone,
+    find_correspondences,
+    lift_pixels,
+    project_points,
+    rigidly_consistent,
+    sample_depth,
+)
 
 from .objects import BLOCKS
 
 BACKGROUND = "table"
+
+
+@dataclass(frozen=True)
+class ImagePairs:
+    """Corresponding points of the source image and the image now: ``pixels_before``/``pixels_now [n, 2]``, their
+    lifted world points ``source``/``target [n, 3]``, the ``labels`` (what each source pixel shows) and ``kept
+    [n]`` (the pairs that survived the rigidity check; all of them when none ran)."""
+
+    pixels_before: np.ndarray
+    pixels_now: np.ndarray
+    source: np.ndarray
+    target: np.ndarray
+    labels: list[str]
+    kept: np.ndarray
+
+
+@dataclass(frozen=True)
+class Matcher:
+    """How stacking finds keypoints in images: at most ``max_pairs`` best-buddy pairs with CLS saliency above
+    ``saliency_threshold``, spread over ``spread`` (``"descriptors"``: k-means on appearance, Amir et al.;
+    ``"pixels"``: over the image) with k-means seeded by ``seed`` (:func:`kpflow.vision.match_features`), then
+    dropping the pairs that break rigidity (``consistency``: the arguments of
+    :func:`kpflow.vision.rigidly_consistent`; None keeps every pair)."""
+
+    max_pairs: int = 7
+    saliency_threshold: float = 0.2
+    spread: str = "descriptors"
+    consistency: dict | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.max_pairs < 1:
+            raise ValueError(f"max_pairs must be >= 1, got {self.max_pairs}")
+        if self.spread not in ("descriptors", "pixels"):
+            raise ValueError(f"spread must be 'descriptors' or 'pixels', got {self.spread!r}")
+
+    def pairs(self, before: dict, now: dict, backbone: DenseBackbone) -> ImagePairs:
+        """The lifted pairs between the images ``before`` and ``now``, the inconsistent ones marked as not kept."""
+        pairs = image_pairs(before, now, backbone, self.max_pairs, self.saliency_threshold, self.seed, self.spread)
+        if self.consistency is not None:
+            pairs = replace(pairs, kept=rigidly_consistent(pairs.source, pairs.target, **self.consistency))
+        return pairs
 
 
 def lift(image: dict, pixels: np.ndarray) -> np.ndarray:
@@ -59,20 +110,13 @@ def image_pairs(
     seed: int = 0,
     spread: str = "descriptors",
 ) -> dict:
-    """Correspondences between two top-down images, lifted: ``pixels_before``/``pixels_now [n, 2]``,
-    ``source``/``target [n, 3]`` (world points) and ``labels`` (what each source pixel shows)."""
+    """Correspondences between two top-down images, lifted (:class:`ImagePairs`, every pair kept)."""
     corr = find_correspondences(before["rgb"], now["rgb"], backbone, max_pairs, saliency_threshold, seed, spread)
     pa, pb = corr.pixels_a.numpy(), corr.pixels_b.numpy()
-    return {
-        "pixels_before": pa,
-        "pixels_now": pb,
-        "source": lift(before, pa),
-        "target": lift(now, pb),
-        "labels": labels_at(before, pa),
-    }
+    return ImagePairs(pa, pb, lift(before, pa), lift(now, pb), labels_at(before, pa), np.ones(len(pa), bool))
 
 
-def oracle_pairs(before: dict, now: dict, boxes_before: dict, poses_before: dict, poses_now: dict) -> dict:
+def oracle_pairs(before: dict, now: dict, boxes_before: dict, poses_before: dict, poses_now: dict) -> ImagePairs:
     """Exact pairs: the centre and two adjacent inset corners (not in a line with it: a line leaves the turn about it
     free) of each block's top face (``boxes_before``: name -> ``(centre, rotation, half extents)``), carried by the
     true motion; pixels by projection, for the match images."""
@@ -88,10 +132,4 @@ def oracle_pairs(before: dict, now: dict, boxes_before: dict, poses_before: dict
     def pixels(image, points):
         return project_points(points, image["intrinsics"], image["camera_to_world"])[0].numpy()
 
-    return {
-        "pixels_before": pixels(before, source),
-        "pixels_now": pixels(now, target),
-        "source": source,
-        "target": target,
-        "labels": labels,
-    }
+    return ImagePairs(pixels(before, source), pixels(now, target), source, target, labels, np.ones(len(source), bool))

@@ -1,8 +1,6 @@
-"""End-effector trajectories for packing: the scripted source demonstration, and running one in the simulator.
+"""The scripted packing demonstration, and running a trajectory with its outcome (success, failure reason).
 
-A trajectory is a dict of per-control-step arrays: ``positions [T, 3]`` and ``rotations [T, 3, 3]`` of the cup's tip
-(absolute targets for the operational-space controller) and ``suction [T]`` (whether the vacuum is on). The scripted
-planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
+Trajectories are :class:`kpflow.tasks.base.Trajectory`. The scripted planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
 straight onto it, seals, lifts it by ``LIFT``, carries it over the container, lowers it in, releases and retreats,
 in the straight, interpolated segments of :func:`kpflow.tasks.arm.motion.interpolate`. Coming down vertically matters for tall,
 narrow objects: a diagonal approach, with the controller lagging, swept the cereal box over.
@@ -12,6 +10,7 @@ from __future__ import annotations
 
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory
+from kpflow.tasks.base import Execution, Trajectory
 
 from .keypoints import LIFT
 from .scene import CONTAINER_WALL
@@ -20,10 +19,9 @@ PLACE_CLEARANCE = 0.015  # m between the object's bottom and the container's flo
 RETREAT = 0.12
 
 
-def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: float, table_height: float) -> dict:
+def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: float, table_height: float) -> Trajectory:
     """The scripted demonstration for an object ``box`` (from :func:`~.perception.object_box`) and a container at
-    ``container_pos`` (centre, m) with yaw ``container_yaw``: a trajectory (module docstring) with ``phases [T]``
-    naming each step's segment."""
+    ``container_pos`` (centre, m) with yaw ``container_yaw`` (module docstring)."""
     top, (cx, cy), yaw = box["top"], box["centre"], box["yaw"]
     height = top - table_height
     grasp_rot, place_rot = cup_down(yaw), cup_down(container_yaw)
@@ -42,19 +40,18 @@ def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: 
     return segments_to_trajectory(start_pos, start_rot, segments)
 
 
-def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> dict:
+def execute(env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> Execution:
     """Run ``trajectory`` on ``env`` (a :class:`~.env.PackingEnv` after ``reset_to``) and say how it went.
 
     Each step commands the pose; while ``suction`` is on the cup seals as soon as it is within reach of the object,
     and when it goes off the object is let go. After the last step the arm holds still for ``settle`` steps.
 
-    Returns ``success`` (the object rests in the container), ``failure`` (None or the first reason:
-    ``"not grasped"``, ``"near-singular"`` or ``"unreachable"`` (tracking error above ``arm.execution.TRACKING_LIMIT``, with or
-    without the arm's Jacobian getting near-singular), ``"collision"`` (the arm touched the container),
-    ``"missed container"``), the measured ``tip [T, 3]``, the ``tracking_error [T]``
-    (m), ``grasp_step``, ``grasped`` and ``min_singular_value`` (of the arm's 6 x 6 Jacobian, over the run).
+    Returns the :class:`~kpflow.tasks.base.Execution`: ``success`` (the object rests in the container) and
+    ``failure`` (None or the first reason: ``"not grasped"``, ``"near-singular"`` or ``"unreachable"`` (tracking
+    error above ``arm.execution.TRACKING_LIMIT``, with or without the arm's Jacobian getting near-singular),
+    ``"collision"`` (the arm touched the container), ``"missed container"``).
     """
     run = follow(env, trajectory, settle, env.container_geoms, frames, frame_every)
     success = env.object_in_container()
     failure = None if success else (arm_failure(run) or "missed container")
-    return {"success": bool(success), "failure": failure, **run}
+    return Execution(success=bool(success), failure=failure, **run)

@@ -2,8 +2,8 @@
 
 :func:`plan_stacking` moves over the cheese block at the carrying height, descends straight onto it, seals, lifts
 it, carries it over the lettuce block while turning it to the lettuce's yaw (of the two half-turn-equivalent yaws,
-the nearer), lowers it onto the lettuce, releases and retreats. Trajectories are those of
-:mod:`kpflow.tasks.arm.execution`.
+the nearer), lowers it onto the lettuce, releases and retreats. Trajectories are
+:class:`kpflow.tasks.base.Trajectory`.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import numpy as np
 
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory, yaw_of
+from kpflow.tasks.base import Execution, Trajectory
 
 LIFT = 0.12  # m: the cheese's bottom clears the lettuce's top by this much while carried
 PLACE_CLEARANCE = 0.006  # m between the cheese's bottom and the lettuce's top at release
@@ -24,9 +25,9 @@ def nearest_half_turn(yaw: float, reference: float) -> float:
     return reference + (yaw - reference + np.pi / 2) % np.pi - np.pi / 2
 
 
-def plan_stacking(start_pos, start_rot, cheese: tuple, lettuce: tuple) -> dict:
+def plan_stacking(start_pos, start_rot, cheese: tuple, lettuce: tuple) -> Trajectory:
     """The scripted demonstration from the start pose for the blocks' boxes ``(centre [3], rotation [3, 3], half
-    extents [3])``: a trajectory (``positions``, ``rotations``, ``suction``, ``phases``)."""
+    extents [3])``."""
     (c_centre, c_rot, c_half), (l_centre, l_rot, l_half) = cheese, lettuce
     grasp_yaw = yaw_of(c_rot)
     place_yaw = nearest_half_turn(yaw_of(l_rot), grasp_yaw)
@@ -49,10 +50,10 @@ def plan_stacking(start_pos, start_rot, cheese: tuple, lettuce: tuple) -> dict:
     return segments_to_trajectory(start_pos, start_rot, segments)
 
 
-def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> dict:
+def execute(env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> Execution:
     """Run ``trajectory`` on a :class:`~.env.StackingEnv` (after ``reset_to``) and say how it went.
 
-    Returns :func:`~kpflow.tasks.arm.execution.follow`'s record plus ``success`` (the cheese rests on the lettuce,
+    Returns the :class:`~kpflow.tasks.base.Execution`: :func:`~kpflow.tasks.arm.execution.follow`'s record with ``success`` (the cheese rests on the lettuce,
     :meth:`~.env.StackingEnv.stacked`) and ``failure``: None, the arm's reason
     (:func:`~kpflow.tasks.arm.execution.arm_failure`; no geoms are watched for collisions here, so never
     ``"collision"``), ``"grasped the lettuce"`` (the wrong block) or ``"missed the lettuce"``.
@@ -65,4 +66,4 @@ def execute(env, trajectory: dict, settle: int = 20, frames: list | None = None,
             failure = f"grasped the {run['grasped']}"
         else:
             failure = arm_failure(run) or "missed the lettuce"
-    return {"success": bool(success), "failure": failure, **run}
+    return Execution(success=bool(success), failure=failure, **run)

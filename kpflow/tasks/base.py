@@ -1,0 +1,168 @@
+"""The task contract, and the named data that crosses layers.
+
+Every task folder under ``kpflow/tasks/`` has the same files: ``env.py`` (the simulator), ``scene.py`` (what a scene
+is and the seeded sampler for a condition and index), ``keypoints.py`` (observing the keypoints), ``demonstrator.py``
+(the scripted demonstration and success with a failure reason) and ``task.py``, which puts them behind one class.
+Push-T's closed-loop episodes talk to a :class:`Policy`; the robosuite tasks (:class:`ArmTask`) transport one
+recorded demonstration per scene, so their data is a :class:`Trajectory` of end-effector poses and an
+:class:`Execution` record of how the arm followed it.
+
+The evaluation loop (:mod:`kpflow.eval.trials`) needs only this module's names: a new task implements
+:class:`ArmTask` and a report (:mod:`kpflow.eval.reports`) that scores its trials.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """A closed-loop policy: ``reset(seed)`` and ``act(obs) -> action chunk [H, A]``."""
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode (``seed`` makes stochastic policies reproducible)."""
+
+    def act(self, obs: dict) -> np.ndarray:
+        """An action chunk ``[H, A]`` for the observation; the caller executes it and asks again."""
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """An end-effector trajectory, one row per 20 Hz control step: ``positions [T, 3]`` and ``rotations [T, 3, 3]``
+    of the cup's tip (absolute targets for the operational-space controller), ``suction [T]`` (vacuum on),
+    ``phases [T]`` (the segment each step belongs to: approach, descend, seal, ...) and, once transported, ``std
+    [T, 3]`` (the map's uncertainty at each position)."""
+
+    positions: np.ndarray
+    rotations: np.ndarray
+    suction: np.ndarray
+    phases: np.ndarray
+    std: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.positions)
+        shapes = (np.shape(self.positions)[1:], np.shape(self.rotations)[1:], len(self.rotations), len(self.suction), len(self.phases))
+        if shapes != ((3,), (3, 3), n, n, n):
+            raise ValueError(
+                "a trajectory needs positions [T, 3], rotations [T, 3, 3], suction [T] and phases [T] of one length T; got"
+                f" {np.shape(self.positions)}, {np.shape(self.rotations)}, {np.shape(self.suction)}, {np.shape(self.phases)}"
+            )
+        if not (np.isfinite(self.positions).all() and np.isfinite(self.rotations).all()):
+            raise ValueError("the trajectory contains NaN or inf")
+        if self.std is not None and np.shape(self.std) != (n, 3):
+            raise ValueError(f"std must be [T, 3] = [{n}, 3], got {np.shape(self.std)}")
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def step_of(self, phase: str) -> int:
+        """The first step of ``phase`` (``ValueError`` if the trajectory has none)."""
+        steps = np.flatnonzero(self.phases == phase)
+        if not len(steps):
+            raise ValueError(f"the trajectory has no {phase!r} step (phases: {sorted(set(self.phases.tolist()))})")
+        return int(steps[0])
+
+    def moved(self, positions: np.ndarray, rotations: np.ndarray, std: np.ndarray) -> Trajectory:
+        """The same suction and phases at new poses (a transported copy)."""
+        return replace(self, positions=positions, rotations=rotations, std=std)
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How a trajectory went on the arm: ``success`` and ``failure`` (None, or the first reason), the measured
+    ``tip [T, 3]``, the ``tracking_error [T]`` (m), ``grasp_step`` (None if nothing was sealed), ``grasped`` (the
+    object sealed first), ``collided`` and ``min_singular_value`` (of the arm's Jacobian, over the run)."""
+
+    success: bool
+    failure: str | None
+    tip: np.ndarray
+    tracking_error: np.ndarray
+    grasp_step: int | None
+    grasped: str | None
+    collided: bool
+    min_singular_value: float
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """Corresponding keypoints of the source scene and of the scene now (``source``, ``target`` ``[N, 3]``), the
+    input of a transportation map."""
+
+    source: np.ndarray
+    target: np.ndarray
+
+    def __post_init__(self) -> None:
+        if np.shape(self.source) != np.shape(self.target) or np.ndim(self.source) != 2:
+            raise ValueError(f"source and target keypoints must both be [N, D]; got {np.shape(self.source)} and {np.shape(self.target)}")
+
+
+@dataclass(frozen=True)
+class Demonstration:
+    """A recorded source demonstration: its ``scene``, what the task observed there before it (``observation``:
+    the task's own record, e.g. the object box or the image), the commanded ``trajectory`` and its ``execution``."""
+
+    scene: Any
+    observation: Any
+    trajectory: Trajectory
+    execution: Execution
+
+
+@dataclass
+class TrialResult:
+    """One trial of the evaluation grid: which ``condition``, scene ``index`` and ``variant`` (axis -> option, e.g.
+    ``{"keypoints": "sift", "map": "gp"}``), the ``scene`` (as a dict), ``success``, ``failure`` and the report's
+    ``scores``. ``artefacts`` (trajectory, execution, keypoints, images) stay in memory for figures."""
+
+    condition: str
+    index: int
+    variant: dict[str, str]
+    scene: dict
+    success: bool
+    failure: str | None
+    scores: dict[str, Any]
+    artefacts: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def record(self) -> dict:
+        """The JSON-ready row of ``results.json``."""
+        return {"condition": self.condition, "index": self.index, **self.variant, "scene": self.scene,
+                "success": self.success, "failure": self.failure, **self.scores}  # fmt: skip
+
+
+class ArmTask(abc.ABC):
+    """A robosuite task solved zero-shot by transporting one demonstration (packing, stacking).
+
+    ``conditions`` name the test conditions; ``keypoint_sources`` the ways the task can find keypoints (the
+    evaluation grid's ``keypoints`` axis: a backbone name, ``"oracle"``, or the task's single ``"camera"``).
+    """
+
+    name: str
+    conditions: tuple[str, ...]
+    source_scene: Any
+    #: the failure reason of a trial in which no keypoints were found (nothing is executed)
+    no_keypoints = "no correspondences"
+
+    @abc.abstractmethod
+    def make_env(self):
+        """A fresh simulator of this task (one per worker process)."""
+
+    @abc.abstractmethod
+    def sample_scene(self, condition: str, index: int, seed: int = 0):
+        """Scene ``index`` of ``condition`` for ``seed`` (the same for every map and keypoint source)."""
+
+    @abc.abstractmethod
+    def demonstrate(self, env) -> Demonstration:
+        """Run the scripted demonstrator in :attr:`source_scene` and record it."""
+
+    @abc.abstractmethod
+    def observe(self, env, scene, source: Demonstration, keypoint_source: Any) -> tuple[Keypoints | None, Any]:
+        """Reset ``env`` to ``scene`` and find the keypoints that correspond to the source's (None when none were
+        found), with the task's observation of the scene (what its report scores)."""
+
+    @abc.abstractmethod
+    def execute(self, env, trajectory: Trajectory, frames: list | None = None) -> Execution:
+        """Run ``trajectory`` and say whether the task succeeded, and if not why (appending video frames)."""

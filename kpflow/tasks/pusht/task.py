@@ -1,0 +1,34 @@
+"""Push-T behind the task contract: the env for a split, the seeded scene (configuration) of a split and index and
+the scripted demonstrator. Keypoints are the env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success
+its ``info["is_success"]``.
+
+Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observation), so its episodes run in
+:func:`~kpflow.tasks.pusht.rollout.run_episode` rather than the robosuite tasks' trial loop.
+"""
+
+from __future__ import annotations
+
+from .env import ENV_SPLITS, PushTEnv
+from .expert import PushTExpert
+from .splits import Config, split_config, standard_config
+
+
+class PushTTask:
+    """``conditions``: Table 1's three splits and Diffusion Policy's ``standard`` protocol."""
+
+    name = "pusht"
+    conditions = ENV_SPLITS
+
+    def make_env(self, condition: str = "in_distribution", **kwargs) -> PushTEnv:
+        """The env of ``condition``'s workspace (``kwargs``: :class:`~.env.PushTEnv`'s options)."""
+        return PushTEnv(split=condition, **kwargs)
+
+    def sample_scene(self, condition: str, index: int, seed: int = 0) -> Config:
+        """Configuration ``index`` of ``condition``; for ``standard`` the index is Diffusion Policy's env seed."""
+        if condition == "standard":
+            return standard_config(index)
+        return split_config(condition, index, seed, goal="random")
+
+    def demonstrator(self, config: Config) -> PushTExpert:
+        """The scripted expert for ``config``'s workspace."""
+        return PushTExpert(config.workspace)
