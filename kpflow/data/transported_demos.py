@@ -4,6 +4,7 @@ demonstrations from every other configuration, transported into one target confi
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import lightning
@@ -11,7 +12,40 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 
 from kpflow.maps.base import TransportMap
-from kpflow.tasks.frames.scenes import lookahead_velocity, random_scenes
+from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, random_scenes
+from kpflow.transport import TransportedTrajectory, transport_trajectory
+
+
+@dataclass(frozen=True)
+class TransportedDemo:
+    """Scene ``source``'s demonstration carried into the target scene: the ``trajectory`` (positions with the map's
+    std, velocities, orientations) and the arc-length look-ahead ``velocities`` a first-order policy is fitted on."""
+
+    source: int
+    trajectory: TransportedTrajectory
+    velocities: torch.Tensor
+
+
+def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], TransportMap], frame_size: float, horizon: float) -> list[TransportedDemo]:
+    """The paper's Eq. 6: every demonstration but the target's, transported into scene ``target``.
+
+    For each other scene j, phi_j is fitted from j's frame keypoints to the target's (phi_j(S_j) ~= S_target) and
+    j's demonstration goes through it (:func:`kpflow.transport.transport_trajectory`: x -> phi_j(x), v -> J v,
+    R -> polar(J) R). The policy's training velocities are the look-ahead velocities of the transported path at the
+    target demonstration's duration (:func:`~kpflow.tasks.frames.scenes.lookahead_velocity`, ``horizon`` of its
+    length).
+    """
+    goal = scenes[target]
+    target_kp = goal.keypoints(frame_size)
+    duration = float(goal.demo.times[-1] - goal.demo.times[0])
+    out = []
+    for j, scene in enumerate(scenes):
+        if j == target:
+            continue
+        phi = make_map().fit(scene.keypoints(frame_size), target_kp)
+        moved = transport_trajectory(phi, scene.demo.positions, scene.demo.velocities, scene.demo.orientations)
+        out.append(TransportedDemo(j, moved, lookahead_velocity(moved.positions, duration, horizon)))
+    return out
 
 
 class TransportedDemosDataModule(lightning.LightningDataModule):
@@ -48,15 +82,8 @@ class TransportedDemosDataModule(lightning.LightningDataModule):
         if self.train_set is not None:
             return
         scenes = random_scenes(self.n_configs, self.n_points, self.seed)
-        target = scenes[self.target]
-        duration = float(target.demo.times[-1] - target.demo.times[0])
-        pairs = []
-        for j, scene in enumerate(scenes):
-            if j == self.target:
-                continue
-            phi = self.make_map().fit(scene.keypoints(self.frame_size), target.keypoints(self.frame_size))
-            x = phi(scene.demo.positions)
-            pairs.append((x.float(), lookahead_velocity(x, duration, self.horizon).float()))
+        moved = transport_into(scenes, self.target, self.make_map, self.frame_size, self.horizon)
+        pairs = [(d.trajectory.positions.detach().float(), d.velocities.detach().float()) for d in moved]
         val, train = pairs[: self.n_val], pairs[self.n_val :]
         self.train_set = TensorDataset(*(torch.cat(t) for t in zip(*train)))
         self.val_set = TensorDataset(*(torch.cat(t) for t in zip(*val)))

@@ -21,12 +21,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from kpflow.data.transported_demos import transport_into
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
 from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
-from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, moved, random_scenes
+from kpflow.tasks.frames.scenes import Scene, moved, random_scenes
 from kpflow.transport import transport_trajectory
 from kpflow.utils.io import save_figure, write_json, write_text
 
@@ -79,17 +80,11 @@ def figure2(make_map: MapFactory, out: Path, n_configs: int, n_points: int, fram
     fig, axes = plots.new_figure(math.ceil(n_configs / cols), cols)
     rows = []
     for i, held in enumerate(tqdm(scenes, desc="figure 2: leave-one-out", unit="config")):
-        target_kp = held.keypoints(frame_size)
-        transported = []
-        for j, other in enumerate(scenes):
-            if j == i:
-                continue
-            phi = make_map().fit(other.keypoints(frame_size), target_kp)
-            transported.append(transport_trajectory(phi, other.demo.positions, other.demo.velocities, other.demo.orientations))
+        demos = transport_into(scenes, i, make_map, frame_size, horizon)  # Eq. 6
+        transported = [d.trajectory for d in demos]
         dt = float(held.demo.times[1] - held.demo.times[0])
         pos = torch.cat([t.positions for t in transported])
-        duration = float(held.demo.times[-1] - held.demo.times[0])
-        vel = torch.cat([lookahead_velocity(t.positions, duration, horizon) for t in transported])
+        vel = torch.cat([d.velocities for d in demos])
         field = GPVectorField().fit(pos, vel, goal=held.goal.position)
         rollout = euler_rollout(field, held.demo.positions[0], dt, 2 * n_points)
         truth = held.demo.positions
