@@ -22,8 +22,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from kpflow.data.corrections import collect_corrections
-from kpflow.data.demos import ensure_pusht_demos
 from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
+from kpflow.data.pusht_demos import ensure_pusht_demos
 from kpflow.eval import plots
 from kpflow.eval.pusht_experiment import run_pusht_experiment
 from kpflow.tasks.pusht.splits import GOAL_MODES, SPLITS

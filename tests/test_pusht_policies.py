@@ -124,7 +124,7 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from kpflow.data.demos import ensure_pusht_demos
+    from kpflow.data.pusht_demos import ensure_pusht_demos
 
     path = str(demos.path)
     n = len(demos)
