@@ -121,3 +121,18 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
     more = collect_corrections(path, lambda s: HoldStill(), 1, 1, max_steps=40, stuck_steps=5, takeover_steps=10,
                                progress=False)
     assert more[0]["round"] == 2 and more[0]["chunks_added"] > 0
+
+
+def test_takeover_is_an_override_of_the_one_episode_loop():
+    """The expert's takeovers run through run_episode: the overridden steps are exactly the recorded segments."""
+    from kpflow.data.corrections import Takeover, _segments
+    from kpflow.tasks.pusht.rollout import run_episode
+
+    config = split_config("in_distribution", 4)
+    takeover = Takeover(PushTExpert(), stuck_steps=10, takeover_steps=15)
+    result = run_episode(PushTEnv(), HoldStill(), config, 60, seed=0, record=True, override=takeover)
+    assert result.overridden.shape == (result.steps,) and result.overridden.sum() == takeover.steps > 0
+    assert not result.overridden[:10].any() and result.overridden[10:25].all()  # stuck from the start: 10 steps, then 15
+    segments = _segments(result.episode, result.overridden)
+    assert sum(len(s["action"]) for s in segments) == takeover.steps and len(segments) <= takeover.n_takeovers
+    np.testing.assert_array_equal(segments[0]["action"], result.episode["action"][10 : 10 + len(segments[0]["action"])])

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.expert import PushTExpert
-from ..tasks.pusht.rollout import RECORDED_FIELDS
+from ..tasks.pusht.rollout import run_episode
 from ..tasks.pusht.splits import Config, split_config
 from ..tasks.pusht.task import PushTTask
 from .episode_store import EpisodeStore
@@ -24,11 +24,6 @@ from .episode_store import EpisodeStore
 #: Correction round ``r`` uses configuration indices ``CONFIG_OFFSET * (r + 1) + e``: never a demonstration's
 #: (those count up from 0) and never another round's.
 CONFIG_OFFSET = 1_000_000
-_FIELDS = (*RECORDED_FIELDS, "action")
-
-
-def _stack(segment: dict[str, list]) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v, dtype=np.float32) for k, v in segment.items()}
 
 
 def _check_budgets(max_steps: int, stuck_steps: int, takeover_steps: int) -> None:
@@ -38,17 +33,55 @@ def _check_budgets(max_steps: int, stuck_steps: int, takeover_steps: int) -> Non
         raise ValueError(f"stuck_steps and takeover_steps must be >= 1, got {stuck_steps} and {takeover_steps}")
 
 
-def _record(segment: dict[str, list], obs: dict, action: np.ndarray) -> None:
-    """Append the observation before ``action`` (``RECORDED_FIELDS``) and the action to ``segment``."""
-    for k in RECORDED_FIELDS:
-        segment[k].append(obs[k])
-    segment["action"].append(action)
+class Takeover:
+    """The expert's override of :func:`~kpflow.tasks.pusht.rollout.run_episode` (see :func:`corrected_episode`).
+
+    Before a policy step it takes over for ``takeover_steps`` steps when the best coverage has not risen by
+    ``min_progress`` in the last ``stuck_steps`` steps (counted from the start or from its last hand-back), or when
+    the agent is outside the training region. It resets the expert at each takeover (seeded from the episode's
+    seed and the takeover count) and counts ``n_takeovers`` and ``steps``.
+    """
+
+    def __init__(self, expert: PushTExpert, stuck_steps: int, takeover_steps: int, min_progress: float = 0.01):
+        self.expert, self.stuck_steps, self.takeover_steps, self.min_progress = expert, stuck_steps, takeover_steps, min_progress
+
+    def start(self, env: PushTEnv, obs: dict, info: dict, seed: int | None) -> None:
+        if self.expert.workspace.name != env.workspace.name:
+            raise ValueError(f"the expert's workspace {self.expert.workspace.name!r} is not the env's {env.workspace.name!r}")
+        self.region, self.seed = float(env.workspace.region), seed
+        self.best = self.reference = float(info["coverage"])
+        self.last_progress = 0  # step at which the best coverage last rose by min_progress (or the expert handed back)
+        self.left = self.n_takeovers = self.steps = 0
+
+    def act(self, step: int, obs: dict) -> np.ndarray | None:
+        if not self.left and (_wandered(obs, self.region) or step - self.last_progress >= self.stuck_steps):
+            self.expert.reset(None if self.seed is None else self.seed * 1_009 + self.n_takeovers)
+            self.left, self.n_takeovers = self.takeover_steps, self.n_takeovers + 1
+        if not self.left:
+            return None
+        action = np.asarray(self.expert.act(obs), dtype=np.float64)
+        self.left -= 1
+        self.steps += 1
+        if not self.left:  # hand back: the policy gets a fresh stuck budget
+            self.reference, self.last_progress = self.best, step + 1
+        return action
+
+    def update(self, step: int, info: dict) -> None:
+        self.best = max(self.best, float(info["coverage"]))
+        if self.best >= self.reference + self.min_progress:
+            self.reference, self.last_progress = self.best, step + 1
 
 
 def _wandered(obs: dict, region: float) -> bool:
     """The agent is outside the training region ``[0, region]^2``."""
     agent = np.asarray(obs["agent_pos"], float)
     return bool(np.any(agent < 0.0) or np.any(agent > region))
+
+
+def _segments(episode: dict[str, np.ndarray], overridden: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """The contiguous runs of overridden steps of a recorded episode, each ``{field: [T, ...]}``."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], overridden.astype(np.int8), [0]])))
+    return [{k: v[a:b] for k, v in episode.items()} for a, b in zip(edges[::2], edges[1::2])]
 
 
 def corrected_episode(
@@ -64,8 +97,8 @@ def corrected_episode(
 ) -> tuple[list[dict[str, np.ndarray]], dict]:
     """Run ``policy`` on ``config`` with the expert taking over when it fails; record the expert's steps.
 
-    The policy's chunks are executed open loop (it is asked again when a chunk runs out, as in
-    :func:`~kpflow.tasks.pusht.rollout.run_episode`). Before each policy step, the expert takes over for
+    The episode is :func:`~kpflow.tasks.pusht.rollout.run_episode`'s, with a :class:`Takeover` as its override:
+    the policy's chunks are executed open loop; before each policy step, the expert takes over for
     ``takeover_steps`` steps when
 
     * the policy is stuck: the best coverage so far has not risen by ``min_progress`` in the last ``stuck_steps``
@@ -83,51 +116,17 @@ def corrected_episode(
         ``expert_steps``, ``coverage`` (final) and ``max_coverage``.
     """
     _check_budgets(max_steps, stuck_steps, takeover_steps)
-    obs, info = env.reset(options={"config": config})
-    if expert.workspace.name != env.workspace.name:
-        raise ValueError(f"the expert's workspace {expert.workspace.name!r} is not the env's {env.workspace.name!r}")
-    region = float(env.workspace.region)
-    policy.reset(seed)
-    segments: list[dict[str, list]] = []
-    chunk: list[np.ndarray] = []
-    best = reference = float(info["coverage"])
-    last_progress = 0  # step at which the best coverage last rose by min_progress (or the expert handed back)
-    expert_left, expert_end, n_takeovers, expert_steps = 0, None, 0, 0
-    terminated, step = False, 0
-    for step in range(max_steps):
-        if not expert_left:
-            if _wandered(obs, region) or step - last_progress >= stuck_steps:
-                expert.reset(None if seed is None else seed * 1_009 + n_takeovers)
-                if expert_end != step:  # a policy step since the last takeover: start a new segment
-                    segments.append({k: [] for k in _FIELDS})
-                expert_left, chunk = takeover_steps, []
-                n_takeovers += 1
-        if expert_left:
-            action = np.asarray(expert.act(obs), dtype=np.float64)
-            _record(segments[-1], obs, action)
-            expert_left -= 1
-            expert_steps += 1
-            if not expert_left:  # hand back: the policy gets a fresh stuck budget
-                expert_end, reference, last_progress = step + 1, best, step + 1
-        else:
-            if not chunk:
-                chunk = list(np.atleast_2d(np.asarray(policy.act(obs), dtype=np.float64)))
-            action = chunk.pop(0)
-        obs, _, terminated, _, info = env.step(action)
-        best = max(best, float(info["coverage"]))
-        if best >= reference + min_progress:
-            reference, last_progress = best, step + 1
-        if terminated:
-            break
+    takeover = Takeover(expert, stuck_steps, takeover_steps, min_progress)
+    result = run_episode(env, policy, config, max_steps, seed=seed, record=True, override=takeover)
     info = {
-        "success": bool(terminated),
-        "steps": step + 1,
-        "n_takeovers": n_takeovers,
-        "expert_steps": expert_steps,
-        "coverage": float(info["coverage"]),
-        "max_coverage": best,
+        "success": result.success,
+        "steps": result.steps,
+        "n_takeovers": takeover.n_takeovers,
+        "expert_steps": takeover.steps,
+        "coverage": result.coverage,
+        "max_coverage": result.max_coverage,
     }
-    return [_stack(s) for s in segments], info
+    return _segments(result.episode, result.overridden), info
 
 
 def _next_round(store: EpisodeStore) -> int:

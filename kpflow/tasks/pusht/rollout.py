@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -27,6 +28,29 @@ class EpisodeResult:
     first_step: dict = field(default_factory=dict)
     episode: dict | None = None  # recorded arrays [T, ...] (float32) when ``record``
     frames: list | None = None  # RGB frames when ``render``
+    overridden: np.ndarray | None = None  # [T] bool: the steps an override took (when one was given)
+
+
+class Override(Protocol):
+    """Something that may take control from the policy for a while (an expert correcting it): each step it is asked
+    first, and an action it returns replaces the policy's (whose pending chunk is then dropped)."""
+
+    def start(self, env: PushTEnv, obs: dict, info: dict, seed: int | None) -> None:
+        """A new episode began in ``env`` with ``obs`` and ``info``."""
+
+    def act(self, step: int, obs: dict) -> np.ndarray | None:
+        """The action for ``step``, or None to leave it to the policy."""
+
+    def update(self, step: int, info: dict) -> None:
+        """``step`` was taken; ``info`` is the env's after it."""
+
+
+def _policy_action(policy, obs: dict, history: deque, chunk: list) -> np.ndarray:
+    """The next action of the policy's current chunk, asking it for a new chunk when that one ran out."""
+    if not chunk:
+        seen = dict(obs, keypoints_history=np.stack(history)) if history.maxlen > 1 else obs
+        chunk.extend(np.atleast_2d(np.asarray(policy.act(seen), dtype=np.float64)))
+    return chunk.pop(0)
 
 
 def run_episode(
@@ -38,6 +62,7 @@ def run_episode(
     thresholds: tuple[float, ...] = (0.85, 0.95),
     record: bool = False,
     render: bool = False,
+    override: Override | None = None,
 ) -> EpisodeResult:
     """Reset ``env`` to ``config`` and run ``policy`` until success or ``max_steps`` steps.
 
@@ -46,7 +71,8 @@ def run_episode(
     history) also gets ``obs["keypoints_history"] [n_obs, K, 2]``: the keypoints of the last ``n_obs`` steps, oldest
     first, the first observation repeated before the episode's start (as its training data pads). The episode ends
     on ``env``'s success (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were
-    first reached.
+    first reached. With an ``override`` (:class:`Override`: the expert's corrections), ``overridden`` marks the
+    steps it took.
     """
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
@@ -54,31 +80,35 @@ def run_episode(
         raise ValueError(f"render=True needs an env made with render_mode='rgb_array', not {env.render_mode!r}")
     obs, info = env.reset(options={"config": config})
     policy.reset(seed)
+    if override is not None:
+        override.start(env, obs, info, seed)
     log = {k: [] for k in (*RECORDED_FIELDS, "action")} if record else None
     frames = [env.render()] if render else None
     first = {th: None for th in thresholds}
-    best, chunk, terminated = info["coverage"], [], False
-    n_obs = int(getattr(policy, "n_obs", 1))
-    history = deque([obs["keypoints"]] * n_obs, maxlen=n_obs)
+    best, chunk, terminated, overridden = info["coverage"], [], False, []
+    history = deque([obs["keypoints"]] * int(getattr(policy, "n_obs", 1)), maxlen=int(getattr(policy, "n_obs", 1)))
     start = time.perf_counter()
     for step in range(max_steps):
         if step:
             history.append(obs["keypoints"])
-        if not chunk:
-            seen = dict(obs, keypoints_history=np.stack(history)) if n_obs > 1 else obs
-            chunk = list(np.atleast_2d(np.asarray(policy.act(seen), dtype=np.float64)))
-        action = chunk.pop(0)
+        action = None if override is None else override.act(step, obs)
+        overridden.append(action is not None)
+        if action is None:
+            action = _policy_action(policy, obs, history, chunk)
+        else:
+            action = np.asarray(action, dtype=np.float64)
+            chunk.clear()  # the policy starts afresh when it gets control back
         if log is not None:
             for k in RECORDED_FIELDS:
                 log[k].append(obs[k])
             log["action"].append(action)
         obs, _, terminated, _, info = env.step(action)
+        if override is not None:
+            override.update(step, info)
         if frames is not None:
             frames.append(env.render())
         best = max(best, info["coverage"])
-        for th in thresholds:
-            if first[th] is None and info["coverage"] >= th:
-                first[th] = step + 1
+        first.update({th: step + 1 for th in thresholds if first[th] is None and info["coverage"] >= th})
         if terminated:
             break
     episode = {k: np.asarray(v, dtype=np.float32) for k, v in log.items()} if log is not None else None
@@ -91,4 +121,5 @@ def run_episode(
         first_step=first,
         episode=episode,
         frames=frames,
+        overridden=np.array(overridden, bool) if override is not None else None,
     )
