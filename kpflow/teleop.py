@@ -25,9 +25,11 @@ import numpy as np
 
 from .data.episode_store import EpisodeStore
 from .tasks.pusht.env import PushTEnv
+from .tasks.pusht.geometry import coverage
+from .tasks.pusht.rollout import StopEpisode, run_episode
 from .tasks.pusht.splits import GOAL_MODES, SPLITS
 
-OBS_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")
+UNBOUNDED = 10**9  # steps: an env without max_steps records until Enter or success
 _STATUS_PX = 28  # height of the status line under the scene
 
 
@@ -132,6 +134,46 @@ class KeyboardTeleop:
         return self._target.copy()
 
     # ------------------------------------------------------------------------------------------------ episodes
+    # ------------------------------------------------------------------------------------------------ policy
+    def reset(self, seed: int | None = None) -> None:
+        """Start an episode: no target yet (the first observation gives it), nothing pending or held."""
+        self._target, self._steps = None, 0
+        self.paused = self.save_requested = self.discard_requested = self.quit_requested = False
+        self._held.clear()
+
+    def act(self, obs: dict) -> np.ndarray:
+        """The next target ``[1, 2]`` from the keyboard (the person is the policy of
+        :func:`~kpflow.tasks.pusht.rollout.run_episode`).
+
+        Each control tick reads the events once (``event_source``), then either returns a target (while recording:
+        not paused, and moving or already started) or redraws the window and waits for the next tick. Enter (after
+        at least one step), Backspace and quitting end the episode by raising
+        :class:`~kpflow.tasks.pusht.rollout.StopEpisode`.
+        """
+        if self._target is None:
+            self._target = np.asarray(obs["agent_pos"], float).copy()
+        elif self._steps:
+            self._tick(obs)  # the step just taken: show it
+        while True:
+            for event in self._event_source():
+                self.handle_event(event)
+            if self.quit_requested or self.discard_requested:
+                raise StopEpisode
+            if self.save_requested:
+                if self._steps:
+                    raise StopEpisode
+                self.save_requested = False  # nothing recorded yet: nothing to save
+            if not self.paused and (self._steps or self.velocity().any()):
+                self._target = np.clip(self._target + self.velocity(), 0.0, self.env.workspace.size)
+                self._steps += 1
+                return self._target[None].copy()
+            self._tick(obs)
+
+    def _tick(self, obs: dict) -> None:
+        self._draw(coverage(obs["block_pose"], obs["goal_pose"]), self._steps)
+        self._clock.tick(self.fps)
+
+    # ------------------------------------------------------------------------------------------------ episodes
     def run_episode(
         self,
         seed: int,
@@ -140,43 +182,21 @@ class KeyboardTeleop:
     ) -> dict[str, np.ndarray] | None:
         """Reset the env with ``seed``, record one episode and save it to the store.
 
-        ``event_source`` (default ``pygame.event.get``) is called once per control step, before that step's
-        action. The episode ends on Enter, success, truncation by the env or ``max_steps`` recorded steps
-        (default: the env's ``max_steps``), and is then saved; it returns the recorded arrays. It returns
-        ``None`` without saving on Backspace (see :attr:`discard_requested`) or quit (:attr:`quit_requested`).
+        The episode is :func:`~kpflow.tasks.pusht.rollout.run_episode`'s with this teleop as the policy.
+        ``event_source`` (default ``pygame.event.get``) is called once per control tick, before that tick's
+        action. The episode ends on Enter, success, or ``max_steps`` recorded steps (default: the env's
+        ``max_steps``), and is then saved; it returns the recorded arrays. It returns ``None`` without saving on
+        Backspace (see :attr:`discard_requested`) or quit (:attr:`quit_requested`).
         """
-        event_source = event_source or self._pg.event.get
+        self._event_source = event_source or self._pg.event.get
         max_steps = self.env.max_steps if max_steps is None else max_steps
-        obs, info = self.env.reset(seed=seed)
-        self._target = np.asarray(obs["agent_pos"], float).copy()
-        self.paused = self.save_requested = self.discard_requested = self.quit_requested = False
-        self._held.clear()
-        records: dict[str, list[np.ndarray]] = {name: [] for name in (*OBS_FIELDS, "action")}
-        done = False
-        while not done:
-            for event in event_source():
-                self.handle_event(event)
-            if self.quit_requested or self.discard_requested:
-                return None
-            n = len(records["action"])
-            if self.save_requested:
-                if n:
-                    break
-                self.save_requested = False  # nothing recorded yet: nothing to save
-            if not self.paused and (n or self.velocity().any()):
-                size = self.env.workspace.size
-                self._target = np.clip(self._target + self.velocity(), 0.0, size)
-                for name in OBS_FIELDS:
-                    records[name].append(np.asarray(obs[name], np.float32))
-                records["action"].append(self._target.astype(np.float32))
-                obs, _, terminated, truncated, info = self.env.step(self._target)
-                done = terminated or truncated or (max_steps is not None and n + 1 >= max_steps)
-            self._draw(info["coverage"], len(records["action"]))
-            self._clock.tick(self.fps)
-        episode = {name: np.stack(values) for name, values in records.items()}
-        attrs = {"seed": int(seed), "success": bool(info["is_success"]), "coverage": float(info["coverage"]), "source": "teleop"}
-        self.store.add_episode(episode, attrs)
-        return episode
+        self.env.reset(seed=seed)  # the seed's configuration of the env's split
+        result = run_episode(self.env, self, self.env.config, UNBOUNDED if max_steps is None else max_steps, record=True)
+        if self.quit_requested or self.discard_requested:
+            return None
+        attrs = {"seed": int(seed), "success": result.success, "coverage": result.coverage, "source": "teleop"}
+        self.store.add_episode(result.episode, attrs)
+        return result.episode
 
     def run(self, n_episodes: int, seed: int = 0, event_source: Callable[[], Iterable[Any]] | None = None) -> int:
         """Record up to ``n_episodes`` episodes with seeds ``seed, seed + 1, ...``; returns how many were saved.

@@ -1,4 +1,6 @@
-"""Running one Push-T episode with a policy, recording it in the Diffusion Policy convention."""
+"""The one Push-T episode loop: a policy acts (in open-loop chunks) until success or the step limit, the episode
+recorded in the Diffusion Policy convention. Evaluation runs it as it is, corrections give it an :class:`Override`
+(the expert taking over), and keyboard teleoperation is a policy that may end the episode (:class:`StopEpisode`)."""
 
 from __future__ import annotations
 
@@ -31,6 +33,10 @@ class EpisodeResult:
     overridden: np.ndarray | None = None  # [T] bool: the steps an override took (when one was given)
 
 
+class StopEpisode(Exception):
+    """Raised by a policy's ``act`` to end the episode before its next step (a person pressing Enter)."""
+
+
 class Override(Protocol):
     """Something that may take control from the policy for a while (an expert correcting it): each step it is asked
     first, and an action it returns replaces the policy's (whose pending chunk is then dropped)."""
@@ -53,6 +59,16 @@ def _policy_action(policy, obs: dict, history: deque, chunk: list) -> np.ndarray
     return chunk.pop(0)
 
 
+def _next_action(policy, override: Override | None, step: int, obs: dict, history: deque, chunk: list) -> tuple[np.ndarray, bool]:
+    """The override's action if it takes this step (the policy's pending chunk is then dropped: it starts afresh
+    when it gets control back), else the policy's; and whether the override took it."""
+    action = None if override is None else override.act(step, obs)
+    if action is None:
+        return _policy_action(policy, obs, history, chunk), False
+    chunk.clear()
+    return np.asarray(action, dtype=np.float64), True
+
+
 def run_episode(
     env: PushTEnv,
     policy,
@@ -72,7 +88,8 @@ def run_episode(
     first, the first observation repeated before the episode's start (as its training data pads). The episode ends
     on ``env``'s success (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were
     first reached. With an ``override`` (:class:`Override`: the expert's corrections), ``overridden`` marks the
-    steps it took.
+    steps it took. A policy may end the episode early by raising :class:`StopEpisode` (``steps`` then counts the
+    steps taken).
     """
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
@@ -87,22 +104,21 @@ def run_episode(
     first = {th: None for th in thresholds}
     best, chunk, terminated, overridden = info["coverage"], [], False, []
     history = deque([obs["keypoints"]] * int(getattr(policy, "n_obs", 1)), maxlen=int(getattr(policy, "n_obs", 1)))
-    start = time.perf_counter()
+    start, steps = time.perf_counter(), 0
     for step in range(max_steps):
         if step:
             history.append(obs["keypoints"])
-        action = None if override is None else override.act(step, obs)
-        overridden.append(action is not None)
-        if action is None:
-            action = _policy_action(policy, obs, history, chunk)
-        else:
-            action = np.asarray(action, dtype=np.float64)
-            chunk.clear()  # the policy starts afresh when it gets control back
+        try:
+            action, took_over = _next_action(policy, override, step, obs, history, chunk)
+        except StopEpisode:
+            break
+        overridden.append(took_over)
         if log is not None:
             for k in RECORDED_FIELDS:
                 log[k].append(obs[k])
             log["action"].append(action)
         obs, _, terminated, _, info = env.step(action)
+        steps += 1
         if override is not None:
             override.update(step, info)
         if frames is not None:
@@ -116,7 +132,7 @@ def run_episode(
         success=bool(terminated),
         coverage=float(info["coverage"]),
         max_coverage=float(best),
-        steps=step + 1,
+        steps=steps,
         seconds=time.perf_counter() - start,
         first_step=first,
         episode=episode,
