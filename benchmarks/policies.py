@@ -43,10 +43,10 @@ from sklearn.neighbors import NearestNeighbors
 
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
-from kpflow.policies.transportation import TransportationPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.utils.io import write_text
@@ -116,7 +116,7 @@ def main(argv=None) -> str:
 
     agree = np.mean([np.isclose(weighted(index.query(q)[0], q), weighted(int(sklearn_query(q)[0, 0]), q), rtol=1e-3)
                      for q in query_kps[:50]])  # fmt: skip
-    transport = median_ms(TransportationPolicy(index, execute=20).act, queries)
+    transport = median_ms(TransportPolicy(index, execute=20).act, queries)
 
     model = KCFM(horizon=20, goal_frame=True)  # the configuration conf/model/kcfm.yaml trains
     model.set_normalisation(keypoints[:5000], chunks[:5000, 0])

@@ -27,9 +27,9 @@ import torch  # noqa: E402
 
 from kpflow.data.episode_store import EpisodeStore  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
+from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
 from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights  # noqa: E402
-from kpflow.policies.transportation import TransportationPolicy  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 
@@ -53,7 +53,7 @@ def main(argv=None) -> str:
     held_out = SourceIndex.from_store(store, 20, weights, PUSHT_BLOCK, episodes=range(args.index_episodes, len(store)))
     model = KCFMPolicy.from_checkpoint(args.checkpoint).model
     variants = {
-        "policy transportation (ILWR)": TransportationPolicy(index, ILWRMap, EXECUTE),
+        "policy transportation (ILWR)": TransportPolicy(index, ILWRMap, EXECUTE),
         "K-CFM at the observation": KCFMPolicy(model, 10, EXECUTE),
         "transported K-CFM, all keypoints pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "all"),
         "transported K-CFM, all keypoints pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "all"),

@@ -7,9 +7,9 @@ from kpflow.data.chunks import ChunkDataset
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.maps import AffineMap
+from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
-from kpflow.policies.transportation import TransportationPolicy
 from kpflow.tasks.base import Policy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.rollout import run_episode
@@ -75,7 +75,7 @@ def test_index_from_store_matches_the_chunk_dataset(demos):
 
 def test_transport_with_an_identity_or_rigid_scene_change(demos):
     index = SourceIndex.from_store(demos, horizon=20)
-    policy = TransportationPolicy(index, execute=20)
+    policy = TransportPolicy(index, execute=20)
     assert isinstance(policy, Policy)
     obs = {"keypoints": index.keypoints[40].astype(np.float64)}
     np.testing.assert_allclose(policy.act(obs), index.chunks[40], atol=1e-3)  # identity map
@@ -84,7 +84,7 @@ def test_transport_with_an_identity_or_rigid_scene_change(demos):
     moved = {"keypoints": index.keypoints[40] @ rot.T + shift}
     one = SourceIndex(index.keypoints[40:41], index.chunks[40:41])  # the only source: the moved scene's original
     for make_map in (AffineMap, None):  # rigid fit, and ILWR (rigid alignment, then nothing left to deform)
-        policy = TransportationPolicy(one, **({"make_map": make_map} if make_map else {}), execute=20)
+        policy = TransportPolicy(one, **({"make_map": make_map} if make_map else {}), execute=20)
         np.testing.assert_allclose(policy.act(moved), index.chunks[40] @ rot.T + shift, atol=1e-3)
 
 
@@ -104,7 +104,7 @@ def test_relative_nearest_neighbour_replays_the_motion_from_the_observed_agent(d
     np.testing.assert_allclose(plain.act(moved), chunk - source[-1] + moved["keypoints"][-1], atol=1e-3)  # world frame
 
 
-@pytest.mark.parametrize("make", [NearestNeighbourPolicy, TransportationPolicy])
+@pytest.mark.parametrize("make", [NearestNeighbourPolicy, TransportPolicy])
 def test_policies_replay_a_demonstration_from_its_own_start(demos, make):
     """From a demonstrated configuration every query finds the demonstration itself, so the episode succeeds."""
     index = SourceIndex.from_store(demos, horizon=20)
@@ -221,7 +221,7 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     index = SourceIndex(keypoints, rng.uniform(0, 512, (50, 20, 2)))
     q = keypoints[7] + 0.5
     ranked, _ = index.query_k(q, 5)
-    policy = TransportationPolicy(index, candidates=5, temperature=1.2)
+    policy = TransportPolicy(index, candidates=5, temperature=1.2)
     policy.reset(11)
     draws = [policy.choose(q) for _ in range(20_000)]
     freq = np.array([np.mean(np.array(draws) == i) for i in ranked])
@@ -229,14 +229,14 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     np.testing.assert_allclose(freq, p / p.sum(), atol=0.012)  # ~4 standard errors
     policy.reset(11)
     assert [policy.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
-    assert TransportationPolicy(index).choose(q) == ranked[0]  # candidates=1: the nearest
+    assert TransportPolicy(index).choose(q) == ranked[0]  # candidates=1: the nearest
     for bad, match in (({"candidates": 0}, "candidates"), ({"temperature": 0.0}, "temperature"), ({"max_step_px": -1.0}, "max_step_px")):
         with pytest.raises(ValueError, match=match):
-            TransportationPolicy(index, **bad)
+            TransportPolicy(index, **bad)
 
 
 def test_clipped_steps_by_hand():
-    from kpflow.policies.transportation import clip_steps
+    from kpflow.policies.chunk_transport import clip_steps
 
     targets = np.array([[10.0, 0.0], [10.0, 9.0], [0.0, 9.0]])
     np.testing.assert_allclose(clip_steps(np.zeros(2), targets, 5.0), [[5, 0], [10, 5], [5, 9]])
@@ -248,7 +248,7 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     keypoints = rng.uniform(0, 512, (80, 25, 2))
     index = SourceIndex(keypoints, rng.uniform(0, 512, (80, 20, 2)), reference=PUSHT_BLOCK)
     q = keypoints[3] + 0.1
-    policy = TransportationPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40)
+    policy = TransportPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40)
     policy.reset(0)
     nearest = index.query(q)[0]
     # the same scene four times: the first three decisions are not yet a window, the fourth is stuck
@@ -272,4 +272,4 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     assert policy.stuck_count == 0
     for bad, match in (({"stuck_decisions": 0}, "stuck_decisions"), ({"stuck_px": -1.0}, "stuck_px"), ({"stuck_candidates": 0}, "stuck_candidates")):
         with pytest.raises(ValueError, match=match):
-            TransportationPolicy(index, **bad)
+            TransportPolicy(index, **bad)

@@ -22,7 +22,7 @@ from kpflow.transport import transport_trajectory
 
 class DemoTransportPolicy:
     """``plan(demonstration, keypoints) -> (trajectory, phi)`` with a map from ``make_map`` (the policy of packing
-    and stacking, beside Push-T's closed-loop :class:`~kpflow.policies.transportation.TransportationPolicy`)."""
+    and stacking, beside Push-T's closed-loop :class:`~kpflow.policies.chunk_transport.TransportPolicy`)."""
 
     def __init__(self, make_map: Callable[[], TransportMap]):
         self.make_map = make_map

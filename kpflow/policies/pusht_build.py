@@ -9,9 +9,9 @@ from ..data.chunks import ChunkDataModule
 from ..data.episode_store import EpisodeStore
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from .chunk_transport import TransportPolicy
 from .nearest import NearestNeighbourPolicy
 from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
-from .transportation import TransportationPolicy
 
 FRAMES = {"world": None, "block": PUSHT_BLOCK}
 
@@ -37,7 +37,7 @@ def nearest(
     return NearestNeighbourPolicy(pusht_index(demos, horizon, weights, frame), execute, relative)
 
 
-def transportation(
+def transport(
     demos: ChunkDataModule,
     make_map: Callable[[], TransportMap] = ILWRMap,
     horizon: int = 20,
@@ -52,7 +52,7 @@ def transportation(
     stuck_candidates: int = 50,
 ):
     index = pusht_index(demos, horizon, weights, frame)
-    return TransportationPolicy(index, make_map, execute, candidates, temperature, max_step_px, stuck_decisions, stuck_px, stuck_candidates)
+    return TransportPolicy(index, make_map, execute, candidates, temperature, max_step_px, stuck_decisions, stuck_px, stuck_candidates)
 
 
 def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):

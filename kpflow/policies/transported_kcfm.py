@@ -12,7 +12,7 @@ At every decision, with ``T`` the observed keypoints and ``x`` the robot's state
 
 This addresses the failure modes of its two ingredients:
 
-* policy transportation (:class:`~kpflow.policies.transportation.TransportationPolicy`) replays the chunk of one
+* policy transportation (:class:`~kpflow.policies.chunk_transport.TransportPolicy`) replays the chunk of one
   nearest source and relies on the map alone to adapt it, so the map has to deform that single demonstration hard
   whenever the scene (the agent's position above all) differs from the source, and the chunk's shape is only ever
   that of the one demonstration;

@@ -5,7 +5,8 @@
 * :mod:`.env` -- :class:`SuctionArmEnv`: absolute-pose control, suction, the camera; tasks subclass it.
 * :mod:`.execution` -- running a trajectory and the arm's failure reasons.
 * :mod:`.keypoints` -- box corners and the end effector's start box.
-* :mod:`.transfer` -- a recorded trajectory carried into a new scene through a map fitted on keypoints.
+
+A recorded trajectory is carried into a new scene by :class:`kpflow.policies.demo_transport.DemoTransportPolicy`.
 """
 
 from .env import SuctionArmEnv

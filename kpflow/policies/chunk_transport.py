@@ -40,7 +40,7 @@ def clip_steps(start: np.ndarray, targets: np.ndarray, max_step: float) -> np.nd
     return out
 
 
-class TransportationPolicy:
+class TransportPolicy:
     """A source chosen by :class:`SourceIndex` (module docstring), then its chunk transported by a map from
     ``make_map()`` (ILWR).
 
