@@ -6,7 +6,7 @@ Run::
 
 For each condition (in-distribution with a random goal and with the standard fixed goal, robot outside the
 training region, object outside it) the expert runs on the first ``--n`` seeded configurations of the split
-(:func:`kpflow.tasks.pusht.splits.make_split`, seed 0) with a step limit of 600 (in distribution) or 1200 (OOD).
+(:func:`kpflow.tasks.pusht.scene.make_split`, seed 0) with a step limit of 600 (in distribution) or 1200 (OOD).
 An episode succeeds when coverage reaches 0.95; the 0.85 column counts episodes that reached 0.85 within the limit
 (the threshold the paper's authors used). Seconds per episode are measured inside the worker process, one thread
 each. Then ``python -m kpflow.collect``'s function collects ``--collect`` demonstrations with ``--workers``
@@ -32,10 +32,10 @@ import numpy as np
 from tqdm import tqdm
 
 from kpflow.data.collection import collect_pusht
+from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.env import PushTEnv
-from kpflow.tasks.pusht.expert import PushTExpert
 from kpflow.tasks.pusht.rollout import run_episode
-from kpflow.tasks.pusht.splits import split_config
+from kpflow.tasks.pusht.scene import split_config
 from kpflow.utils.io import write_text
 
 CONDITIONS = [  # name, split, goal, step limit, target success at 0.95

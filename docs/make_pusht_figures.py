@@ -9,7 +9,7 @@ import numpy as np
 from PIL import Image
 
 from kpflow.tasks.pusht import SPLITS, PushTEnv, split_config
-from kpflow.tasks.pusht.expert import PushTExpert
+from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.utils.io import atomic_path
 

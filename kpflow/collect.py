@@ -9,7 +9,7 @@ import hydra
 from omegaconf import DictConfig
 
 from kpflow.data.collection import collect_pusht
-from kpflow.tasks.pusht.splits import GOAL_MODES, SPLITS
+from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import Key
 from kpflow.utils.io import write_json
 from kpflow.utils.run import start_run

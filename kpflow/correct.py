@@ -26,7 +26,7 @@ from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.data.pusht_demos import ensure_pusht_demos
 from kpflow.eval import plots
 from kpflow.eval.pusht_experiment import run_pusht_experiment
-from kpflow.tasks.pusht.splits import GOAL_MODES, SPLITS
+from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import Key
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
 from kpflow.utils.run import start_run

@@ -27,7 +27,7 @@ from .data.episode_store import EpisodeStore
 from .tasks.pusht.env import PushTEnv
 from .tasks.pusht.geometry import coverage
 from .tasks.pusht.rollout import StopEpisode, run_episode
-from .tasks.pusht.splits import GOAL_MODES, SPLITS
+from .tasks.pusht.scene import GOAL_MODES, SPLITS
 
 UNBOUNDED = 10**9  # steps: an env without max_steps records until Enter or success
 _STATUS_PX = 28  # height of the status line under the scene

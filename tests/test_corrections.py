@@ -9,7 +9,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.tasks.pusht import PushTEnv, split_config
-from kpflow.tasks.pusht.expert import PushTExpert
+from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.rollout import RECORDED_FIELDS
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from kpflow.eval.data_efficiency import main, read_points, table
 from kpflow.eval.pusht_experiment import run_pusht_experiment
-from kpflow.tasks.pusht.expert import PushTExpert
+from kpflow.tasks.pusht.demonstrator import PushTExpert
 
 
 class StandStill:

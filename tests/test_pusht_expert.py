@@ -13,7 +13,7 @@ import yaml
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.tasks.pusht import PushTEnv, split_config
-from kpflow.tasks.pusht.expert import CONTACTS, NORMALS, PushTExpert
+from kpflow.tasks.pusht.demonstrator import CONTACTS, NORMALS, PushTExpert
 from kpflow.tasks.pusht.geometry import AGENT_RADIUS, N_KEYPOINTS, OUTLINE, to_world
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.routing import padded_obstacle, path_length, retime, shortest_path, smooth

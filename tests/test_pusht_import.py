@@ -24,7 +24,7 @@ from kpflow.data.pusht_import import (
 )
 from kpflow.tasks.pusht.geometry import AGENT_RADIUS, observation_keypoints, t_polygon
 from kpflow.tasks.pusht.physics import PushTPhysics
-from kpflow.tasks.pusht.splits import FIXED_GOAL
+from kpflow.tasks.pusht.scene import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES
 
 ROOT = Path(__file__).resolve().parents[1]

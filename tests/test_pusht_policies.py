@@ -151,7 +151,7 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
 
     from kpflow.eval.pusht_experiment import run_pusht_experiment
     from kpflow.tasks.pusht.geometry import AGENT_RADIUS, coverage, t_polygon
-    from kpflow.tasks.pusht.splits import standard_config
+    from kpflow.tasks.pusht.scene import standard_config
 
     class HoldStill:
         def reset(self, seed=None):
@@ -181,7 +181,7 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
 def test_standard_config_is_diffusion_policys_draw():
     """Closed form: DP's PushTEnv.reset draws, with np.random.RandomState(seed), agent x, y in randint(50, 450),
     block x, y in randint(100, 400), then the angle randn() * 2 pi - pi, and keeps the goal (256, 256, pi/4)."""
-    from kpflow.tasks.pusht.splits import STANDARD_FIRST_SEED, standard_config
+    from kpflow.tasks.pusht.scene import STANDARD_FIRST_SEED, standard_config
 
     assert STANDARD_FIRST_SEED == 100_000
     for seed in (0, 1, 100_000, 100_499, 200_000, 2**32 - 1):

@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from ..tasks.pusht.env import PushTEnv
 from ..tasks.pusht.rollout import EpisodeResult, run_episode
-from ..tasks.pusht.splits import GOAL_MODES, SPLITS, split_config
+from ..tasks.pusht.scene import GOAL_MODES, SPLITS, split_config
 from ..tasks.pusht.task import PushTTask
 from ..utils.config_checks import Key
 from ..utils.video import write_video

@@ -14,10 +14,10 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
+from ..tasks.pusht.demonstrator import PushTExpert
 from ..tasks.pusht.env import PushTEnv
-from ..tasks.pusht.expert import PushTExpert
 from ..tasks.pusht.rollout import run_episode
-from ..tasks.pusht.splits import Config, split_config
+from ..tasks.pusht.scene import Config, split_config
 from ..tasks.pusht.task import PushTTask
 from .episode_store import EpisodeStore
 

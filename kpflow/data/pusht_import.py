@@ -4,7 +4,7 @@ and measure how closely kpflow's physics replays them.
 The source is Diffusion Policy's replay buffer ``pusht_cchi_v7_replay.zarr`` (zarr v2): ``data/state`` ``[N, 5]``
 (agent x, y, block x, y, block angle), ``data/action`` ``[N, 2]`` (the absolute target of the agent),
 ``meta/episode_ends`` ``[E]``; its ``data/keypoint``, ``data/img`` and ``data/n_contacts`` are not used. Every
-episode has the standard fixed goal :data:`~kpflow.tasks.pusht.splits.FIXED_GOAL` = (256, 256, pi/4).
+episode has the standard fixed goal :data:`~kpflow.tasks.pusht.scene.FIXED_GOAL` = (256, 256, pi/4).
 
 Run::
 
@@ -37,7 +37,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.zarr_checks import check_chunks, open_array, read
 from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
-from kpflow.tasks.pusht.splits import FIXED_GOAL
+from kpflow.tasks.pusht.scene import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES
 from kpflow.utils.io import atomic_dir
 

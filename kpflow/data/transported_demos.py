@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 
 from kpflow.maps.base import TransportMap
-from kpflow.tasks.frames.scenes import Scene, lookahead_velocity, random_scenes
+from kpflow.tasks.frames.scene import Scene, lookahead_velocity, random_scenes
 from kpflow.transport import TransportedTrajectory, transport_trajectory
 
 
@@ -32,7 +32,7 @@ def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], Tran
     For each other scene j, phi_j is fitted from j's frame keypoints to the target's (phi_j(S_j) ~= S_target) and
     j's demonstration goes through it (:func:`kpflow.transport.transport_trajectory`: x -> phi_j(x), v -> J v,
     R -> polar(J) R). The policy's training velocities are the look-ahead velocities of the transported path at the
-    target demonstration's duration (:func:`~kpflow.tasks.frames.scenes.lookahead_velocity`, ``horizon`` of its
+    target demonstration's duration (:func:`~kpflow.tasks.frames.scene.lookahead_velocity`, ``horizon`` of its
     length).
     """
     goal = scenes[target]

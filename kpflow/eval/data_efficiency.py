@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kpflow.eval import plots
-from kpflow.tasks.pusht.splits import SPLITS
+from kpflow.tasks.pusht.scene import SPLITS
 from kpflow.utils.io import save_figure, write_text
 
 THRESHOLDS = ("085", "095")

@@ -27,7 +27,7 @@ from kpflow.maps.base import TransportMap
 from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
-from kpflow.tasks.frames.scenes import Scene, moved, random_scenes
+from kpflow.tasks.frames.scene import Scene, moved, random_scenes
 from kpflow.transport import transport_trajectory
 from kpflow.utils.io import save_figure, write_json, write_text
 

@@ -1,10 +1,10 @@
 """Push-T evaluation of one policy: success per split with confidence intervals, coverage, steps, latency, videos.
 
-Each split's configurations are the seeded :func:`~kpflow.tasks.pusht.splits.split_config` list (indices from
+Each split's configurations are the seeded :func:`~kpflow.tasks.pusht.scene.split_config` list (indices from
 ``first_config`` on, so evaluation configurations differ from the demonstrations' 0, 1, 2, ...). An episode runs
 until coverage 0.95 or ``max_steps``; success at 0.85 means coverage reached 0.85 within the limit (the episode
 would have ended there at that threshold). The ``standard`` protocol is Diffusion Policy's test protocol:
-its start-state draw (:func:`~kpflow.tasks.pusht.splits.standard_config`) on seeds ``standard_first_seed``,
+its start-state draw (:func:`~kpflow.tasks.pusht.scene.standard_config`) on seeds ``standard_first_seed``,
 ``standard_first_seed + 1``, ... (100000 on: LeRobot's and DP's test seeds), ``standard_episodes`` of them (500 by
 default, LeRobot's count; DP used 50), the fixed goal, at most 300 steps (whatever ``max_steps`` says), the episode
 ending at coverage 0.95; score = mean over episodes of max over steps of clip(coverage / 0.95, 0, 1), success =
@@ -22,7 +22,7 @@ from kpflow.eval import plots
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import wilson_interval
 from kpflow.tasks.pusht.rollout import run_episode
-from kpflow.tasks.pusht.splits import SPLITS, STANDARD_FIRST_SEED
+from kpflow.tasks.pusht.scene import SPLITS, STANDARD_FIRST_SEED
 from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.io import save_figure, write_json, write_text
 from kpflow.utils.video import write_video

@@ -3,13 +3,13 @@
 * :mod:`.frames` -- :class:`Frame` poses, their five keypoints, random poses.
 * :mod:`.demonstrator` -- synthetic minimum-jerk reaching demonstrations.
 * :mod:`.lasa` -- LASA handwriting demonstrations with frames at their ends.
-* :mod:`.scenes` -- start/goal configurations with a demonstration each.
+* :mod:`.scene` -- start/goal configurations with a demonstration each.
 """
 
 from .demonstrator import Demonstration, demonstrate, minimum_jerk
 from .frames import Frame, frame_keypoints, random_frame, scene_keypoints
 from .lasa import LASA_SHAPES, end_heading, lasa_frames, load_lasa
-from .scenes import Scene, lookahead_velocity, moved, random_scenes
+from .scene import Scene, lookahead_velocity, moved, random_scenes
 
 __all__ = [
     "Frame",

@@ -11,7 +11,7 @@ from gymnasium import spaces
 from .geometry import N_KEYPOINTS, OUTLINE, T_KEYPOINTS, outline_coverage, t_keypoints, t_polygon, to_world
 from .physics import DT, PushTPhysics
 from .render import render_scene
-from .splits import FIXED_GOAL, GOAL_MODES, SPLITS, Config, sample_config, split_workspace, standard_config
+from .scene import FIXED_GOAL, GOAL_MODES, SPLITS, Config, sample_config, split_workspace, standard_config
 from .workspace import get_workspace
 
 _BODY_POINTS = np.concatenate([T_KEYPOINTS, OUTLINE])  # one transform gives keypoints and outline
@@ -61,10 +61,10 @@ class PushTEnv(gym.Env):
 
     ``split`` fixes the workspace, and with it the spaces, for the instance's lifetime: the 512-px arena for
     ``in_distribution`` and ``standard``, the 1024-px one for ``robot_ood`` and ``object_ood``. ``reset(seed=s)``
-    draws a configuration of ``split`` (see :mod:`.splits`); with ``split="standard"`` it is Diffusion Policy's start
-    state for seed ``s`` (:func:`~.splits.standard_config`). ``options={"config": Config}`` (of the instance's
+    draws a configuration of ``split`` (see :mod:`.scene`); with ``split="standard"`` it is Diffusion Policy's start
+    state for seed ``s`` (:func:`~.scene.standard_config`). ``options={"config": Config}`` (of the instance's
     workspace) or ``options={"state": [ax, ay, bx, by, theta]}`` (plus optional ``"goal_pose"`` ``(x, y, theta)``,
-    default :data:`~.splits.FIXED_GOAL`) resets to a given one. Positions must lie in the arena ``[0, size]`` and
+    default :data:`~.scene.FIXED_GOAL`) resets to a given one. Positions must lie in the arena ``[0, size]`` and
     every entry must be finite; a bad value, an unknown option key, a config of another workspace, or a combination
     that would ignore one (``config`` with ``state`` or ``goal_pose``) raises ``ValueError``.
 

@@ -12,7 +12,7 @@ from typing import Protocol
 import numpy as np
 
 from .env import PushTEnv
-from .splits import Config
+from .scene import Config
 
 #: Per-step fields of a recorded episode: the observation before each action, and that action.
 RECORDED_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")

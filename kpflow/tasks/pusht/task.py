@@ -8,9 +8,9 @@ Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observ
 
 from __future__ import annotations
 
+from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
-from .expert import PushTExpert
-from .splits import Config, split_config, standard_config
+from .scene import Config, split_config, standard_config
 
 
 class PushTTask:
