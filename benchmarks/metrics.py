@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from kpflow.eval.metrics import discrete_frechet, dtw
-from kpflow.utils.io import write_text
+from kpflow.utils.io import publish
 
 TARGET_MS = 50.0  # per metric, 200 points
 
@@ -85,10 +85,7 @@ def main(argv=None) -> str:
                 verdicts.append(f"{name}, 200 points: {ours:.1f} ms < {TARGET_MS:.0f} ms: {'PASS' if ours < TARGET_MS else 'MISS'}")
     lines = ["## Curve metrics", "", *rows, "", "Targets:", *[f"- {v}" for v in verdicts], ""]
     lines.append(f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread.")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    write_text(args.out, text)
-    return text
+    return publish(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
-from kpflow.utils.io import write_text
+from kpflow.utils.io import publish
 
 VARIANTS = [
     ("I-CFM, U-Net (32, 64) (default)", {}),
@@ -157,10 +157,7 @@ def main(argv=None) -> str:
         "",
         f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread.",
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    write_text(args.out, text)
-    return text
+    return publish(args.out, lines)
 
 
 if __name__ == "__main__":

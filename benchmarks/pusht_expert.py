@@ -36,7 +36,7 @@ from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
-from kpflow.utils.io import write_text
+from kpflow.utils.io import publish
 
 CONDITIONS = [  # name, split, goal, step limit, target success at 0.95
     ("in-distribution, random goal", "in_distribution", "random", 600, 0.99),
@@ -99,10 +99,7 @@ def main(argv=None) -> str:
         f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores,"
         f" {args.workers} worker processes with one thread each."
     )
-    text = "\n".join(lines) + "\n"
-    print(text)
-    write_text(args.out, text)
-    return text
+    return publish(args.out, lines)
 
 
 if __name__ == "__main__":

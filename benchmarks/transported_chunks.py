@@ -31,7 +31,7 @@ from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
 from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
-from kpflow.utils.io import write_text  # noqa: E402
+from kpflow.utils.io import publish  # noqa: E402
 
 EXECUTE = 8
 
@@ -80,10 +80,7 @@ def main(argv=None) -> str:
         f"Mean distance of the first {EXECUTE} targets to the demonstrated ones. Checkpoint {args.checkpoint}; "
         f"{datetime.date.today()}, torch {torch.__version__}, one thread.",
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    write_text(args.out, text)
-    return text
+    return publish(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -41,18 +41,15 @@ def transport(
     demos: ChunkDataModule,
     make_map: Callable[[], TransportMap] = ILWRMap,
     horizon: int = 20,
-    execute: int = 8,
     weights: dict | None = None,
     frame: str = "block",
-    candidates: int = 1,
-    temperature: float = 1.2,
-    max_step_px: float | None = None,
-    stuck_decisions: int | None = None,
-    stuck_px: float = 2.0,
-    stuck_candidates: int = 50,
+    execute: int = 8,
+    **options,
 ):
-    index = pusht_index(demos, horizon, weights, frame)
-    return TransportPolicy(index, make_map, execute, candidates, temperature, max_step_px, stuck_decisions, stuck_px, stuck_candidates)
+    """:class:`TransportPolicy` over the demonstrations' index; ``options``: its source selection and stuck
+    detection (``candidates``, ``temperature``, ``max_step_px``, ``stuck_decisions``, ``stuck_px``,
+    ``stuck_candidates``)."""
+    return TransportPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute, **options)
 
 
 def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):

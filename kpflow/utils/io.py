@@ -125,6 +125,14 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return Path(path)
 
 
+def publish(path: str | os.PathLike, lines: list[str]) -> str:
+    """A benchmark's report: the ``lines`` joined, printed, and written atomically to ``path``; returns the text."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    write_text(path, text)
+    return text
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
