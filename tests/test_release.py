@@ -54,3 +54,23 @@ def test_released_checkpoints_load_and_act_on_cpu():
         chunk = policy.act(obs)
         assert chunk.shape == (policy.execute, 2) and np.isfinite(chunk).all()
         assert np.abs(chunk - obs["agent_pos"]).max() < 200  # targets near the agent: it acts, not noise
+
+
+STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
+
+
+@pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
+def test_released_table1_store_gives_transported_kcfm_its_sources():
+    """Transported K-CFM of Table 1 is the released K-CFM plus the store it was trained on (35 demos + corrections)."""
+    from kpflow.data.episode_store import EpisodeStore
+    from kpflow.data.pusht_demos import pusht_datamodule
+    from kpflow.policies.pusht_build import transported_kcfm
+
+    store = EpisodeStore(STORE)
+    assert len(store) > 35 and store.n_steps > 6000
+    policy = transported_kcfm(str(ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"), pusht_datamodule(str(STORE), n_episodes=None))
+    obs, _ = PushTEnv("object_ood").reset(options={"config": split_config("object_ood", 10_000)})
+    policy.reset(0)
+    chunk = policy.act(obs)
+    assert chunk.shape == (8, 2) and np.isfinite(chunk).all()
+    assert (chunk >= 0).all() and (chunk <= 1024).all() and np.abs(np.diff(chunk, axis=0)).max() < 20  # a smooth path in the arena
