@@ -100,7 +100,7 @@ class StackingReport:
             "| no pair on the cheese (trials) | pair error, median (mm) "
             f"| pairs within {self.good_mm:.0f} mm | grasp orientation error, median (deg) | grasp position error, median (mm) "
             "| placed yaw error, median of successes (deg) |",
-            "|---|" + "---|" * len(axes) + "---|---|---|---|---|---|---|---|---|---|---|",
+            "|---|" + "---|" * len(axes) + "---|---|---|---|---|---|---|---|---|---|",
         ]
         for cell, s in summaries.items():
             rows.append(
