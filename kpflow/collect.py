@@ -5,18 +5,20 @@ Rolls the task's scripted expert out on seeded configurations and commits each s
 the resolved config and a few episode videos.
 """
 
+from pathlib import Path
+
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from kpflow.data.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import Key
 from kpflow.utils.io import write_json
-from kpflow.utils.run import start_run
+from kpflow.utils.run import remove_unused_run_folder, start_run
 
 TASKS = ("pusht",)
 KEYS = {
-    "collector": Key(str, choices=TASKS),
     "n_episodes": Key(int, lo=1),
     "seed": Key(int, lo=0),
     "max_steps": Key(int, lo=1),
@@ -30,6 +32,10 @@ KEYS = {
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
 def main(cfg: DictConfig) -> dict:
+    task = HydraConfig.get().runtime.choices.get("task")
+    if task not in TASKS:  # only Push-T has a scripted collector
+        remove_unused_run_folder(Path(cfg.output_dir))
+        raise ValueError(f"config key task must be one of {', '.join(TASKS)}; got {task!r}")
     out = start_run(cfg, KEYS)
     summary = collect_pusht(
         out / "episodes.zarr",
