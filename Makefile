@@ -34,16 +34,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) osmesa
 	$(BIN)/python evaluate.py experiment=pusht_demo
 
-# ruff (pyflakes, import order, complexity; see pyproject.toml), then every test. `make test-fast` leaves out the
-# tests marked slow (CLI subprocesses, MuJoCo scenes, long rollouts) for the inner loop.
+# ruff (pyflakes, import order, complexity; see pyproject.toml), then every test, on 2 worker processes (one test
+# file per worker, so a file's module fixtures such as the MuJoCo scenes are built once). `make test-fast` leaves
+# out the tests marked slow (CLI subprocesses, MuJoCo scenes, long rollouts) for the inner loop.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
 test: lint osmesa
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-fast: lint
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/maps.py
