@@ -20,11 +20,10 @@ from typing import Any, Callable
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.reports import Report
 from kpflow.policies.demo_transport import DemoTransportPolicy
-from kpflow.tasks.base import ArmTask, Demonstration, TrialResult
+from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, TrialResult
 from kpflow.utils.io import write_json, write_text
 from kpflow.utils.video import write_video
 
-ORACLE = "oracle"
 _WORKER: dict = {}  # this process's task, simulator, source demonstration, keypoint sources and maps
 
 

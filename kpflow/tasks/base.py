@@ -133,6 +133,10 @@ class TrialResult:
                 "success": self.success, "failure": self.failure, **self.scores}  # fmt: skip
 
 
+#: the keypoint source that is the simulator's exact pairs (the upper bound for found correspondences)
+ORACLE = "oracle"
+
+
 class ArmTask(abc.ABC):
     """A robosuite task solved zero-shot by transporting one demonstration (packing, stacking).
 

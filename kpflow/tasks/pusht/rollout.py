@@ -103,7 +103,8 @@ def run_episode(
     frames = [env.render()] if render else None
     first = {th: None for th in thresholds}
     best, chunk, terminated, overridden = info["coverage"], [], False, []
-    history = deque([obs["keypoints"]] * int(getattr(policy, "n_obs", 1)), maxlen=int(getattr(policy, "n_obs", 1)))
+    n_obs = int(getattr(policy, "n_obs", 1))
+    history = deque([obs["keypoints"]] * n_obs, maxlen=n_obs)
     start, steps = time.perf_counter(), 0
     for step in range(max_steps):
         if step:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpflow.tasks.arm.keypoints import end_effector_box
-from kpflow.tasks.base import ArmTask, Demonstration, Execution, Keypoints, Trajectory
+from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, Execution, Keypoints, Trajectory
 from kpflow.vision import DenseBackbone
 
 from .demonstrator import execute, plan_stacking
@@ -21,8 +21,6 @@ from .env import StackingEnv
 from .keypoints import ImagePairs, Matcher, oracle_pairs
 from .objects import BLOCKS, CHEESE, LETTUCE
 from .scene import CONDITIONS, SOURCE_SCENE, Scene, sample_scene
-
-ORACLE = "oracle"  # the simulator's exact pairs, as a keypoint source
 
 
 @dataclass(frozen=True)
