@@ -25,7 +25,9 @@ from kpflow.data.corrections import collect_corrections
 from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.data.pusht_demos import ensure_pusht_demos
 from kpflow.eval import plots
-from kpflow.eval.pusht_experiment import run_pusht_experiment
+from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
+from kpflow.eval.reports.pusht import PushTReport
+from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import Key
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
@@ -121,11 +123,10 @@ def main(cfg: DictConfig) -> list[dict]:
         if not (cfg.eval_configs and rebuilt):
             return None
         policy = make_policy(EpisodeStore(store_path))
-        results = run_pusht_experiment(
-            policy, out / f"eval_{label}", cfg.seed, label, cfg.split, cfg.eval_configs, max_steps=cfg.eval_max_steps,
-            workers=cfg.workers, videos=0,
-        )
-        return results["summary"][cfg.split]
+        trial = EpisodeTrial(policy, PushTReport(), label, cfg.eval_max_steps)
+        n_trials, first_index = protocol_counts(cfg.eval_configs)
+        results = run_trials(out / f"eval_{label}", trial, cfg.split, n_trials, first_index, cfg.seed, cfg.workers, videos=0)
+        return cell_summary(results, cfg.split)
 
     reports, evals = [], [evaluate("start")]
     for _ in range(cfg.rounds):

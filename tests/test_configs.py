@@ -28,7 +28,7 @@ ENTRIES = {
     "data": {"frames_transported": "train", "pusht_expert": "train", "pusht_human": "train", "pusht_store": "train"},
     "model": {"kcfm": "train", "neural_field": "train"},
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
-    "task": dict.fromkeys(["pusht", "packing", "stacking"], "evaluate"),
+    "task": dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
         **dict.fromkeys(["frames_field", "pusht_kcfm", "pusht_kcfm_gpu"], "train"),
@@ -127,11 +127,11 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["task"]))
 def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
-    cfg = _compose("evaluate", [f"+task={name}", "logger=none"], tmp_path)
+    cfg = _compose("evaluate", [f"task={name}", "logger=none"], tmp_path)
     task = instantiate(cfg.task, _convert_="all")
     assert task.name == name
-    scenes = [task.sample_scene(task.conditions[-1], i) for i in range(3)]
-    assert scenes[0] == task.sample_scene(task.conditions[-1], 0) and scenes[0] != scenes[1]
+    scenes = [task.sample_scene(task.conditions[-1], i).as_dict() for i in range(3)]
+    assert scenes[0] == task.sample_scene(task.conditions[-1], 0).as_dict() and scenes[0] != scenes[1]
 
 
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))

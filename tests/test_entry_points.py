@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=frames", "map=ilwr", "logger=csv", "seed=3",
-        "experiment.n_configs=3", "experiment.n_points=60", f"hydra.run.dir={tmp_path}",
+        "experiment.n_configs=3", "task.n_points=60", f"hydra.run.dir={tmp_path}",
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -35,7 +35,7 @@ def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
 @pytest.mark.slow
 def test_same_seed_same_numbers(tmp_path):
     def run(d):
-        cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=gp", "logger=none", "experiment.n_configs=2", "experiment.n_points=50", f"hydra.run.dir={d}"]
+        cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=gp", "logger=none", "experiment.n_configs=2", "task.n_points=50", f"hydra.run.dir={d}"]
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, timeout=300)
         return json.loads((d / "results.json").read_text())
 
@@ -46,7 +46,7 @@ def test_same_seed_same_numbers(tmp_path):
 def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "-m", "experiment=frames", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
-        "experiment.n_points=40", f"hydra.sweep.dir={tmp_path}",
+        "task.n_points=40", f"hydra.sweep.dir={tmp_path}",
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -59,7 +59,7 @@ def test_multirun_sweep_writes_one_run_per_map(tmp_path):
 def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "policy=nearest", "split=all", "n_configs=2", "workers=2", "logger=csv",
-        "data.n_episodes=2", f"data.path={tmp_path / 'demos.zarr'}", "experiment.max_steps=60", f"hydra.run.dir={tmp_path / 'run'}",
+        "data.n_episodes=2", f"data.path={tmp_path / 'demos.zarr'}", "experiment.trial.max_steps=60", f"hydra.run.dir={tmp_path / 'run'}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -67,8 +67,8 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     assert cfg["policy"]["_target_"] == "kpflow.policies.pusht_build.nearest" and cfg["split"] == "all"
     results = json.loads((run / "results.json").read_text())
-    assert set(results["summary"]) == {"in_distribution", "robot_ood", "object_ood"} and len(results["episodes"]) == 6
-    for s in results["summary"].values():
+    assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(results["trials"]) == 6
+    for s in results["summary"]:
         lo, hi = s["ci_085"]
         assert 0.0 <= lo <= s["success_085"] <= hi <= 1.0 and s["latency_ms"] > 0
     assert "| nearest | robot_ood | 2 |" in (run / "results.md").read_text()
@@ -80,7 +80,7 @@ def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "policy=nearest,transport",
         "split=in_distribution", "n_configs=2", "workers=1", "logger=none", "data.n_episodes=2", "data.workers=1",
-        f"data.path={tmp_path / 'demos.zarr'}", "experiment.max_steps=30", "experiment.videos=0", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        f"data.path={tmp_path / 'demos.zarr'}", "experiment.trial.max_steps=30", "experiment.videos=0", f"hydra.sweep.dir={tmp_path / 'sweep'}",
     ]  # fmt: skip
     from kpflow.data.collection import collect_pusht
 

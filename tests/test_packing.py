@@ -12,8 +12,8 @@ import pytest
 import torch
 import yaml
 
+from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.packing import PackingReport, box_corner_error
-from kpflow.eval.trials import run_trial
 from kpflow.maps import AffineMap, GPMap, ILWRMap
 from kpflow.policies.demo_transport import DemoTransportPolicy
 from kpflow.tasks.base import Keypoints
@@ -147,7 +147,9 @@ def test_identical_scenes_reproduce_the_demonstration(source, make_map):
 
 @pytest.mark.slow
 def test_a_transported_demonstration_packs_a_moved_object(env, source):
-    trial = run_trial(TASK, PackingReport(), env, source, sample_scene("relocation", 0), "camera", GPMap, variant={"map": "gp"})
+    runner = DemoTransportTrial(TASK, PackingReport(), {"gp": GPMap})
+    runner.env, runner.source = env, source  # the module's simulator and recording (what setup() would build)
+    trial = runner.run_scene(sample_scene("relocation", 0), "camera", GPMap, variant={"map": "gp"})
     assert trial.success, trial.failure
     assert trial.scores["box_error_mm"] < 3.0 and trial.record()["map"] == "gp"
     tip = trial.artefacts["execution"].tip
@@ -167,7 +169,7 @@ def test_execute_reports_why_a_trial_failed(env, source):
 def test_evaluate_packing_cli_writes_table_plot_video_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=packing", "experiment.n_trials=1", "workers=1", "logger=none",
-        "experiment.conditions=[full]", "~experiment.maps.ilwr", f"hydra.run.dir={tmp_path}",
+        "experiment.conditions=[full]", "~experiment.trial.maps.ilwr", f"hydra.run.dir={tmp_path}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]

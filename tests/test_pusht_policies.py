@@ -149,7 +149,9 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
     (256, 256, pi/4), whatever n_configs and max_steps say; score = mean of min(max coverage / 0.95, 1)."""
     import shapely
 
-    from kpflow.eval.pusht_experiment import run_pusht_experiment
+    from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
+    from kpflow.eval.reports.pusht import PushTReport
+    from kpflow.eval.trials import cell_summary, run_trials
     from kpflow.tasks.pusht.geometry import AGENT_RADIUS, coverage, t_polygon
     from kpflow.tasks.pusht.scene import standard_config
 
@@ -160,22 +162,21 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
         def act(self, obs):
             return np.asarray(obs["agent_pos"], float)[None]
 
-    results = run_pusht_experiment(
-        HoldStill(), tmp_path, split="standard", n_configs=3, max_steps=1200, workers=2, videos=0, progress=False,
-        standard_episodes=12,
-    )
-    episodes = results["episodes"]
-    assert [e["config_index"] for e in episodes] == list(range(100_000, 100_012))  # DP's test seeds
-    assert all(e["steps"] == 300 or e["success_095"] for e in episodes)  # DP's 300 steps, whatever max_steps says
+    n_trials, first_index = protocol_counts(3, standard_episodes=12)
+    trial = EpisodeTrial(HoldStill(), PushTReport(), "still", max_steps=1200)
+    results = run_trials(tmp_path, trial, "standard", n_trials, first_index, workers=2, videos=0, progress=False)
+    episodes = results["trials"]
+    assert [e["index"] for e in episodes] == list(range(100_000, 100_012))  # DP's test seeds
+    assert all(e["steps"] == 300 or e["success"] for e in episodes)  # DP's 300 steps, whatever max_steps says
     clear = 0
     for e in episodes:
-        config = standard_config(e["config_index"])
+        config = standard_config(e["index"])
         if shapely.distance(t_polygon(config.block_pose), shapely.Point(config.agent_pos)) > AGENT_RADIUS + 1:
             clear += 1  # nothing pushes the block: its coverage stays the start's
             assert e["max_coverage"] == pytest.approx(coverage(config.block_pose, config.goal_pose), abs=1e-6)
     assert clear >= 8
     score = np.mean([min(e["max_coverage"] / 0.95, 1.0) for e in episodes])
-    assert results["summary"]["standard"]["score"] == pytest.approx(score)
+    assert cell_summary(results, "standard")["score"] == pytest.approx(score)
 
 
 def test_standard_config_is_diffusion_policys_draw():

@@ -13,9 +13,9 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.stacking import StackingReport, grasp_errors
 from kpflow.eval.stats import wilson_interval
-from kpflow.eval.trials import run_trial
 from kpflow.maps import GPMap
 from kpflow.tasks.arm.motion import cup_down
 from kpflow.tasks.base import Demonstration, Trajectory
@@ -45,7 +45,9 @@ def source(env):
 
 def trial(env, source, scene, keypoint_source, task=TASK):
     """One trial with the GP map in ``scene``."""
-    return run_trial(task, StackingReport(), env, source, scene, keypoint_source, GPMap)
+    runner = DemoTransportTrial(task, StackingReport(), {"gp": GPMap}, oracle=True)
+    runner.env, runner.source = env, source  # the module's simulator and recording (what setup() would build)
+    return runner.run_scene(scene, keypoint_source, GPMap)
 
 
 def test_scenes_are_seeded_and_keep_or_swap_the_sides():
@@ -168,8 +170,8 @@ def test_execute_reports_why_a_trial_failed(env, source):
 def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     cmd = [
         sys.executable, "evaluate.py", "experiment=stacking", "experiment.n_trials=1", "workers=1", "logger=none",
-        "experiment.conditions=[moved]", "~experiment.backbones.sift", "~experiment.maps.gp_translation",
-        "experiment.report.examples=1", "experiment.videos=0", f"hydra.run.dir={tmp_path}",
+        "experiment.conditions=[moved]", "~experiment.trial.backbones.sift", "~experiment.trial.maps.gp_translation",
+        "experiment.trial.report.examples=1", "experiment.videos=0", f"hydra.run.dir={tmp_path}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -91,7 +91,7 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     assert a.shape == (8, 2) and np.isfinite(a).all() and np.array_equal(a, policy.act(obs))
 
     evaluate = [sys.executable, "evaluate.py", "policy=kcfm", f"policy.checkpoint={last}", "policy.steps=2", "split=in_distribution",
-                "n_configs=1", "workers=1", "experiment.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
+                "n_configs=1", "workers=1", "experiment.trial.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
     done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"]["in_distribution"]["episodes"] == 1
+    assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"][0]["episodes"] == 1

@@ -36,6 +36,13 @@ class Point:
     ci: tuple[float, float]
 
 
+def _summaries(results: dict) -> dict[str, dict]:
+    """split -> summary of a Push-T ``results.json``: rows of the one trial loop (:mod:`kpflow.eval.trials`), or, in
+    runs written before it, a dict by split."""
+    summary = results["summary"]
+    return summary if isinstance(summary, dict) else {row["condition"]: row for row in summary}
+
+
 def read_points(root: str | Path, threshold: str = "085") -> list[Point]:
     """Every ``<root>/<policy>/<n_demos>/results.json`` as points, one per split it holds."""
     if threshold not in THRESHOLDS:
@@ -46,8 +53,7 @@ def read_points(root: str | Path, threshold: str = "085") -> list[Point]:
         policy, n = path.parent.parent.name, path.parent.name
         if not n.isdigit():
             raise ValueError(f"{path}: the folder above results.json must be the number of demonstrations; got {n!r}")
-        summary = json.loads(path.read_text())["summary"]
-        for split, s in summary.items():
+        for split, s in _summaries(json.loads(path.read_text())).items():
             if split in SPLITS:
                 points.append(Point(policy, int(n), split, s["episodes"], s[f"success_{threshold}"], tuple(s[f"ci_{threshold}"])))
     if not points:

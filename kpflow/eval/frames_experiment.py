@@ -26,32 +26,27 @@ from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
 from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
-from kpflow.tasks.frames import lasa_frames, load_lasa, scene_keypoints
-from kpflow.tasks.frames.scene import Scene, moved, random_scenes
+from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
 from kpflow.transport import transport_trajectory
 from kpflow.utils.io import save_figure, write_json, write_text
 
 MapFactory = Callable[[], TransportMap]
 
 
-def figure1(make_map: MapFactory, out: Path, shape: str, n_points: int, frame_size: float) -> dict:
-    demo = load_lasa(shape, n=n_points, dtype=torch.float64)
-    start, goal = lasa_frames(demo)
-    original = Scene(start, goal, demo)
-    span = float((demo.positions.amax(0) - demo.positions.amin(0)).norm())
-    scenes = {
-        "goal moved": (start, moved(goal, 0.2 * span, 0.1 * span, 0.4)),
-        "both moved": (moved(start, -0.15 * span, 0.2 * span, -0.3), moved(goal, 0.25 * span, -0.1 * span, -0.4)),
-    }
+def figure1(task: FramesTask, make_map: MapFactory, out: Path) -> dict:
+    original = task.source_scene()
+    start, goal, demo, frame_size = original.start, original.goal, original.demo, task.frame_size
+    scenes = dict(zip(LASA_MOVES, task.sample_scenes("lasa", len(LASA_MOVES))))
     fig, axes = plots.new_figure(1, 3, size=3.6)
     ax = axes[0, 0]
     plots.draw_curve(ax, demo.positions, color="k", lw=1.5)
     plots.draw_frame(ax, start.position, start.rotation, frame_size, "start")
     plots.draw_frame(ax, goal.position, goal.rotation, frame_size, "goal")
-    ax.set_title(f"demonstration (LASA {shape})", fontsize=8)
+    ax.set_title(f"demonstration (LASA {task.lasa_shape})", fontsize=8)
     rows = []
-    for ax, (name, (s, g)) in zip(axes[0, 1:], scenes.items()):
-        phi = make_map().fit(original.keypoints(frame_size), scene_keypoints([s, g], frame_size))
+    for ax, (name, scene) in zip(axes[0, 1:], scenes.items()):
+        s, g = scene.start, scene.goal
+        phi = make_map().fit(task.keypoints(original), task.keypoints(scene))
         tr = transport_trajectory(phi, demo.positions, demo.velocities, demo.orientations)
         plots.draw_curve(ax, demo.positions, color="0.7", lw=1, ls="--")
         plots.draw_band(ax, tr.positions, tr.std, color="tab:blue")
@@ -74,8 +69,8 @@ def figure1(make_map: MapFactory, out: Path, shape: str, n_points: int, frame_si
     return {"scenes": rows}
 
 
-def figure2(make_map: MapFactory, out: Path, n_configs: int, n_points: int, frame_size: float, seed: int, horizon: float) -> dict:
-    scenes = random_scenes(n_configs, n_points, seed)
+def figure2(task: FramesTask, make_map: MapFactory, out: Path, n_configs: int, seed: int, horizon: float) -> dict:
+    scenes, frame_size, n_points = task.sample_scenes("random", n_configs, seed), task.frame_size, task.n_points
     cols = min(4, n_configs)
     fig, axes = plots.new_figure(math.ceil(n_configs / cols), cols)
     rows = []
@@ -132,21 +127,19 @@ def markdown_table(rows: list[dict], columns: list[str], fmt: str = "{:.4f}") ->
 
 
 def run_frames_experiment(
+    task: FramesTask,
     make_map: MapFactory,
     output_dir: str | Path,
     seed: int = 0,
-    lasa_shape: str = "Sshape",
-    n_points: int = 200,
     n_configs: int = 8,
-    frame_size: float = 0.1,
     horizon: float = 0.05,
 ) -> dict:
     """Run both figures, write ``figure1.png``, ``figure2.png``, ``results.md`` and ``results.json`` into
     ``output_dir``; return the results (with a flat ``metrics`` dict for loggers)."""
     out = Path(output_dir)
     torch.manual_seed(seed)
-    f1 = figure1(make_map, out, lasa_shape, n_points, frame_size)
-    f2 = figure2(make_map, out, n_configs, n_points, frame_size, seed, horizon)
+    f1 = figure1(task, make_map, out)
+    f2 = figure2(task, make_map, out, n_configs, seed, horizon)
     cols2 = ["config", "frechet", "dtw_mean", "final_position_error", "final_orientation_error_deg", "calibration_2sigma"]
     table = (
         "## Figure 1: one demonstration, frames moved\n\n"

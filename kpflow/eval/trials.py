@@ -1,163 +1,160 @@
-"""The one trial loop of the robosuite tasks: any task x keypoint source x map grid, in parallel workers.
+"""The one trial loop: any task x policy x map grid, in parallel workers, into the usual results.
 
-For each condition, keypoint source (the task's ``keypoint_sources``, or the dense backbones given, plus
-``"oracle"``) and map family, ``n_trials`` seeded scenes (the same scenes for every cell) are run in worker
-processes, each with its own simulator and its own (identical, deterministic) recording of the source
-demonstration. A trial resets the simulator to its scene, finds the keypoints, fits the map and transports the
-demonstration (:class:`~kpflow.policies.demo_transport.DemoTransportPolicy`), executes it, and the task's report
-scores it. Afterwards the first trials of every condition and keypoint source are re-run with the first map to
-draw the report's figures and write videos.
+A :class:`Trial` knows how to run one trial of one task: an open-loop transport of a recorded demonstration for the
+robosuite tasks (:class:`~kpflow.eval.demo_transport_trial.DemoTransportTrial`), a closed-loop policy episode for
+Push-T (:class:`~kpflow.eval.episode_trial.EpisodeTrial`). Its ``variants`` are the grid's other axes (keypoint
+source and map, or policy), and its ``report`` (:mod:`kpflow.eval.reports`) summarises, tabulates and draws.
 
-Writes ``results.json`` (source, summary per cell, every trial with its failure reason and scores, figures,
-videos), ``results.md`` (the report's table) and the report's figures and mp4s into the run folder.
+For each condition, variant and trial index (``first_index``, ``first_index + 1``, ...: the same scenes for every
+variant), :meth:`Trial.run` runs in a worker process set up once by :meth:`Trial.setup`. Afterwards the report
+picks showcase trials (:meth:`~kpflow.eval.reports.Report.showcase`), which are re-run deterministically in this
+process for its figures, the first ones filmed.
+
+Writes ``results.json`` (what the trial ran on, the summary per cell, every trial with its failure reason and
+scores, figures, videos), ``results.md`` (the report's table) and the report's figures and mp4s into the run folder.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Mapping, Protocol, Sequence
 
 from kpflow.eval.parallel import map_jobs
-from kpflow.eval.reports import Report
-from kpflow.policies.demo_transport import DemoTransportPolicy
-from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, TrialResult
+from kpflow.tasks.base import TrialResult
 from kpflow.utils.io import write_json, write_text
 from kpflow.utils.video import write_video
 
-_WORKER: dict = {}  # this process's task, simulator, source demonstration, keypoint sources and maps
+#: ``conditions`` value meaning "the trial's default conditions" (Push-T: its three splits)
+ALL = "all"
 
 
-def _init(task: ArmTask, report: Report, sources: dict, maps: dict) -> None:
-    import torch
+class Trial(Protocol):
+    """One kind of trial of one task, run by :func:`run_trials`."""
 
-    torch.set_num_threads(1)
-    env = task.make_env()
-    _WORKER.update(task=task, report=report, env=env, sources=sources, maps=maps, demo=task.demonstrate(env))
+    name: str  #: the task's name (``results.json``'s ``task``)
+    conditions: tuple[str, ...]  #: every condition it can run
+    default_conditions: tuple[str, ...]  #: the conditions of ``conditions: all``
+    report: Any  #: its :class:`~kpflow.eval.reports.Report`
 
+    def variants(self) -> list[dict[str, str]]:
+        """The grid's cells within one condition: axis -> option (e.g. ``{"keypoints": "sift", "map": "gp"}``)."""
 
-def run_trial(task: ArmTask, report: Report, env, demo: Demonstration, scene, keypoint_source: Any, make_map: Callable,
-              frames: list | None = None, *, condition: str = "", index: int = 0, variant: dict | None = None) -> TrialResult:  # fmt: skip
-    """One trial in ``scene`` (module docstring), labelled ``condition``, ``index`` and ``variant``; ``artefacts``
-    keep the trajectory, execution, keypoints and the task's view."""
-    keypoints, view = task.observe(env, scene, demo, keypoint_source)
-    trajectory = execution = None
-    if keypoints is not None:
-        trajectory, _ = DemoTransportPolicy(make_map).plan(demo.trajectory, keypoints)
-        execution = task.execute(env, trajectory, frames)
-    scores = report.scores(env, demo, view, trajectory, execution)
-    success = bool(execution is not None and execution.success)
-    failure = task.no_keypoints if execution is None else execution.failure
-    artefacts = {"trajectory": trajectory, "execution": execution, "keypoints": keypoints, "view": view}
-    return TrialResult(condition, index, dict(variant or {}), scene.as_dict(), success, failure, scores, artefacts)
+    def setup(self) -> None:
+        """Build this process's simulator and anything else a worker needs (called once per worker)."""
+
+    def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
+        """Trial ``index`` of ``condition`` in ``variant``; video frames are appended to ``frames`` when given."""
+
+    def describe(self) -> dict:
+        """What every trial ran on (the source demonstration, the policy), for ``results.json``."""
 
 
-def _variant(axes: dict[str, str], source: str, map_name: str) -> dict[str, str]:
-    return {**({"keypoints": source} if "keypoints" in axes else {}), "map": map_name}
+_TRIAL: list = []  # this process's set-up trial (a worker's, or the parent's for workers=1 and the showcase)
 
 
-def _trial(job: tuple) -> dict:
-    condition, index, seed, source, map_name, axes = job
-    w = _WORKER
-    scene = w["task"].sample_scene(condition, index, seed)
-    trial = run_trial(w["task"], w["report"], w["env"], w["demo"], scene, w["sources"][source], w["maps"][map_name],
-                      condition=condition, index=index, variant=_variant(axes, source, map_name))  # fmt: skip
-    return trial.record()
+def _setup(trial: Trial) -> None:
+    trial.setup()
+    _TRIAL[:] = [trial]
 
 
-def keypoint_sources(task: ArmTask, backbones: dict | None, oracle: bool) -> dict[str, Any]:
-    """name -> keypoint source: the backbones (plus ``"oracle"``), or the task's own sources."""
-    if backbones and ORACLE in backbones:
-        raise ValueError(f"{ORACLE!r} is reserved for the simulator's exact pairs: rename that backbone")
-    if backbones or oracle:
-        return {**(backbones or {}), **({ORACLE: ORACLE} if oracle else {})}
-    return {name: name for name in getattr(task, "keypoint_sources", ())}
+def _run(job: tuple) -> dict:
+    condition, index, variant, seed = job
+    return _TRIAL[0].run(condition, index, variant, seed).record()
 
 
-def _showcase(conditions: list[str], axes: dict, seed: int, n: int, videos: int, out: Path) -> tuple[list[TrialResult], list[str]]:
-    """Re-run the first ``n`` trials of every condition and keypoint source with the first map, in this process;
-    the first ``videos`` of them are filmed."""
-    w = _WORKER
-    first_map = next(iter(w["maps"]))
-    showcase, video_paths = [], []
-    for c in conditions:
-        for s in w["sources"]:
-            for i in range(n):
-                frames = [] if i < videos else None
-                scene = w["task"].sample_scene(c, i, seed)
-                trial = run_trial(w["task"], w["report"], w["env"], w["demo"], scene, w["sources"][s], w["maps"][first_map],
-                                  frames, condition=c, index=i, variant=_variant(axes, s, first_map))  # fmt: skip
-                showcase.append(trial)
-                if frames:
-                    outcome = "success" if trial.success else trial.failure.replace(" ", "_")
-                    name = "_".join([c, *trial.variant.values(), f"{i:02d}", outcome]) + ".mp4"
-                    video_paths.append(str(write_video(frames, out / name, fps=20)))
-    return showcase, video_paths
+def _per_condition(value: int | Mapping[str, int], condition: str, what: str) -> int:
+    if isinstance(value, Mapping):
+        if condition not in value:
+            raise ValueError(f"{what} names no value for condition {condition!r} (it has {sorted(value)})")
+        value = value[condition]
+    return int(value)
 
 
 def _from_record(record: dict, axes: list[str]) -> TrialResult:
     fixed = {"condition", "index", "scene", "success", "failure", *axes}
-    variant = {a: record[a] for a in axes}
     scores = {k: v for k, v in record.items() if k not in fixed}
+    variant = {a: record[a] for a in axes}
     return TrialResult(record["condition"], record["index"], variant, record["scene"], record["success"], record["failure"], scores)
+
+
+def video_name(trial: TrialResult) -> str:
+    """``<condition>_<variant options>_<index>_<outcome>.mp4``."""
+    outcome = "success" if trial.success else str(trial.failure).replace(" ", "_")
+    return "_".join([trial.condition, *trial.variant.values(), f"{trial.index:02d}", outcome]) + ".mp4"
+
+
+def cell_summary(results: dict, condition: str, **variant: str) -> dict:
+    """The summary row of ``condition`` (and ``variant``'s options, when the grid has several cells) in a
+    :func:`run_trials` result."""
+    rows = [s for s in results["summary"] if s["condition"] == condition and all(s.get(k) == v for k, v in variant.items())]
+    if len(rows) != 1:
+        raise KeyError(f"{len(rows)} summary rows match condition {condition!r} and {variant}; give the variant's options")
+    return rows[0]
 
 
 def run_trials(
     output_dir: str | Path,
-    task: ArmTask,
-    report: Report,
-    maps: dict[str, Callable],
-    backbones: dict[str, Any] | None = None,
-    oracle: bool = False,
+    trial: Trial,
+    conditions: str | Sequence[str] | None = None,
+    n_trials: int | Mapping[str, int] = 50,
+    first_index: int | Mapping[str, int] = 0,
     seed: int = 0,
-    conditions: tuple[str, ...] | None = None,
-    n_trials: int = 50,
     workers: int = 2,
     videos: int = 1,
     progress: bool = True,
 ) -> dict:
-    """Run every condition x keypoint source x map x trial of ``task`` (module docstring) into ``output_dir``.
+    """Run every condition x variant x trial of ``trial`` (module docstring) into ``output_dir``.
 
-    ``maps``: name -> factory of a transportation map. ``backbones``: name -> dense backbone, for tasks that find
-    keypoints in images (their keypoint sources, with ``oracle`` adding the simulator's exact pairs); without them
-    the task's own ``keypoint_sources`` are used. Returns the results with a flat ``metrics`` dict for loggers.
+    ``conditions``: a list, one condition, or ``"all"``/None for the trial's default conditions. ``n_trials`` and
+    ``first_index``: one number, or one per condition (Push-T's ``standard`` protocol runs 500 episodes from seed
+    100000). ``videos``: how many showcase trials to film. Returns the results with a flat ``metrics`` dict
+    (``<condition>/<options>/<figure>``) for loggers.
     """
-    conditions = list(task.conditions if conditions is None else conditions)
-    sources = keypoint_sources(task, backbones, oracle)
-    if not sources or not maps:
-        raise ValueError(f"{task.name}: give at least one keypoint source (backbones, or oracle: true) and one map family")
-    if any(c not in task.conditions for c in conditions):
-        raise ValueError(f"unknown condition in {conditions}; choose from {task.conditions}")
-    if n_trials < 1 or workers < 1 or videos < 0:
+    if conditions is None or conditions == ALL:
+        conditions = list(trial.default_conditions)
+    elif isinstance(conditions, str):
+        conditions = [conditions]
+    conditions = list(conditions)
+    if not conditions or any(c not in trial.conditions for c in conditions):
+        raise ValueError(f"unknown condition in {conditions}; choose {ALL!r} or from {trial.conditions}")
+    counts = {c: (_per_condition(first_index, c, "first_index"), _per_condition(n_trials, c, "n_trials")) for c in conditions}
+    if any(n < 1 for _, n in counts.values()) or workers < 1 or videos < 0:
         raise ValueError(f"n_trials and workers must be >= 1 and videos >= 0, got {n_trials}, {workers}, {videos}")
-    axes = ({"keypoints": "keypoints"} if backbones or oracle or len(sources) > 1 else {}) | {"map": "map"}
+    variants = trial.variants()
+    if not variants:
+        raise ValueError(f"{trial.name}: the trial has no variant to run (give at least one keypoint source and one map)")
+    axes = list(variants[0])
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
 
-    jobs = [(c, i, seed, s, m, axes) for c in conditions for s in sources for m in maps for i in range(n_trials)]
-    init = (task, report, dict(sources), dict(maps))
-    records = map_jobs(_trial, jobs, workers, _init, init, desc=f"{task.name} trials", unit="trial", progress=progress)
-    trials = [_from_record(r, list(axes)) for r in records]
-    cells = [(c, s, m) for c in conditions for s in sources for m in maps]
-    summaries = {}
-    for c, s, m in cells:
-        variant = _variant(axes, s, m)
-        summaries[(c, *variant.values())] = report.summarise([t for t in trials if t.condition == c and t.variant == variant])
+    jobs = [(c, first + i, v, seed) for c in conditions for v in variants for first, n in [counts[c]] for i in range(n)]
+    records = map_jobs(_run, jobs, workers, _setup, (trial,), desc=f"{trial.name} trials", unit="trial", progress=progress)
+    trials = [_from_record(r, axes) for r in records]
+    report = trial.report
+    summaries = {(c, *v.values()): report.summarise([t for t in trials if t.condition == c and t.variant == v]) for c in conditions for v in variants}
 
-    if _WORKER.get("task") is not task:  # this process has not set up this run's simulator yet
-        _init(*init)
-    demo = _WORKER["demo"]
-    showcase, video_paths = _showcase(conditions, axes, seed, min(max(report.examples, videos), n_trials), videos, out)
-    figures = report.figures(out, demo, showcase)
+    if not _TRIAL or _TRIAL[0] is not trial:  # this process has not set up this run's trial yet
+        _setup(trial)
+    showcase, video_paths = [], []
+    for chosen, film in report.showcase(trials, videos):
+        frames = [] if film else None
+        again = trial.run(chosen.condition, chosen.index, chosen.variant, seed, frames)
+        showcase.append(again)
+        if frames:
+            video_paths.append(str(write_video(frames, out / video_name(again), fps=getattr(report, "fps", 20))))
+    figures = report.figures(out, trial, trials, showcase)
 
     results = {
-        "task": task.name,
-        "source": {"scene": demo.scene.as_dict(), "success": demo.execution.success, "failure": demo.execution.failure},
+        "task": trial.name,
+        **trial.describe(),
         "summary": [{"condition": cell[0], **dict(zip(axes, cell[1:])), **s} for cell, s in summaries.items()],
         "trials": records,
         "figures": figures,
         "videos": video_paths,
     }
-    results["metrics"] = {"/".join(cell) + "/success": s["success"] for cell, s in summaries.items()}
+    results["metrics"] = {
+        "/".join((*cell, k)): v for cell, s in summaries.items() for k, v in s.items() if isinstance(v, float) and not isinstance(v, bool)
+    }
     write_json(out / "results.json", results)
-    write_text(out / "results.md", report.header(task, demo, n_trials) + report.table(summaries, list(axes)))
+    write_text(out / "results.md", report.header(trial, {c: n for c, (_, n) in counts.items()}) + report.table(summaries, axes))
     return results

@@ -7,7 +7,7 @@ Push-T's closed-loop episodes talk to a :class:`Policy`; the robosuite tasks (:c
 recorded demonstration per scene, so their data is a :class:`Trajectory` of end-effector poses and an
 :class:`Execution` record of how the arm followed it.
 
-The evaluation loop (:mod:`kpflow.eval.trials`) needs only this module's names: a new task implements
+The trial loop (:mod:`kpflow.eval.trials`) needs only this module's names: a new robosuite task implements
 :class:`ArmTask` and a report (:mod:`kpflow.eval.reports`) that scores its trials.
 """
 

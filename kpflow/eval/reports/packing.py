@@ -9,6 +9,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from kpflow.eval import plots
+from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.base import Demonstration, Execution, Trajectory, TrialResult
 from kpflow.utils.io import save_figure
@@ -50,15 +51,20 @@ class PackingReport:
             rows.append(f"| {' | '.join(cell)} | {s['trials']} | {success_cells(s)} | {s['box_error_mm_median']:.1f} |")
         return "\n".join(rows) + "\n"
 
-    def header(self, task, source: Demonstration, n_trials: int) -> str:
+    def header(self, trial, n_trials: dict[str, int]) -> str:
+        source = trial.source
         return (
             "# Packing: one demonstration transported to new scenes\n\n"
             f"Source demonstration ({source.scene.object_type}) succeeded in its own scene: {source.execution.success}.\n\n"
         )
 
-    def figures(self, out: Path, source: Demonstration, showcase: list[TrialResult]) -> list[str]:
+    def showcase(self, trials: list[TrialResult], videos: int) -> list[tuple[TrialResult, bool]]:
+        return first_map_trials(trials, self.examples, videos)
+
+    def figures(self, out: Path, trial, trials: list[TrialResult], showcase: list[TrialResult]) -> list[str]:
         """``trajectories.png``: top and side views of the source path and keypoints, and the transported paths
         (solid), the measured tip (dotted) and the target keypoints of the showcase trials."""
+        source = trial.source
         fig, axes = plots.new_figure(1, 2, size=4.2)
         top, side = axes[0]
         for ax, (i, j), name in ((top, (0, 1), "top view (x, y)"), (side, (0, 2), "side view (x, z)")):
@@ -67,10 +73,10 @@ class PackingReport:
             pos, kp = source.trajectory.positions, source.observation.keypoints
             ax.plot(pos[:, i], pos[:, j], "k-", lw=2, label="source")
             ax.scatter(kp[:, i], kp[:, j], c="k", s=10)
-            for n, trial in enumerate(t for t in showcase if t.index < self.examples):
+            for n, shown in enumerate(t for t in showcase if t.index < self.examples):
                 colour = f"C{n}"
-                p, k, tip = trial.artefacts["trajectory"].positions, trial.artefacts["keypoints"].target, trial.artefacts["execution"].tip
-                label = f"{trial.scene['object_type']} ({'ok' if trial.success else trial.failure})"
+                p, k, tip = shown.artefacts["trajectory"].positions, shown.artefacts["keypoints"].target, shown.artefacts["execution"].tip
+                label = f"{shown.scene['object_type']} ({'ok' if shown.success else shown.failure})"
                 ax.plot(p[:, i], p[:, j], "-", color=colour, lw=1.2, label=label)
                 ax.plot(tip[:, i], tip[:, j], ":", color=colour, lw=1)
                 ax.scatter(k[:, i], k[:, j], color=colour, s=8, marker="x")

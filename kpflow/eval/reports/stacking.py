@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kpflow.eval import plots
+from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.base import Demonstration, Execution, Trajectory, TrialResult
@@ -111,27 +112,31 @@ class StackingReport:
             )
         return "\n".join(rows) + "\n"
 
-    def header(self, task, source: Demonstration, n_trials: int) -> str:
-        m = task.matcher
+    def header(self, trial, n_trials: dict[str, int]) -> str:
+        m, source = trial.task.matcher, trial.source
+        counts = sorted(set(n_trials.values()))
         return (
             "# Stacking: keypoints from images, one demonstration transported to new scenes\n\n"
             f"Source demonstration succeeded in its own scene: {source.execution.success}. "
-            f"{n_trials} seeded scenes per condition; at most {m.max_pairs} pairs per image pair, spread over {m.spread}; "
+            f"{', '.join(map(str, counts))} seeded scenes per condition; at most {m.max_pairs} pairs per image pair, spread over {m.spread}; "
             f"pairs breaking rigidity dropped: {m.consistency or 'no'}.\n\n"
         )
 
-    def figures(self, out: Path, source: Demonstration, showcase: list[TrialResult]) -> list[str]:
+    def showcase(self, trials: list[TrialResult], videos: int) -> list[tuple[TrialResult, bool]]:
+        return first_map_trials(trials, self.examples, videos)
+
+    def figures(self, out: Path, trial, trials: list[TrialResult], showcase: list[TrialResult]) -> list[str]:
         """``matches_<condition>_<keypoints>_<index>_<outcome>.png``: the pairs drawn on the two images, green within
         ``good_mm`` of the truth, red beyond, dashed where dropped as breaking rigidity."""
-        names = []
-        for trial in (t for t in showcase if t.index < self.examples):
-            view = trial.artefacts["view"]
+        names, source = [], trial.source
+        for shown in (t for t in showcase if t.index < self.examples):
+            view = shown.artefacts["view"]
             errors = pair_errors_mm(source, view)
-            outcome = "success" if trial.success else trial.failure.replace(" ", "_")
-            name = f"matches_{trial.condition}_{trial.variant['keypoints']}_{trial.index:02d}_{outcome}.png"
+            outcome = "success" if shown.success else shown.failure.replace(" ", "_")
+            name = f"matches_{shown.condition}_{shown.variant['keypoints']}_{shown.index:02d}_{outcome}.png"
             title = (
-                f"{trial.condition} #{trial.index}, {trial.variant['keypoints']}: {trial.scores['n_pairs']} pairs kept, median"
-                f" error {trial.scores['pair_error_mm']:.0f} mm, {trial.variant['map']}: {outcome}"
+                f"{shown.condition} #{shown.index}, {shown.variant['keypoints']}: {shown.scores['n_pairs']} pairs kept, median"
+                f" error {shown.scores['pair_error_mm']:.0f} mm, {shown.variant['map']}: {outcome}"
             )
             fig, axes = plots.new_figure(1, 1, size=6.0)
             plots.draw_matches(axes[0, 0], source.observation.image["rgb"], view.image["rgb"], view.pairs.pixels_before,

@@ -21,6 +21,10 @@ class Scene:
         """The ten keypoints of the start and goal frames ``[10, D]``."""
         return scene_keypoints([self.start, self.goal], size)
 
+    def as_dict(self) -> dict:
+        """The two frames' positions and rotations as lists (the demonstration is left out)."""
+        return {f"{name}_{part}": getattr(getattr(self, name), part).tolist() for name in ("start", "goal") for part in ("position", "rotation")}
+
 
 def moved(frame: Frame, dx: float, dy: float, dtheta: float) -> Frame:
     """A 2-D frame translated by (dx, dy) and turned by dtheta."""

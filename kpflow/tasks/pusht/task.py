@@ -2,8 +2,8 @@
 the scripted demonstrator. Keypoints are the env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success
 its ``info["is_success"]``.
 
-Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observation), so its episodes run in
-:func:`~kpflow.tasks.pusht.rollout.run_episode` rather than the robosuite tasks' trial loop.
+Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observation): one trial is one
+:func:`~kpflow.tasks.pusht.rollout.run_episode` (:class:`~kpflow.eval.episode_trial.EpisodeTrial`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,92 @@
+"""The one trial loop (kpflow/eval/trials.py) with Push-T episodes: the grid, per-condition counts, showcase videos,
+the summary rows, and the errors that name a bad grid."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from kpflow.eval.demo_transport_trial import DemoTransportTrial
+from kpflow.eval.episode_trial import FIRST_CONFIG, EpisodeTrial, protocol_counts
+from kpflow.eval.reports.packing import PackingReport
+from kpflow.eval.reports.pusht import PushTReport
+from kpflow.eval.trials import cell_summary, run_trials
+from kpflow.maps import GPMap
+from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
+from kpflow.tasks.packing.task import PackingTask
+from kpflow.tasks.pusht.demonstrator import PushTExpert
+
+
+class StandStill:
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs):
+        return np.asarray(obs["agent_pos"], dtype=np.float64)
+
+
+def test_episode_grid_counts_rows_and_a_filmed_failure(tmp_path):
+    n_trials, first_index = protocol_counts(2)
+    n_trials["robot_ood"] = 3  # one number per condition
+    trial = EpisodeTrial(StandStill(), PushTReport(), "still", max_steps=5)
+    results = run_trials(tmp_path, trial, ["in_distribution", "robot_ood"], n_trials, first_index, workers=2, videos=1, progress=False)
+    assert [(t["condition"], t["index"]) for t in results["trials"]] == [
+        ("in_distribution", FIRST_CONFIG), ("in_distribution", FIRST_CONFIG + 1),
+        ("robot_ood", FIRST_CONFIG), ("robot_ood", FIRST_CONFIG + 1), ("robot_ood", FIRST_CONFIG + 2),
+    ]  # fmt: skip
+    assert all(t["policy"] == "still" and t["steps"] == 5 and not t["success"] and t["failure"] == "time limit" for t in results["trials"])
+    row = cell_summary(results, "robot_ood")
+    assert row["episodes"] == 3 and row["success_085"] == 0.0 and row["policy"] == "still"
+    assert results["metrics"]["robot_ood/still/success_095"] == 0.0
+    # the showcase: no success to film, the first failure of each split filmed, re-run to the same episode
+    assert [p.rsplit("/", 1)[1] for p in results["videos"]] == [f"in_distribution_still_{FIRST_CONFIG}_time_limit.mp4", f"robot_ood_still_{FIRST_CONFIG}_time_limit.mp4"]
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert on_disk["task"] == "pusht" and on_disk["policy"] == "still" and on_disk["figures"] == ["success.png"]
+    assert "| still | robot_ood | 3 | 0.0% [" in (tmp_path / "results.md").read_text()
+
+
+def test_the_expert_succeeds_and_its_success_is_filmed(tmp_path):
+    trial = EpisodeTrial(PushTExpert("standard"), PushTReport(), "expert", max_steps=600)
+    results = run_trials(tmp_path, trial, "in_distribution", 1, FIRST_CONFIG, workers=1, videos=1, progress=False)
+    (episode,) = results["trials"]
+    assert episode["success"] and episode["failure"] is None and episode["success_085"] and episode["steps_085"] <= episode["steps_095"]
+    assert results["videos"][0].endswith(f"in_distribution_expert_{FIRST_CONFIG}_success.mp4")
+
+
+def test_bad_grids_are_named():
+    trial = EpisodeTrial(StandStill(), PushTReport())
+    with pytest.raises(ValueError, match="unknown condition"):
+        run_trials("unused", trial, ["moved"])
+    with pytest.raises(ValueError, match="n_trials names no value for condition 'object_ood'"):
+        run_trials("unused", trial, "object_ood", {"in_distribution": 2})
+    with pytest.raises(ValueError, match="n_trials and workers must be >= 1"):
+        run_trials("unused", trial, "all", 0)
+    with pytest.raises(ValueError, match="max_steps must be >= 1"):
+        EpisodeTrial(StandStill(), PushTReport(), max_steps=0)
+    with pytest.raises(KeyError, match="0 summary rows"):
+        cell_summary({"summary": [{"condition": "robot_ood"}]}, "in_distribution")
+
+
+def test_demo_transport_trial_needs_a_keypoint_source_and_a_map():
+    task = PackingTask()
+    assert DemoTransportTrial(task, PackingReport(), {"gp": GPMap}).variants() == [{"map": "gp"}]
+    with pytest.raises(ValueError, match="at least one keypoint source"):
+        DemoTransportTrial(task, PackingReport(), {})
+    with pytest.raises(ValueError, match="reserved"):
+        DemoTransportTrial(task, PackingReport(), {"gp": GPMap}, backbones={"oracle": object()})
+
+
+def test_frames_task_scenes_and_keypoints():
+    task = FramesTask(n_points=40)
+    lasa = task.sample_scenes("lasa", len(LASA_MOVES))
+    source = task.source_scene()
+    assert all(torch.equal(s.demo.positions, source.demo.positions) for s in lasa)  # moved frames, the same demonstration
+    assert task.keypoints(lasa[0]).shape == (10, 2) and not torch.allclose(task.keypoints(lasa[0]), task.keypoints(source))
+    assert task.sample_scene("random", 2, seed=1).as_dict() == task.sample_scenes("random", 3, seed=1)[2].as_dict()
+    with pytest.raises(ValueError, match="lasa condition has 2 scenes"):
+        task.sample_scenes("lasa", 3)
+    with pytest.raises(ValueError, match="unknown frames condition"):
+        task.sample_scene("moved", 0)
+    with pytest.raises(ValueError, match="frame_size must be > 0"):
+        FramesTask(frame_size=0.0)
