@@ -11,6 +11,7 @@ inverse; it exists where J stays non-singular, which the GP does not guarantee (
 
 from __future__ import annotations
 
+import gpytorch
 import torch
 
 from kpflow.maps.affine import AlignedMap
@@ -23,6 +24,11 @@ class GPMap(AlignedMap):
 
     Args:
         alignment: ``"rigid"``, ``"similarity"``, ``"affine"``, ``"translation"`` or ``"none"``.
+        kernel, mean, likelihood: gpytorch modules (templates, copied at each fit; default a scaled RBF kernel, a
+            zero mean and a Gaussian likelihood), e.g. ``kernel=gpytorch.kernels.MaternKernel(nu=2.5)``.
+        lengthscale_bounds: ``(low, high)`` of the length-scale in keypoint units (e.g. ``(10, 50)`` where a
+            frame's keypoints are 5 apart: the map then deforms smoothly between keypoint groups).
+        restarts: further hyper-parameter optimisations from other length-scales; the best likelihood is kept.
         lengthscale, noise, min_noise, fixed_noise, iters, max_sample_bytes: see
             :class:`~kpflow.maps.gp_regression.GPRegressor` (checked at construction: a value out of range raises
             ``ValueError`` naming it).
@@ -39,12 +45,18 @@ class GPMap(AlignedMap):
         fixed_noise: bool = False,
         iters: int = 6,
         max_sample_bytes: int | None = None,
+        kernel: gpytorch.kernels.Kernel | None = None,
+        mean: gpytorch.means.Mean | None = None,
+        likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None,
+        lengthscale_bounds: tuple[float, float] | None = None,
+        restarts: int = 0,
     ) -> None:
         super().__init__(alignment)
         self.gp = GPRegressor(
             lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters,
-            max_sample_bytes=max_sample_bytes,
-        )
+            max_sample_bytes=max_sample_bytes, kernel=kernel, mean=mean, likelihood=likelihood,
+            lengthscale_bounds=lengthscale_bounds, restarts=restarts,
+        )  # fmt: skip
 
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         self._fit_alignment(source, target)

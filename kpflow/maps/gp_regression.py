@@ -1,16 +1,24 @@
-"""Multi-output exact GP regression with gpytorch: one RBF kernel shared by all D outputs.
+"""Multi-output exact GP regression with gpytorch: one kernel, mean and likelihood shared by all D outputs.
 
 Inputs are standardised by the training inputs' mean and RMS spread; outputs are divided by their RMS (so the
-prior mean is zero in original units). Hyper-parameters (length-scale, output scale, noise) maximise the exact
-marginal likelihood (Rasmussen & Williams 2006, Eq. 5.8) with L-BFGS. Posterior (Eqs. 2.25-2.26):
+prior mean is zero in original units). The kernel, mean and likelihood are injected as gpytorch modules (a kernel
+that is not a ``ScaleKernel`` is wrapped in one); each fit works on its own deep copy, so one configured template
+serves every fit. Hyper-parameters maximise the exact marginal likelihood (Rasmussen & Williams 2006, Eq. 5.8) with
+L-BFGS, from the initial length-scale and from ``restarts`` more, spread log-uniformly; the best likelihood wins.
+Length-scale bounds are given in the keypoints' own units. Posterior (Eqs. 2.25-2.26):
 
     mean(x) = k(x, X) (K + s_n^2 I)^-1 Y,      var(x) = k(x, x) - k(x, X) (K + s_n^2 I)^-1 k(X, x).
 
 Derivative of the GP (Eq. 9.1 and Solak et al. 2003): d mean / dx by autograd through the posterior mean, and
-var(d f / dx_j) = s_f^2 / l^2 - g_j^T (K + s_n^2 I)^-1 g_j with g_j = d k(X, x) / d x_j.
+var(d f / dx_j) = var_0(d f / dx_j) - g_j^T (K + s_n^2 I)^-1 g_j with g_j = d k(X, x) / d x_j (by autograd) and the
+prior var_0 = -d^2 k / d tau_j^2 at tau = 0 of the stationary kernel: s^2 / l^2 (RBF), 3 s^2 / l^2 (Matern 3/2),
+5 s^2 / (3 l^2) (Matern 5/2), summed over the parts of a sum; Matern 1/2 is not mean-square differentiable.
 """
 
 from __future__ import annotations
+
+import copy
+import math
 
 import gpytorch
 import torch
@@ -33,26 +41,55 @@ def _format_bytes(n: float) -> str:
 
 
 class _ExactGP(gpytorch.models.ExactGP):
-    """D independent outputs as a batch sharing one kernel: inputs ``[D, N, d]``, targets ``[D, N]``."""
+    """D independent outputs as a batch sharing one kernel and mean: inputs ``[D, N, d]``, targets ``[D, N]``."""
 
-    def __init__(self, x: torch.Tensor, y: torch.Tensor, likelihood: gpytorch.likelihoods.GaussianLikelihood):
+    def __init__(self, x: torch.Tensor, y: torch.Tensor, likelihood, mean: gpytorch.means.Mean, kernel: gpytorch.kernels.Kernel):
         super().__init__(x, y, likelihood)
-        self.mean_module = gpytorch.means.ZeroMean()
-        self.covar_module = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel())
+        self.mean_module, self.covar_module = mean, kernel
 
     def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+def _lengthscale_kernels(kernel: gpytorch.kernels.Kernel) -> list[gpytorch.kernels.Kernel]:
+    return [k for k in kernel.modules() if isinstance(k, gpytorch.kernels.Kernel) and k.has_lengthscale]
+
+
+def derivative_prior(kernel: gpytorch.kernels.Kernel) -> torch.Tensor:
+    """var_0(d f / d x_j) ``[d]`` (or a scalar) of a stationary kernel (module docstring), in its own units."""
+    k = gpytorch.kernels
+    if isinstance(kernel, k.ScaleKernel):
+        return kernel.outputscale * derivative_prior(kernel.base_kernel)
+    if isinstance(kernel, k.AdditiveKernel):
+        return sum(derivative_prior(part) for part in kernel.kernels)
+    if isinstance(kernel, k.RBFKernel):
+        return 1.0 / kernel.lengthscale.squeeze() ** 2
+    if isinstance(kernel, k.MaternKernel):
+        if kernel.nu == 0.5:
+            raise ValueError("a Matern 1/2 kernel is not mean-square differentiable: the Jacobian's variance is infinite")
+        return (3.0 if kernel.nu == 1.5 else 5.0 / 3.0) / kernel.lengthscale.squeeze() ** 2
+    raise ValueError(f"the Jacobian's variance is derived for RBF and Matern kernels and their scaled sums, not {type(kernel).__name__}")
 
 
 class GPRegressor(nn.Module):
     """Exact GP regression ``x [N, d] -> y [N, D]`` (module docstring).
 
     Args:
-        lengthscale: initial length-scale in standardised input units (``None``: 1.0).
+        kernel: a gpytorch kernel (template; default ``ScaleKernel(RBFKernel())``), e.g. ``MaternKernel(nu=2.5)``,
+            ``RBFKernel() + MaternKernel(nu=1.5)`` or a product; wrapped in a ``ScaleKernel`` unless it is one.
+        mean: a gpytorch mean (template; default ``ZeroMean()``: far from the data f -> 0).
+        likelihood: a gpytorch Gaussian likelihood (template; default one with the noise bounded by ``min_noise``).
+        lengthscale: initial length-scale in standardised input units (``None``: 1.0, or the bounds' geometric
+            mean).
+        lengthscale_bounds: ``(low, high)`` of every length-scale, in the units of the inputs (the keypoints'),
+            or None (positive, unbounded).
+        outputscale: initial output variance (standardised units).
         noise: initial noise variance in standardised output units; ``fixed_noise=True`` keeps it.
-        min_noise: lower bound of the noise variance (standardised units); default 1e-6 in float64, 1e-4 in
-            float32 (where a smaller floor leaves the kernel matrix numerically singular).
+        min_noise: lower bound of the default likelihood's noise variance (standardised units); default 1e-6 in
+            float64, 1e-4 in float32 (where a smaller floor leaves the kernel matrix numerically singular).
         iters: L-BFGS iterations for the hyper-parameters (0 keeps the initial values).
+        restarts: further optimisations from length-scales spread log-uniformly over a decade either side of the
+            initial one (within the bounds), deterministic; the best marginal likelihood is kept.
         max_sample_bytes: refuse ``sample`` when its joint covariance would need more memory than this
             (``None``: :data:`MAX_SAMPLE_BYTES`, 1 GiB).
 
@@ -69,14 +106,36 @@ class GPRegressor(nn.Module):
         fixed_noise: bool = False,
         iters: int = 10,
         max_sample_bytes: int | None = None,
+        kernel: gpytorch.kernels.Kernel | None = None,
+        mean: gpytorch.means.Mean | None = None,
+        likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None,
+        lengthscale_bounds: tuple[float, float] | None = None,
+        restarts: int = 0,
     ) -> None:
         super().__init__()
-        check_positive("lengthscale", lengthscale, optional=True, what=" (the initial RBF length-scale; None: 1.0)")
+        check_positive("lengthscale", lengthscale, optional=True, what=" (the initial length-scale; None: 1.0)")
         check_positive("outputscale", outputscale, what=" (the initial output variance)")
         check_positive("noise", noise, what=" (the initial noise variance)")
         check_positive("min_noise", min_noise, optional=True, what=" (the noise variance's lower bound; None: default)")
         check_count("iters", iters, 0, what=" (L-BFGS iterations)")
+        check_count("restarts", restarts, 0, what=" (further optimisations from other length-scales)")
         check_positive("max_sample_bytes", max_sample_bytes, optional=True, what=" (the memory limit of sample())")
+        for name, value, kind in (("kernel", kernel, gpytorch.kernels.Kernel), ("mean", mean, gpytorch.means.Mean),
+                                  ("likelihood", likelihood, gpytorch.likelihoods.GaussianLikelihood)):  # fmt: skip
+            if value is not None and not isinstance(value, kind):
+                raise ValueError(f"{name} must be a {kind.__module__}.{kind.__name__}, got {type(value).__name__}")
+        if lengthscale_bounds is not None:
+            low, high = (float(v) for v in lengthscale_bounds)
+            if not (0 < low < high < float("inf")):
+                raise ValueError(f"lengthscale_bounds must be (low, high) with 0 < low < high < inf, got {tuple(lengthscale_bounds)}")
+            lengthscale_bounds = (low, high)
+        kernel = kernel if kernel is not None else gpytorch.kernels.RBFKernel()
+        kernel = kernel if isinstance(kernel, gpytorch.kernels.ScaleKernel) else gpytorch.kernels.ScaleKernel(kernel)
+        if not _lengthscale_kernels(kernel):
+            raise ValueError(f"the kernel {type(kernel).__name__} has no length-scale to fit")
+        # the templates, kept in a tuple so that they are not sub-modules (their parameters are never fitted)
+        self.templates = (kernel, mean if mean is not None else gpytorch.means.ZeroMean(), likelihood)
+        self.lengthscale_bounds, self.restarts = lengthscale_bounds, restarts
         self.max_sample_bytes = max_sample_bytes
         self.init_lengthscale, self.init_outputscale = lengthscale, outputscale
         self.init_noise, self.min_noise, self.fixed_noise, self.iters = noise, min_noise, fixed_noise, iters
@@ -89,18 +148,19 @@ class GPRegressor(nn.Module):
         self.y_scale = y.square().mean().sqrt().clamp_min(1e-12 * self.x_scale)
         xs = ((x - self.x_mean) / self.x_scale).expand(d_out, n, x.shape[-1])
         ys = (y / self.y_scale).T.contiguous()
-        min_noise = self.min_noise or (1e-6 if x.dtype == torch.float64 else 1e-4)
-        likelihood = gpytorch.likelihoods.GaussianLikelihood(
-            noise_constraint=gpytorch.constraints.GreaterThan(min_noise)
-        ).to(x)
-        model = _ExactGP(xs, ys, likelihood).to(x)
-        model.covar_module.base_kernel.lengthscale = self.init_lengthscale or 1.0
-        model.covar_module.outputscale = self.init_outputscale
-        likelihood.noise = max(self.init_noise, min_noise * 1.01)
-        if self.fixed_noise:
-            likelihood.raw_noise.requires_grad_(False)
-        if self.iters > 0:
-            self._optimise(model, likelihood, xs, ys)
+        bounds = None if self.lengthscale_bounds is None else tuple(b / float(self.x_scale) for b in self.lengthscale_bounds)
+        start = self.init_lengthscale or (math.sqrt(bounds[0] * bounds[1]) if bounds else 1.0)
+        offsets = sorted((u for u in torch.linspace(-1, 1, self.restarts + 2).tolist() if abs(u) > 1e-9), key=lambda u: (-abs(u), u))
+        starts = [start] + [start * 10.0**u for u in offsets[: self.restarts]]  # a decade down and up first, then between
+        if bounds:
+            starts = [min(max(s, bounds[0] * 1.001), bounds[1] * 0.999) for s in starts]
+        best = None
+        for lengthscale in starts:
+            model, likelihood = self._model(xs, ys, lengthscale, bounds)
+            loss = self._optimise(model, likelihood, xs, ys) if self.iters > 0 else 0.0
+            if best is None or loss < best[0]:
+                best = (loss, model, likelihood)
+        _, model, likelihood = best
         for p in model.parameters():  # the likelihood's too (a sub-module of the model)
             p.requires_grad_(False)
         model.eval()
@@ -108,6 +168,26 @@ class GPRegressor(nn.Module):
         self.model, self.likelihood = model, likelihood
         self._chol = None  # built on first use by gradient_variance
         return self
+
+    def _model(self, xs: torch.Tensor, ys: torch.Tensor, lengthscale: float, bounds: tuple | None) -> tuple[_ExactGP, object]:
+        """A fresh model from the templates at the initial hyper-parameters."""
+        kernel, mean, likelihood = (copy.deepcopy(t) for t in self.templates)
+        if likelihood is None:
+            min_noise = self.min_noise or (1e-6 if xs.dtype == torch.float64 else 1e-4)
+            likelihood = gpytorch.likelihoods.GaussianLikelihood(noise_constraint=gpytorch.constraints.GreaterThan(min_noise)).to(xs)
+            likelihood.noise = max(self.init_noise, min_noise * 1.01)
+        else:
+            likelihood = likelihood.to(xs)
+        if bounds is not None:
+            for k in _lengthscale_kernels(kernel):
+                k.register_constraint("raw_lengthscale", gpytorch.constraints.Interval(*bounds))
+        model = _ExactGP(xs, ys, likelihood, mean, kernel).to(xs)
+        for k in _lengthscale_kernels(model.covar_module):  # values set in the data's dtype, after the move
+            k.lengthscale = lengthscale
+        model.covar_module.outputscale = self.init_outputscale
+        if self.fixed_noise:
+            likelihood.raw_noise.requires_grad_(False)
+        return model, likelihood
 
     def _train_cholesky(self) -> torch.Tensor:
         if self._chol is None:
@@ -118,7 +198,8 @@ class GPRegressor(nn.Module):
                 self._chol = psd_safe_cholesky(k)
         return self._chol
 
-    def _optimise(self, model, likelihood, xs, ys) -> None:
+    def _optimise(self, model, likelihood, xs, ys) -> float:
+        """L-BFGS on the negative marginal log likelihood; its final value."""
         model.train()
         likelihood.train()
         params = [p for p in model.parameters() if p.requires_grad]
@@ -135,11 +216,17 @@ class GPRegressor(nn.Module):
 
         with gpytorch.settings.cholesky_jitter(1e-8 if xs.dtype == torch.float64 else 1e-6):
             opt.step(closure)
+            with torch.no_grad():
+                return float(-mll(model(xs), ys).sum())
 
     # ------------------------------------------------------------------ hyper-parameters (original units)
     @property
     def lengthscale(self) -> torch.Tensor:
-        return self.model.covar_module.base_kernel.lengthscale.detach().squeeze() * self.x_scale
+        """The fitted length-scale in input units (of the kernel's one length-scale kernel)."""
+        kernels = _lengthscale_kernels(self.model.covar_module)
+        if len(kernels) != 1:
+            raise ValueError(f"the kernel has {len(kernels)} length-scales; read them from gp.model.covar_module")
+        return kernels[0].lengthscale.detach().squeeze() * self.x_scale
 
     @property
     def outputscale(self) -> torch.Tensor:
@@ -198,19 +285,16 @@ class GPRegressor(nn.Module):
             )
 
     def gradient_variance(self, x: torch.Tensor) -> torch.Tensor:
-        """var(d f_i / d x_j) ``[M, d]`` (the same for every output i since the kernel is shared).
-
-        For the RBF kernel g_j = d k(x, X) / d x_j = -k(x, X) (x_j - X_j) / l^2.
-        """
-        xs = self._standardise(x)[0]  # [M, d]
+        """var(d f_i / d x_j) ``[M, d]`` (the same for every output i since the kernel is shared; module docstring)."""
+        xs = self._standardise(x)[0].detach().requires_grad_(True)  # [M, d]
         train = self.model.train_inputs[0][0]  # [N, d]
         kern = self.model.covar_module
-        with torch.no_grad():
-            ell2 = kern.base_kernel.lengthscale.squeeze() ** 2
+        with torch.enable_grad():
             kx = kern(xs, train).to_dense()  # [M, N]
-            g = -kx[..., None] * (xs[:, None, :] - train[None]) / ell2  # [M, N, d]
+            g = torch.stack([torch.autograd.grad(kx[:, i].sum(), xs, retain_graph=True)[0] for i in range(train.shape[0])], 1)
+        with torch.no_grad():
             n = train.shape[0]
             flat = g.transpose(0, 1).reshape(n, -1)  # [N, M*d]
             quad = (flat * torch.cholesky_solve(flat, self._train_cholesky())).sum(0).reshape(x.shape[0], -1)
-            prior = kern.outputscale / ell2
+            prior = derivative_prior(kern)
         return (prior - quad).clamp_min(0.0) * (self.y_scale / self.x_scale) ** 2
