@@ -85,7 +85,7 @@ def ilwr_transport(params, x):
     return y
 
 
-def sklearn_gp_fit(source, target, n_restarts=5, seed=0, normalize_y=False):
+def sklearn_gp_fit(source, target, n_restarts=5, seed=0, normalize_y=False, kernel=None):
     """Fit the authors' residual GP map: GP regression of ``target - source`` on ``source``.
 
     Kernel as in their ``GaussianProcessTransportation`` default,
@@ -93,10 +93,11 @@ def sklearn_gp_fit(source, target, n_restarts=5, seed=0, normalize_y=False):
     hyper-parameter bounds (1e-5, 1e5), isotropic RBF shared by all output dimensions,
     ``alpha=1e-10``, L-BFGS-B with ``n_restarts`` random restarts. The authors do not
     normalise y (sklearn's default, ``normalize_y=False``); pass ``normalize_y=True`` to standardise each output.
+    ``kernel`` replaces the default (its last term must be the ``WhiteKernel``: the noise).
     Returns the fitted ``GaussianProcessRegressor``.
     """
     source = np.asarray(source, dtype=float)
-    kernel = ConstantKernel(0.1) * RBF(length_scale=[0.1]) + WhiteKernel(1e-4)
+    kernel = kernel if kernel is not None else ConstantKernel(0.1) * RBF(length_scale=[0.1]) + WhiteKernel(1e-4)
     gp = GaussianProcessRegressor(kernel=kernel, alpha=1e-10, n_restarts_optimizer=n_restarts,
                                   normalize_y=normalize_y, random_state=seed)
     return gp.fit(source, np.asarray(target, dtype=float) - source)

@@ -21,6 +21,18 @@ def test_maps_benchmark_quick_writes_its_tables(tmp_path):
 
 
 @pytest.mark.slow
+def test_shape_benchmark_writes_its_table(tmp_path):
+    out = tmp_path / "shapes.md"
+    maps = ["similarity", "authors' GP (sklearn)", "ILWRMap (default)"]
+    done = subprocess.run([sys.executable, "benchmarks/shapes.py", "--shapes", "1", "--maps", *maps, "--out", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [r[0][2:] for r in rows] == maps and rows[1][6] == "1.00"  # the authors' GP is its own reference
+    assert all(float(r[1]) > 0 for r in rows) and "42 ordered demonstration pairs" in out.read_text()
+
+
+@pytest.mark.slow
 def test_pusht_benchmarks_write_their_tables(tmp_path):
     runs = {
         "pusht_env.md": ["benchmarks/pusht_env.py", "--steps", "300", "--repeats", "1"],

@@ -16,6 +16,7 @@ from kpflow.tasks.frames import (
     random_frame,
     scene_keypoints,
 )
+from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
 
 
 def _angle_between(u, v):
@@ -227,3 +228,18 @@ def test_lasa_scale_and_errors():
         load_lasa("NoSuchShape")
     with pytest.raises(ValueError, match="demo must be"):
         load_lasa("Angle", demo=7)
+
+
+def test_frames_task_scenes_and_keypoints():
+    task = FramesTask(n_points=40)
+    lasa = task.sample_scenes("lasa", len(LASA_MOVES))
+    source = task.source_scene()
+    assert all(torch.equal(s.demo.positions, source.demo.positions) for s in lasa)  # moved frames, the same demonstration
+    assert task.keypoints(lasa[0]).shape == (10, 2) and not torch.allclose(task.keypoints(lasa[0]), task.keypoints(source))
+    assert task.sample_scene("random", 2, seed=1).as_dict() == task.sample_scenes("random", 3, seed=1)[2].as_dict()
+    with pytest.raises(ValueError, match="lasa condition has 2 scenes"):
+        task.sample_scenes("lasa", 3)
+    with pytest.raises(ValueError, match="unknown frames condition"):
+        task.sample_scene("moved", 0)
+    with pytest.raises(ValueError, match="frame_size must be > 0"):
+        FramesTask(frame_size=0.0)

@@ -5,7 +5,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.episode_trial import FIRST_CONFIG, EpisodeTrial, protocol_counts
@@ -13,7 +12,6 @@ from kpflow.eval.reports.packing import PackingReport
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.maps import GPMap
-from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
 from kpflow.tasks.packing.task import PackingTask
 from kpflow.tasks.pusht.demonstrator import PushTExpert
 
@@ -75,18 +73,3 @@ def test_demo_transport_trial_needs_a_keypoint_source_and_a_map():
         DemoTransportTrial(task, PackingReport(), {})
     with pytest.raises(ValueError, match="reserved"):
         DemoTransportTrial(task, PackingReport(), {"gp": GPMap}, backbones={"oracle": object()})
-
-
-def test_frames_task_scenes_and_keypoints():
-    task = FramesTask(n_points=40)
-    lasa = task.sample_scenes("lasa", len(LASA_MOVES))
-    source = task.source_scene()
-    assert all(torch.equal(s.demo.positions, source.demo.positions) for s in lasa)  # moved frames, the same demonstration
-    assert task.keypoints(lasa[0]).shape == (10, 2) and not torch.allclose(task.keypoints(lasa[0]), task.keypoints(source))
-    assert task.sample_scene("random", 2, seed=1).as_dict() == task.sample_scenes("random", 3, seed=1)[2].as_dict()
-    with pytest.raises(ValueError, match="lasa condition has 2 scenes"):
-        task.sample_scenes("lasa", 3)
-    with pytest.raises(ValueError, match="unknown frames condition"):
-        task.sample_scene("moved", 0)
-    with pytest.raises(ValueError, match="frame_size must be > 0"):
-        FramesTask(frame_size=0.0)
