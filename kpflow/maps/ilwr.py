@@ -31,6 +31,7 @@ import math
 
 import torch
 
+from kpflow.maps import ilwr_kernels
 from kpflow.maps.affine import AlignedMap
 
 SQRT_E_2 = math.sqrt(math.e / 2.0)
@@ -58,6 +59,8 @@ class ILWRMap(AlignedMap):
         margin: safety factor (< 1) on the diffeomorphism bound rho |v| < sqrt(e/2).
         tol: stop early once every keypoint is within ``tol`` (absolute) of its target.
         inverse_iters: Newton iterations per step of the inverse.
+        fused: fit and transport one keypoint set on the CPU with the compiled kernels of :mod:`.ilwr_kernels`
+            (the same numbers as the torch path, to rounding, several times faster); False: always torch.
     """
 
     supports_batch = True
@@ -72,8 +75,10 @@ class ILWRMap(AlignedMap):
         tol: float = 0.0,
         inverse_iters: int = 12,
         uncertainty_scale: float | None = None,
+        fused: bool = True,
     ) -> None:
         super().__init__(alignment)
+        self.fused = bool(fused)
         if not 0.0 < beta <= 1.0:
             raise ValueError(f"beta must be in (0, 1]; got {beta}")
         if not 0.0 < margin < 1.0:
@@ -90,8 +95,18 @@ class ILWRMap(AlignedMap):
         self._fit_alignment(source, target)
         z = self.alignment._forward(source)
         grid = -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=z.dtype, device=z.device)
-        self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
+        if self._fused(z):
+            self.centres, self.vectors, self.neg_rho2 = _fit_fused(z, target, self.n_steps, self.beta, grid, self.tol)
+        else:
+            self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
         self._chol = None  # the uncertainty model is built on first use (predict/sample)
+
+    def _fused(self, x: torch.Tensor) -> bool:
+        """Whether the compiled kernels (:mod:`.ilwr_kernels`) take this call: one keypoint set on the CPU in
+        float64 (in float32 the kernels' float64 sums would pick other steps than torch's float32 ones), no autograd
+        graph wanted; ``fused=False`` keeps the torch path."""
+        return (self.fused and x.shape[0] == 1 and x.device.type == "cpu" and x.dtype == torch.float64
+                and not (torch.is_grad_enabled() and x.requires_grad))  # fmt: skip
 
     def _fit_uncertainty(self) -> None:
         n, d = self._source.shape[-2:]
@@ -111,7 +126,11 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
+        z = self.alignment._forward(x)
+        if self._fused(z) and not self.centres.requires_grad:
+            out = ilwr_kernels.apply_steps(z[0].numpy(), self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
+            return torch.from_numpy(out)[None]
+        return apply_steps(z, self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
         x = invert_steps(y, self.centres, self.vectors, self.neg_rho2, self.inverse_iters)
@@ -140,6 +159,16 @@ class ILWRMap(AlignedMap):
         frac = (kx * a.transpose(1, 2)).sum(-1).clamp(0.0, 1.0)  # [B, M]
         var = (self._s2[:, None] * (1.0 - frac))[..., None].expand(-1, -1, x.shape[-1])
         return self._forward(x), var
+
+
+def _fit_fused(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):
+    """:func:`fit_steps` for one keypoint set through the compiled kernel (the same candidates, in the same order)."""
+    alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=z.dtype)
+    grid_c = (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
+    alpha_c = alpha.repeat_interleave(neg_grid.shape[0])
+    c, v, nr2, _ = ilwr_kernels.fit_steps(z[0].numpy(), target[0].detach().numpy(), n_steps, beta, grid_c.numpy(), alpha_c.numpy(),
+                                          tol, torch.finfo(z.dtype).tiny, MIN_EXPONENT)  # fmt: skip
+    return torch.from_numpy(c)[None], torch.from_numpy(v)[None], torch.from_numpy(nr2)[None]
 
 
 def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):
