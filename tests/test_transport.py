@@ -353,3 +353,4 @@ def test_transport_trajectory_rigid_map_is_certain():
     torch.testing.assert_close(out.orientations, q @ rots, atol=1e-10, rtol=0)
     lo, hi = out.band()
     torch.testing.assert_close(lo, hi, atol=0, rtol=0)
+

@@ -28,10 +28,14 @@ class DemoTransportTrial:
     """``task`` x keypoint sources x ``maps`` (name -> factory of a transportation map), scored by ``report``
     (:mod:`kpflow.eval.reports`: packing's or stacking's). ``backbones``: name -> dense backbone, for tasks that find
     keypoints in images, with ``oracle`` adding the simulator's exact pairs; without them the task's own
-    ``keypoint_sources`` are used."""
+    ``keypoint_sources`` are used. ``max_std`` and ``on_uncertain``: the policy's action where the map is unsure
+    (:class:`~kpflow.policies.demo_transport.DemoTransportPolicy`; None: transport everything)."""
 
-    def __init__(self, task: ArmTask, report, maps: dict[str, Callable], backbones: dict[str, Any] | None = None, oracle: bool = False):
+    def __init__(self, task: ArmTask, report, maps: dict[str, Callable], backbones: dict[str, Any] | None = None, oracle: bool = False,
+                 max_std: float | None = None, on_uncertain: str = "rigid"):  # fmt: skip
         self.task, self.report, self.maps = task, report, dict(maps)
+        self.max_std, self.on_uncertain = max_std, on_uncertain
+        DemoTransportPolicy(next(iter(self.maps.values()), None), max_std, on_uncertain)  # checks the two now
         self.sources = keypoint_sources(task, backbones, oracle)
         if not self.sources or not self.maps:
             raise ValueError(f"{task.name}: give at least one keypoint source (backbones, or oracle: true) and one map family")
@@ -66,7 +70,7 @@ class DemoTransportTrial:
         keypoints, view = task.observe(env, scene, source, keypoint_source)
         trajectory = execution = None
         if keypoints is not None:
-            trajectory, _ = DemoTransportPolicy(make_map).plan(source.trajectory, keypoints)
+            trajectory, _ = DemoTransportPolicy(make_map, self.max_std, self.on_uncertain).plan(source.trajectory, keypoints)
             execution = task.execute(env, trajectory, frames)
         scores = self.report.scores(env, source, view, trajectory, execution)
         success = bool(execution is not None and execution.success)
