@@ -18,14 +18,15 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, w: fl
              nonrigid: bool = False, beta: float = 2.0, lam: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Register source ``s [N, D]`` onto target ``y [M, D]`` from the pose ``(rot, t)``: the rigid pose and the
     registered source points ``[N, D]``."""
-    start = s @ rot.T + t
+    # in normalised coordinates (the target's centroid at 0, the source's RMS spread 1), as Myronenko & Song do:
+    # in raw pixel units the outlier weight let the scale collapse to 0
+    centre, spread = y.mean(0), np.sqrt(((s - s.mean(0)) ** 2).sum(1).mean()) or 1.0
+    start = (s @ rot.T + t - centre) / spread
     with warnings.catch_warnings():  # pycpd's own SyntaxWarnings and casts
         warnings.simplefilter("ignore")
-        rigid = RigidRegistration(X=y, Y=start, w=w, max_iterations=max_iters)
-        moved, _ = rigid.register()
+        moved, _ = RigidRegistration(X=(y - centre) / spread, Y=start, w=w, max_iterations=max_iters).register()
         if nonrigid:
-            spread = np.sqrt(((s - s.mean(0)) ** 2).sum(1).mean()) or 1.0
-            deform = DeformableRegistration(X=y / spread, Y=moved / spread, w=w, beta=beta, alpha=lam, max_iterations=max_iters)
-            moved = deform.register()[0] * spread
+            moved = DeformableRegistration(X=(y - centre) / spread, Y=moved, w=w, beta=beta, alpha=lam, max_iterations=max_iters).register()[0]
+    moved = moved * spread + centre
     rot, t = kabsch(s, moved)
     return rot, t, moved
