@@ -59,3 +59,13 @@ def walk_to_block_store(path) -> None:
             agent = agent + WALK_RATE * (centre - agent)
             actions.append(agent.copy())
         store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})
+
+
+class StandStill:
+    """A Push-T policy that targets where the agent is: it never moves (nothing is ever pushed)."""
+
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs):
+        return np.asarray(obs["agent_pos"], dtype=np.float64)

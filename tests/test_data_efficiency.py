@@ -1,6 +1,5 @@
 """The data-efficiency figure reads real evaluation runs laid out as <policy>/<n_demos>/results.json."""
 
-import numpy as np
 import pytest
 
 from kpflow.eval.data_efficiency import main, read_points, table
@@ -8,14 +7,7 @@ from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import run_trials
 from kpflow.tasks.pusht.demonstrator import PushTExpert
-
-
-class StandStill:
-    def reset(self, seed=None):
-        pass
-
-    def act(self, obs):
-        return np.asarray(obs["agent_pos"], dtype=np.float64)
+from tests.helpers import StandStill
 
 
 def test_points_table_and_figure_from_real_runs(tmp_path):

@@ -3,7 +3,6 @@ the summary rows, and the errors that name a bad grid."""
 
 import json
 
-import numpy as np
 import pytest
 
 from kpflow.eval.demo_transport_trial import DemoTransportTrial
@@ -14,14 +13,7 @@ from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.maps import GPMap
 from kpflow.tasks.packing.task import PackingTask
 from kpflow.tasks.pusht.demonstrator import PushTExpert
-
-
-class StandStill:
-    def reset(self, seed=None):
-        pass
-
-    def act(self, obs):
-        return np.asarray(obs["agent_pos"], dtype=np.float64)
+from tests.helpers import StandStill
 
 
 def test_episode_grid_counts_rows_and_a_filmed_failure(tmp_path):
