@@ -85,15 +85,15 @@ def symmetry_images(points: np.ndarray, symmetric_group: bool) -> list[np.ndarra
 
 
 def recovered(result, truth: np.ndarray, images: list[np.ndarray]) -> tuple[bool, bool]:
-    """(recovered, order unique). The order is unique when no symmetry but the identity maps the keypoints the
-    target shows onto themselves; otherwise any of the equivalent orders counts, with ``ambiguous`` set."""
-    perm, visible = result.perm.numpy(), truth >= 0
+    """(recovered, order unique). A symmetry g of the source set explains the target as well as the truth when
+    every keypoint it sends off the set (the handle, for a half turn) is missing from the target: then the source
+    sent onto each visible target point under g is another, equally good answer. The order is unique when only the
+    identity qualifies; otherwise any of the equivalent orders counts, with ``ambiguous`` set."""
+    perm = result.perm.numpy()
     expected = []
     for image in images:
-        if np.all(image[visible] >= 0) and np.all(visible[image[visible]]):  # maps the visible set onto itself
-            e = np.full(len(truth), -1)
-            e[visible] = truth[image[visible]]
-            expected.append(e)
+        if np.all(truth[image < 0] < 0):
+            expected.append(np.where(image >= 0, truth[np.maximum(image, 0)], -1))
     unique = len(expected) == 1
     hit = any(np.array_equal(perm, e) for e in expected)
     return bool(hit and (unique or result.ambiguous)), unique
