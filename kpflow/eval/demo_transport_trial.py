@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from kpflow.policies.demo_transport import DemoTransportPolicy
+from kpflow.policies.demo_transport import DemoTransportPolicy, check_uncertainty_options
 from kpflow.tasks.base import ORACLE, ArmTask, TrialResult
 
 
@@ -35,7 +35,7 @@ class DemoTransportTrial:
                  max_std: float | None = None, on_uncertain: str = "rigid"):  # fmt: skip
         self.task, self.report, self.maps = task, report, dict(maps)
         self.max_std, self.on_uncertain = max_std, on_uncertain
-        DemoTransportPolicy(next(iter(self.maps.values()), None), max_std, on_uncertain)  # checks the two now
+        check_uncertainty_options(max_std, on_uncertain)
         self.sources = keypoint_sources(task, backbones, oracle)
         if not self.sources or not self.maps:
             raise ValueError(f"{task.name}: give at least one keypoint source (backbones, or oracle: true) and one map family")

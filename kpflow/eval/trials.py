@@ -153,7 +153,7 @@ def run_trials(
         "videos": video_paths,
     }
     results["metrics"] = {
-        "/".join((*cell, k)): v for cell, s in summaries.items() for k, v in s.items() if isinstance(v, float) and not isinstance(v, bool)
+        "/".join((*cell, k)): v for cell, s in summaries.items() for k, v in s.items() if isinstance(v, float)
     }
     write_json(out / "results.json", results)
     write_text(out / "results.md", report.header(trial, {c: n for c, (_, n) in counts.items()}) + report.table(summaries, axes))

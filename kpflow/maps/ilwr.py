@@ -161,11 +161,16 @@ class ILWRMap(AlignedMap):
         return self._forward(x), var
 
 
+def step_candidates(neg_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The step search's candidates ``[C]``: each step length alpha in (1, 1/2, 1/4, 1/8) with every width of
+    ``neg_grid``, as (alpha, -(rho |alpha v|)^2 / alpha^2)."""
+    alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=neg_grid.dtype, device=neg_grid.device)
+    return alpha.repeat_interleave(neg_grid.shape[0]), (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
+
+
 def _fit_fused(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):
     """:func:`fit_steps` for one keypoint set through the compiled kernel (the same candidates, in the same order)."""
-    alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=z.dtype)
-    grid_c = (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
-    alpha_c = alpha.repeat_interleave(neg_grid.shape[0])
+    alpha_c, grid_c = step_candidates(neg_grid)
     c, v, nr2, _ = ilwr_kernels.fit_steps(z[0].numpy(), target[0].detach().numpy(), n_steps, beta, grid_c.numpy(), alpha_c.numpy(),
                                           tol, torch.finfo(z.dtype).tiny, MIN_EXPONENT)  # fmt: skip
     return torch.from_numpy(c)[None], torch.from_numpy(v)[None], torch.from_numpy(nr2)[None]
@@ -182,9 +187,7 @@ def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, 
     """
     b, _, d = z.shape
     tiny = torch.finfo(z.dtype).tiny
-    alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=z.dtype, device=z.device)
-    alpha_c = alpha.repeat_interleave(neg_grid.shape[0])  # [C]
-    grid_c = (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)  # [C]: -(rho |alpha v|)^2 / alpha^2
+    alpha_c, grid_c = step_candidates(neg_grid)
     a2, neg_2a = alpha_c * alpha_c, -2.0 * alpha_c
     alpha_b = alpha_c.expand(b, -1)
     zero = z.new_zeros(())

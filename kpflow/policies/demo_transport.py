@@ -30,16 +30,21 @@ from kpflow.transport import transport_trajectory
 ON_UNCERTAIN = ("rigid", "stop")
 
 
+def check_uncertainty_options(max_std: float | None, on_uncertain: str) -> None:
+    """``ValueError`` naming ``max_std`` or ``on_uncertain`` when out of range."""
+    if max_std is not None and not max_std > 0:
+        raise ValueError(f"max_std must be > 0 or None, got {max_std}")
+    if on_uncertain not in ON_UNCERTAIN:
+        raise ValueError(f"on_uncertain must be one of {ON_UNCERTAIN}, got {on_uncertain!r}")
+
+
 class DemoTransportPolicy:
     """``plan(demonstration, keypoints) -> (trajectory, phi)`` with a map from ``make_map`` (the policy of packing
     and stacking, beside Push-T's closed-loop :class:`~kpflow.policies.chunk_transport.TransportPolicy`);
     ``max_std`` and ``on_uncertain`` make it act on the map's uncertainty (module docstring)."""
 
     def __init__(self, make_map: Callable[[], TransportMap], max_std: float | None = None, on_uncertain: str = "rigid"):
-        if max_std is not None and not max_std > 0:
-            raise ValueError(f"max_std must be > 0 or None, got {max_std}")
-        if on_uncertain not in ON_UNCERTAIN:
-            raise ValueError(f"on_uncertain must be one of {ON_UNCERTAIN}, got {on_uncertain!r}")
+        check_uncertainty_options(max_std, on_uncertain)
         self.make_map, self.max_std, self.on_uncertain = make_map, max_std, on_uncertain
         self.stopped_at: int | None = None  # the step a "stop" plan ended before (None: it runs in full)
 

@@ -19,8 +19,13 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, eps: 
     are relative to the mean squared distance over all pairs at the current pose (so they do not depend on the
     units, and the plan sharpens as the pose converges)."""
     a, b = np.full(len(s), 1.0 / len(s)), np.full(len(y), 1.0 / len(y))
+    with warnings.catch_warnings():  # a Sinkhorn stopped at numItermax still gives a usable plan
+        warnings.filterwarnings("ignore", message="Sinkhorn did not converge")
+        return _alternate(s, y, rot, t, a, b, eps, reg_m, max_iters, tol)
+
+
+def _alternate(s, y, rot, t, a, b, eps, reg_m, max_iters, tol):
     for _ in range(max_iters):
-        warnings.filterwarnings("ignore", message="Sinkhorn did not converge", module="ot")
         cost = (((s @ rot.T + t)[:, None, :] - y[None]) ** 2).sum(-1)
         cost = np.minimum(cost / (cost.mean() + 1e-300), 10.0)  # exp(-10 / eps) stays a normal float
         if reg_m is None:
