@@ -31,10 +31,33 @@ def test_fused_fit_and_forward_equal_the_torch_path(seed, d):
 
 def test_early_stopping_and_other_settings_agree():
     src, tgt = keypoint_pair(2)
-    for kwargs in ({"tol": 1e-3}, {"n_steps": 5, "beta": 0.5}, {"n_rho": 4, "alignment": "none"}):
+    settings = ({"tol": 1e-3}, {"n_steps": 5, "beta": 0.5}, {"n_rho": 4, "alignment": "none"},
+                {"alignment": "similarity"}, {"alignment": "translation"}, {"alignment": "affine"})  # fmt: skip
+    for kwargs in settings:
         fused, plain = ILWRMap(**kwargs).fit(src, tgt), ILWRMap(fused=False, **kwargs).fit(src, tgt)
         assert fused.centres.shape == plain.centres.shape
+        torch.testing.assert_close(fused.alignment.A, plain.alignment.A, atol=1e-12, rtol=0)
+        torch.testing.assert_close(fused.alignment.t, plain.alignment.t, atol=1e-9, rtol=0)
         torch.testing.assert_close(fused(src), plain(src), atol=1e-9, rtol=0)
+
+
+def test_the_compiled_alignment_is_reflection_safe_and_names_coincident_sources():
+    src, _ = pair(3)
+    mirrored = src * torch.tensor([-1.0, 1.0], dtype=torch.float64)  # a reflection: the rigid fit must not mirror
+    phi = ILWRMap(n_steps=1).fit(src, mirrored)
+    assert torch.linalg.det(phi.alignment.A[0]) > 0
+    torch.testing.assert_close(phi.alignment.A, ILWRMap(n_steps=1, fused=False).fit(src, mirrored).alignment.A, atol=1e-12, rtol=0)
+    same = torch.full((5, 2), 3.0, dtype=torch.float64)
+    with pytest.raises(ValueError, match="all source keypoints coincide"):
+        ILWRMap().fit(same, same + 1.0)  # one point five times: the rotation is undetermined
+
+
+def test_a_target_that_wants_gradients_takes_the_differentiable_path():
+    src, tgt = pair(1)
+    tgt = tgt.clone().requires_grad_(True)
+    phi = ILWRMap(n_steps=5).fit(src, tgt)
+    (grad,) = torch.autograd.grad(phi(src).sum(), tgt)
+    assert grad.abs().sum() > 0  # the fit is differentiable in its targets
 
 
 def test_the_torch_path_keeps_what_the_kernels_do_not_cover():

@@ -118,7 +118,8 @@ class AlignedMap(TransportMap):
     def required_points(self, dim: int) -> int:
         return self.alignment.required_points(dim) if self.aligned else 1
 
-    def _fit_alignment(self, source: torch.Tensor, target: torch.Tensor) -> None:
+    def _fit_alignment(self, source: torch.Tensor, target: torch.Tensor, fitted: tuple | None = None) -> None:
+        """Fit the alignment on ``[B, N, D]`` pairs, or take ``fitted = (A, t)`` computed elsewhere (a compiled path)."""
         al = self.alignment
         al.batch_shape, al.dim, al._source, al._target = torch.Size([source.shape[0]]), source.shape[-1], source, target
-        al.A, al.t = fit_affine(source, target if self.aligned else source, al.kind)
+        al.A, al.t = fitted if fitted is not None else fit_affine(source, target if self.aligned else source, al.kind)

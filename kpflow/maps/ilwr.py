@@ -92,14 +92,17 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ fit
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
+        grid = -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=source.dtype, device=source.device)
+        self._chol = None  # the uncertainty model is built on first use (predict/sample)
+        if self._fused(source) and not target.requires_grad and self.alignment.kind in ilwr_kernels.ALIGN_KINDS:
+            fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol)
+            if fitted is not None:  # None: the sources coincide, and the torch path below raises the error
+                (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
+                self._fit_alignment(source, target, fitted=(a, t))
+                return
         self._fit_alignment(source, target)
         z = self.alignment._forward(source)
-        grid = -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=z.dtype, device=z.device)
-        if self._fused(z):
-            self.centres, self.vectors, self.neg_rho2 = _fit_fused(z, target, self.n_steps, self.beta, grid, self.tol)
-        else:
-            self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
-        self._chol = None  # the uncertainty model is built on first use (predict/sample)
+        self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
 
     def _fused(self, x: torch.Tensor) -> bool:
         """Whether the compiled kernels (:mod:`.ilwr_kernels`) take this call: one keypoint set on the CPU in
@@ -126,11 +129,12 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        z = self.alignment._forward(x)
-        if self._fused(z) and not self.centres.requires_grad:
-            out = ilwr_kernels.apply_steps(z[0].numpy(), self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
+        if self._fused(x) and not self.centres.requires_grad:
+            al = self.alignment
+            z = ilwr_kernels.apply_affine(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy())
+            out = ilwr_kernels.apply_steps(z, self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
             return torch.from_numpy(out)[None]
-        return apply_steps(z, self.centres, self.vectors, self.neg_rho2)
+        return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
         x = invert_steps(y, self.centres, self.vectors, self.neg_rho2, self.inverse_iters)
@@ -168,12 +172,20 @@ def step_candidates(neg_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return alpha.repeat_interleave(neg_grid.shape[0]), (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
 
 
-def _fit_fused(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):
-    """:func:`fit_steps` for one keypoint set through the compiled kernel (the same candidates, in the same order)."""
-    alpha_c, grid_c = step_candidates(neg_grid)
-    c, v, nr2, _ = ilwr_kernels.fit_steps(z[0].numpy(), target[0].detach().numpy(), n_steps, beta, grid_c.numpy(), alpha_c.numpy(),
-                                          tol, torch.finfo(z.dtype).tiny, MIN_EXPONENT)  # fmt: skip
-    return torch.from_numpy(c)[None], torch.from_numpy(v)[None], torch.from_numpy(nr2)[None]
+def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: bool, n_steps: int, beta: float,
+               neg_grid: torch.Tensor, tol: float):  # fmt: skip
+    """The alignment (:func:`kpflow.maps.affine.fit_affine`) and :func:`fit_steps` for one keypoint set through the
+    compiled kernels (the same formulas, candidates and order): ``((A, t), (centres, vectors, -rho^2))`` with a
+    leading batch dimension of 1, or None where the sources coincide."""
+    src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
+    finfo = torch.finfo(source.dtype)
+    a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
+    if not ok:
+        return None
+    z = ilwr_kernels.apply_affine(src, a, t)
+    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, finfo.tiny, MIN_EXPONENT)
+    batch = (torch.from_numpy(a)[None], torch.from_numpy(t)[None]), (torch.from_numpy(c)[None], torch.from_numpy(v)[None], torch.from_numpy(nr2)[None])
+    return batch
 
 
 def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):

@@ -30,25 +30,47 @@ def _residuals(z, target, r):  # pragma: no cover  (compiled)
     return worst, p
 
 
+#: the step lengths alpha of the search, 2^-b for b < N_ALPHA (:func:`kpflow.maps.ilwr.step_candidates`)
+N_ALPHA = 4
+
+
 @numba.njit(cache=True)
-def _best_candidate(d2, rv, vn2, grid_c, alpha_c, min_exponent):  # pragma: no cover  (compiled)
-    """The (first) candidate minimising a^2 |v|^2 sum_i w_i^2 - 2 a sum_i w_i (r_i . v), and that value."""
-    best_val, best_idx = np.inf, 0
-    for q in range(grid_c.shape[0]):
-        nrho2 = max(grid_c[q] / vn2, -1e30)
-        sw, sww = 0.0, 0.0
+def _best_candidate(d2, rv, vn2, neg_grid, min_exponent):  # pragma: no cover  (compiled)
+    """The (first) candidate q = b G + g minimising a^2 |v|^2 sum_i w_i^2 - 2 a sum_i w_i (r_i . v), with
+    a = 2^-b and w_i = exp(d2_i 4^b neg_grid[g] / |v|^2) (clamped), and that value.
+
+    The candidates are :func:`kpflow.maps.ilwr.step_candidates`' in its order. Their exponents for one width are
+    e, 4 e, 16 e, 64 e (scalings by powers of two, exact), so one exp and repeated squaring give all four
+    weights: a quarter of the exps, which are this search's cost, at a few ulps of difference.
+    """
+    n_grid = neg_grid.shape[0]
+    sw = np.zeros(N_ALPHA * n_grid)
+    sww = np.zeros(N_ALPHA * n_grid)
+    floor = math.exp(min_exponent)  # the weight of a clamped exponent
+    for g in range(n_grid):
+        nrho2 = max(neg_grid[g] / vn2, -1e30)
         for i in range(d2.shape[0]):
-            w = math.exp(max(d2[i] * nrho2, min_exponent))
-            sw += w * rv[i]
-            sww += w * w
-        loss = -2.0 * alpha_c[q] * sw + alpha_c[q] * alpha_c[q] * sww * vn2
+            e = d2[i] * nrho2
+            w = math.exp(e) if e > min_exponent else floor
+            for b in range(N_ALPHA):
+                if b > 0:
+                    e *= 4.0
+                    w = w * w
+                    w = w * w if e > min_exponent else floor
+                q = b * n_grid + g
+                sw[q] += w * rv[i]
+                sww[q] += w * w
+    best_val, best_idx = np.inf, 0
+    for q in range(N_ALPHA * n_grid):
+        a = 0.5 ** (q // n_grid)
+        loss = -2.0 * a * sw[q] + a * a * sww[q] * vn2
         if loss < best_val:
             best_val, best_idx = loss, q
     return best_val, best_idx
 
 
 @numba.njit(cache=True)
-def fit_steps(z, target, n_steps, beta, grid_c, alpha_c, tol, tiny, min_exponent):  # pragma: no cover  (compiled)
+def fit_steps(z, target, n_steps, beta, neg_grid, tol, tiny, min_exponent):  # pragma: no cover  (compiled)
     """Greedy ILWR fit of ``z [N, D]`` towards ``target [N, D]`` (see :func:`kpflow.maps.ilwr.fit_steps`):
     centres ``[K, D]``, vectors ``[K, D]``, -rho^2 ``[K]`` and the fitted keypoints (K <= n_steps)."""
     n, d = z.shape
@@ -78,9 +100,10 @@ def fit_steps(z, target, n_steps, beta, grid_c, alpha_c, tol, tiny, min_exponent
                 s += (z[i, j] - c[j]) ** 2
                 t += v[j] * r[i, j]
             d2[i], rv[i] = s, t
-        best_val, best_idx = _best_candidate(d2, rv, vn2, grid_c, alpha_c, min_exponent)
-        best = max(grid_c[best_idx] / vn2, -1e30)
-        scale = alpha_c[best_idx] if best_val < 0 else 0.0
+        best_val, best_idx = _best_candidate(d2, rv, vn2, neg_grid, min_exponent)
+        b, g = divmod(best_idx, neg_grid.shape[0])
+        best = max(neg_grid[g] * 4.0**b / vn2, -1e30)
+        scale = 0.5**b if best_val < 0 else 0.0
         for j in range(d):
             v[j] *= scale
         for i in range(n):
@@ -90,6 +113,48 @@ def fit_steps(z, target, n_steps, beta, grid_c, alpha_c, tol, tiny, min_exponent
         centres[k], vectors[k], rhos[k] = c, v, best
         k_done = k + 1
     return centres[:k_done], vectors[:k_done], rhos[:k_done], z
+
+
+#: the alignments :func:`align` computes, by code
+ALIGN_KINDS = {"rigid": 0, "similarity": 1, "translation": 2}
+
+
+@numba.njit(cache=True)
+def align(source, target, kind, eps, tiny):  # pragma: no cover  (compiled)
+    """:func:`kpflow.maps.affine.fit_affine` for one pair ``[N, D]`` (``kind`` a code of ``ALIGN_KINDS``; the same
+    Umeyama steps in units of the sources' RMS spread): ``(A [D, D], t [D], ok)``. ``ok`` is False where the sources
+    coincide; the caller then takes the torch path, which raises the error that names it."""
+    n, d = source.shape
+    mu_s, mu_t = np.zeros(d), np.zeros(d)
+    for i in range(n):
+        for j in range(d):
+            mu_s[j] += source[i, j] / n
+            mu_t[j] += target[i, j] / n
+    a = np.eye(d)
+    if kind == 2:
+        return a, mu_t - mu_s, True
+    x, y = source - mu_s, target - mu_t
+    peak = max(np.abs(x).max(), tiny)
+    rms = peak * math.sqrt(((x / peak) ** 2).sum() / n)
+    if rms <= 1e3 * eps * np.abs(source).max():
+        return a, mu_t - mu_s, False
+    x, y = x / rms, y / rms
+    spread = (x * x).sum() / n
+    u, s, vh = np.linalg.svd(x.T @ y / n)
+    v = vh.T
+    e = np.ones(d)
+    if np.linalg.det(v @ u.T) < 0:
+        e[d - 1] = -1.0
+    r = v @ (np.expand_dims(e, 1) * u.T)
+    if kind == 1:
+        r = r * ((s * e).sum() / spread)
+    return r, mu_t - r @ mu_s, True
+
+
+@numba.njit(cache=True)
+def apply_affine(x, a, t):  # pragma: no cover  (compiled)
+    """A x + t for ``x [M, D]``."""
+    return x @ a.T + t
 
 
 @numba.njit(cache=True)
