@@ -27,9 +27,14 @@ def test_shape_benchmark_writes_its_table(tmp_path):
     done = subprocess.run([sys.executable, "benchmarks/shapes.py", "--shapes", "1", "--maps", *maps, "--out", str(out)], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
-    rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
+    text = out.read_text()
+    first = text.split("## ")[0]  # the main table; calibration and stop-and-ask tables follow
+    rows = [line.split(" | ") for line in first.splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert [r[0][2:] for r in rows] == maps and rows[1][6] == "1.00"  # the authors' GP is its own reference
-    assert all(float(r[1]) > 0 for r in rows) and "42 ordered demonstration pairs" in out.read_text()
+    assert all(float(r[1]) > 0 for r in rows) and "42 ordered demonstration pairs" in text
+    assert "one shape: nothing held out" in text  # a single shape leaves no held-out shape to calibrate on
+    stop = [line for line in text.splitlines() if line.startswith("| ILWRMap (default) |")][-1].split(" | ")
+    assert -1 <= float(stop[1]) <= 1 and len(stop) == 5  # Spearman, then three median / p90 cells
 
 
 @pytest.mark.slow

@@ -92,9 +92,9 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ fit
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
-        grid = -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=source.dtype, device=source.device)
         self._chol = None  # the uncertainty model is built on first use (predict/sample)
         if self._fused(source) and not target.requires_grad and self.alignment.kind in ilwr_kernels.ALIGN_KINDS:
+            grid = self._width_grid(torch.float64, source.device)
             fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol)
             if fitted is not None:  # None: the sources coincide, and the torch path below raises the error
                 (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
@@ -102,13 +102,19 @@ class ILWRMap(AlignedMap):
                 return
         self._fit_alignment(source, target)
         z = self.alignment._forward(source)
+        grid = self._width_grid(source.dtype, source.device)
         self.centres, self.vectors, self.neg_rho2, z = fit_steps(z, target, self.n_steps, self.beta, grid, self.tol)
 
+    def _width_grid(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+        """The searched widths as -(rho |v|)^2: ``n_rho`` values geometric up to the diffeomorphism bound."""
+        return -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=dtype, device=device)
+
     def _fused(self, x: torch.Tensor) -> bool:
-        """Whether the compiled kernels (:mod:`.ilwr_kernels`) take this call: one keypoint set on the CPU in
-        float64 (in float32 the kernels' float64 sums would pick other steps than torch's float32 ones), no autograd
-        graph wanted; ``fused=False`` keeps the torch path."""
-        return (self.fused and x.shape[0] == 1 and x.device.type == "cpu" and x.dtype == torch.float64
+        """Whether the compiled kernels (:mod:`.ilwr_kernels`) take this call: one keypoint set on the CPU, no
+        autograd graph wanted; ``fused=False`` keeps the torch path. The kernels compute in float64, so a float32
+        fit is the float64 fit rounded to float32 (torch's float32 path may choose other steps; it stays available
+        as ``fused=False``)."""
+        return (self.fused and x.shape[0] == 1 and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
                 and not (torch.is_grad_enabled() and x.requires_grad))  # fmt: skip
 
     def _fit_uncertainty(self) -> None:
@@ -130,10 +136,10 @@ class ILWRMap(AlignedMap):
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._fused(x) and not self.centres.requires_grad:
-            al = self.alignment
-            z = ilwr_kernels.apply_affine(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy())
-            out = ilwr_kernels.apply_steps(z, self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
-            return torch.from_numpy(out)[None]
+            al, f64 = self.alignment, _float64_numpy
+            z = ilwr_kernels.apply_affine(f64(x[0]), f64(al.A[0]), f64(al.t[0]))
+            out = ilwr_kernels.apply_steps(z, f64(self.centres[0]), f64(self.vectors[0]), f64(self.neg_rho2[0]), MIN_EXPONENT)
+            return torch.from_numpy(out).to(x.dtype)[None]
         return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
@@ -177,15 +183,21 @@ def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: b
     """The alignment (:func:`kpflow.maps.affine.fit_affine`) and :func:`fit_steps` for one keypoint set through the
     compiled kernels (the same formulas, candidates and order): ``((A, t), (centres, vectors, -rho^2))`` with a
     leading batch dimension of 1, or None where the sources coincide."""
-    src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
-    finfo = torch.finfo(source.dtype)
-    a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
+    src, tgt = _float64_numpy(source[0].detach()), _float64_numpy(target[0].detach())
+    finfo = torch.finfo(torch.float64)  # the kernels' arithmetic; coincidence is judged at the inputs' resolution
+    eps = torch.finfo(source.dtype).eps
+    a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], eps, finfo.tiny)
     if not ok:
         return None
     z = ilwr_kernels.apply_affine(src, a, t)
-    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, finfo.tiny, MIN_EXPONENT)
-    batch = (torch.from_numpy(a)[None], torch.from_numpy(t)[None]), (torch.from_numpy(c)[None], torch.from_numpy(v)[None], torch.from_numpy(nr2)[None])
-    return batch
+    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, _float64_numpy(neg_grid), tol, finfo.tiny, MIN_EXPONENT)
+    out = [torch.from_numpy(arr).to(source.dtype)[None] for arr in (a, t, c, v, nr2)]
+    return tuple(out[:2]), tuple(out[2:])
+
+
+def _float64_numpy(x: torch.Tensor):
+    """A CPU tensor as a float64 numpy array (no copy when it is float64 already)."""
+    return (x if x.dtype == torch.float64 else x.double()).numpy()
 
 
 def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):

@@ -1,11 +1,12 @@
 """ILWR's fit and forward pass for one keypoint set as fused loops (numba), the CPU fast path of
 :class:`~kpflow.maps.ilwr.ILWRMap`.
 
-They compute exactly what :func:`~kpflow.maps.ilwr.fit_steps` and :func:`~kpflow.maps.ilwr.apply_steps` compute
-(the same candidates, the same first-minimum choice, the same clamped weights), in one compiled pass instead of
-some twenty tensor operations per step: a fit of 30 steps on 25 keypoints is a few hundred microseconds of
-arithmetic, which per-operation overhead made milliseconds. Results agree with the torch path to rounding
-(``tests/test_ilwr_kernels.py``: 1e-9 in float64). Compiled on first use and cached beside the module.
+They compute what :func:`~kpflow.maps.affine.fit_affine` (rigid, similarity, translation),
+:func:`~kpflow.maps.ilwr.fit_steps` and :func:`~kpflow.maps.ilwr.apply_steps` compute (the same candidates, the same
+first-minimum choice, the same clamped weights), in float64, in a few compiled passes instead of some twenty tensor
+operations per step: a fit of 30 steps on 25 keypoints is about 150 microseconds of arithmetic, which per-operation
+overhead made milliseconds. Results agree with the torch path to rounding (``tests/test_ilwr_kernels.py``: 1e-9 in
+float64). Compiled on first use and cached beside the module.
 """
 
 from __future__ import annotations
