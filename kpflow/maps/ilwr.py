@@ -93,9 +93,13 @@ class ILWRMap(AlignedMap):
     # ------------------------------------------------------------------ fit
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         self._chol = None  # the uncertainty model is built on first use (predict/sample)
-        if self._fused(source) and not target.requires_grad and self.alignment.kind in ilwr_kernels.ALIGN_KINDS:
+        if self._fused(source) and not target.requires_grad:
+            affine = None  # the kernels fit rigid, similarity and translation alignments; torch fits the affine one
+            if self.alignment.kind not in ilwr_kernels.ALIGN_KINDS:
+                self._fit_alignment(source, target)
+                affine = self.alignment.A, self.alignment.t
             grid = self._width_grid(torch.float64, source.device)
-            fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol)
+            fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol, affine)
             if fitted is not None:  # None: the sources coincide, and the torch path below raises the error
                 (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
                 self._fit_alignment(source, target, fitted=(a, t))
@@ -179,16 +183,19 @@ def step_candidates(neg_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: bool, n_steps: int, beta: float,
-               neg_grid: torch.Tensor, tol: float):  # fmt: skip
-    """The alignment (:func:`kpflow.maps.affine.fit_affine`) and :func:`fit_steps` for one keypoint set through the
-    compiled kernels (the same formulas, candidates and order): ``((A, t), (centres, vectors, -rho^2))`` with a
-    leading batch dimension of 1, or None where the sources coincide."""
+               neg_grid: torch.Tensor, tol: float, affine: tuple[torch.Tensor, torch.Tensor] | None = None):  # fmt: skip
+    """The alignment (:func:`kpflow.maps.affine.fit_affine`, unless ``affine = (A, t)`` is given) and
+    :func:`fit_steps` for one keypoint set through the compiled kernels (the same formulas, candidates and order):
+    ``((A, t), (centres, vectors, -rho^2))`` with a leading batch dimension of 1, or None where the sources coincide."""
     src, tgt = _float64_numpy(source[0].detach()), _float64_numpy(target[0].detach())
     finfo = torch.finfo(torch.float64)  # the kernels' arithmetic; coincidence is judged at the inputs' resolution
-    eps = torch.finfo(source.dtype).eps
-    a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], eps, finfo.tiny)
-    if not ok:
-        return None
+    if affine is not None:
+        a, t = _float64_numpy(affine[0][0]), _float64_numpy(affine[1][0])
+    else:
+        eps = torch.finfo(source.dtype).eps
+        a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], eps, finfo.tiny)
+        if not ok:
+            return None
     z = ilwr_kernels.apply_affine(src, a, t)
     c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, _float64_numpy(neg_grid), tol, finfo.tiny, MIN_EXPONENT)
     out = [torch.from_numpy(arr).to(source.dtype)[None] for arr in (a, t, c, v, nr2)]
