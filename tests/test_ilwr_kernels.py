@@ -68,15 +68,5 @@ def test_the_torch_path_keeps_what_the_kernels_do_not_cover():
     x = src.clone().requires_grad_(True)  # a query that wants gradients: torch, differentiable
     (grad,) = torch.autograd.grad(one(x).sum(), x)
     torch.testing.assert_close(grad, one.jacobian(src).sum(-2), atol=1e-8, rtol=1e-8)
-
-
-
-def test_a_float32_fit_is_the_float64_fit_rounded():
-    src, tgt = pair(4)
-    f32, f64 = ILWRMap().fit(src.float(), tgt.float()), ILWRMap().fit(src.float().double(), tgt.float().double())
-    for name in ("centres", "vectors", "neg_rho2"):
-        assert torch.equal(getattr(f32, name), getattr(f64, name).float())  # the kernels compute in float64
-    assert f32(src.float()).dtype == torch.float32
-    torch.testing.assert_close(f32(src.float()).double(), f64(src.float().double()), atol=1e-3, rtol=0)
-    plain = ILWRMap(fused=False).fit(src.float(), tgt.float())  # torch's own float32 arithmetic stays available
-    assert plain(src.float()).dtype == torch.float32 and (plain(src.float()) - tgt.float()).abs().max() < 2.0
+    f32 = ILWRMap().fit(src.float(), tgt.float())  # float32: torch, so a float32 batch equals its sets fitted singly
+    assert torch.equal(f32(src.float()), ILWRMap(fused=False).fit(src.float(), tgt.float())(src.float()))

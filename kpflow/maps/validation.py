@@ -89,15 +89,18 @@ def check_pairs(source, target, min_points: Callable[[int], int]) -> tuple[torch
     check_finite(source, "source")
     check_finite(target, "target")
     dtype = torch.promote_types(source.dtype, target.dtype)
-    try:
-        batch = torch.broadcast_shapes(source.shape[:-2], target.shape[:-2])
-    except RuntimeError as e:
-        raise ValueError(
-            f"source batch shape {tuple(source.shape[:-2])} and target batch shape "
-            f"{tuple(target.shape[:-2])} do not broadcast"
-        ) from e
-    source = source.to(dtype).expand(*batch, *source.shape[-2:])
-    target = target.to(dtype).expand(*batch, *target.shape[-2:])
+    batch = source.shape[:-2]
+    if target.shape[:-2] != batch:  # (the common case of equal shapes skips the broadcast: fits can be sub-ms)
+        try:
+            batch = torch.broadcast_shapes(source.shape[:-2], target.shape[:-2])
+        except RuntimeError as e:
+            raise ValueError(
+                f"source batch shape {tuple(source.shape[:-2])} and target batch shape "
+                f"{tuple(target.shape[:-2])} do not broadcast"
+            ) from e
+        source = source.expand(*batch, *source.shape[-2:])
+        target = target.expand(*batch, *target.shape[-2:])
+    source, target = source.to(dtype), target.to(dtype)
     _check_duplicates(source, target)
     return source, target
 
@@ -108,11 +111,12 @@ def _check_duplicates(source: torch.Tensor, target: torch.Tensor) -> None:
     # relative to the set's own extent (no absolute floor, so keypoints at any scale are judged alike)
     scale = (source.amax(-2) - source.amin(-2)).norm(dim=-1).clamp_min(torch.finfo(source.dtype).tiny)  # [B]
     tol = (1e-9 if source.dtype == torch.float64 else 1e-6) * scale
-    off = ~torch.eye(n, dtype=torch.bool, device=source.device)
     # direct differences: the matrix-product form cdist uses for N > 25 leaves errors of sqrt(eps) |x| (far above
     # tol for keypoints away from the origin), so exact duplicates could pass unnoticed
-    dist = torch.cdist(source, source, compute_mode="donot_use_mm_for_euclid_dist")
-    close = (dist <= tol[:, None, None]) & off  # [B, N, N]
+    with torch.no_grad():  # a check, never differentiated
+        dist = torch.cdist(source, source, compute_mode="donot_use_mm_for_euclid_dist")
+        dist.diagonal(dim1=-2, dim2=-1).fill_(torch.inf)  # a keypoint is not its own duplicate
+    close = dist <= tol[:, None, None]  # [B, N, N]
     if not close.any():
         return
     b, i, j = close.nonzero().T  # only coinciding sources need their targets compared
