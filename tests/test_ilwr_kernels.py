@@ -52,12 +52,22 @@ def test_the_compiled_alignment_is_reflection_safe_and_names_coincident_sources(
         ILWRMap().fit(same, same + 1.0)  # one point five times: the rotation is undetermined
 
 
-def test_a_target_that_wants_gradients_takes_the_differentiable_path():
+@pytest.mark.parametrize("kwargs", [{"n_steps": 5}, {"n_steps": 1, "alignment": "none"}])
+def test_a_target_that_wants_gradients_takes_the_differentiable_path(kwargs):
     src, tgt = pair(1)
     tgt = tgt.clone().requires_grad_(True)
-    phi = ILWRMap(n_steps=5).fit(src, tgt)
+    phi = ILWRMap(**kwargs).fit(src, tgt)  # (one unaligned step: the centres do not depend on the targets)
     (grad,) = torch.autograd.grad(phi(src).sum(), tgt)
     assert grad.abs().sum() > 0  # the fit is differentiable in its targets
+
+
+def test_an_ill_determined_rotation_is_decided_as_the_torch_path_decides_it():
+    t = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)[:, None]
+    src = t * torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)  # collinear in 3-D: the spin about the line is free
+    tgt = src + torch.tensor([0.1, 0.0, -0.2], dtype=torch.float64) + 0.01 * t**2
+    fused, plain = ILWRMap().fit(src, tgt), ILWRMap(fused=False).fit(src, tgt)
+    torch.testing.assert_close(fused.alignment.A, plain.alignment.A, atol=1e-12, rtol=0)
+    torch.testing.assert_close(fused(src), plain(src), atol=1e-9, rtol=0)
 
 
 def test_the_torch_path_keeps_what_the_kernels_do_not_cover():

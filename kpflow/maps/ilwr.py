@@ -100,7 +100,7 @@ class ILWRMap(AlignedMap):
                 affine = self.alignment.A, self.alignment.t
             grid = self._width_grid(torch.float64, source.device)
             fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol, affine)
-            if fitted is not None:  # None: the sources coincide, and the torch path below raises the error
+            if fitted is not None:  # None: coincident sources (the torch path raises) or an ill-determined rotation
                 (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
                 self._fit_alignment(source, target, fitted=(a, t))
                 return
@@ -139,11 +139,11 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self._fused(x) and not self.centres.requires_grad:
-            al, f64 = self.alignment, _float64_numpy
-            z = ilwr_kernels.apply_affine(f64(x[0]), f64(al.A[0]), f64(al.t[0]))
-            out = ilwr_kernels.apply_steps(z, f64(self.centres[0]), f64(self.vectors[0]), f64(self.neg_rho2[0]), MIN_EXPONENT)
-            return torch.from_numpy(out).to(x.dtype)[None]
+        if self._fused(x) and not any(p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)):
+            al = self.alignment
+            z = ilwr_kernels.apply_affine(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy())
+            out = ilwr_kernels.apply_steps(z, self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
+            return torch.from_numpy(out)[None]
         return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
@@ -187,24 +187,18 @@ def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: b
     """The alignment (:func:`kpflow.maps.affine.fit_affine`, unless ``affine = (A, t)`` is given) and
     :func:`fit_steps` for one keypoint set through the compiled kernels (the same formulas, candidates and order):
     ``((A, t), (centres, vectors, -rho^2))`` with a leading batch dimension of 1, or None where the sources coincide."""
-    src, tgt = _float64_numpy(source[0].detach()), _float64_numpy(target[0].detach())
-    finfo = torch.finfo(torch.float64)  # the kernels' arithmetic; coincidence is judged at the inputs' resolution
+    src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
+    finfo = torch.finfo(torch.float64)
     if affine is not None:
-        a, t = _float64_numpy(affine[0][0]), _float64_numpy(affine[1][0])
+        a, t = affine[0][0].detach().numpy(), affine[1][0].detach().numpy()
     else:
-        eps = torch.finfo(source.dtype).eps
-        a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], eps, finfo.tiny)
+        a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
         if not ok:
             return None
     z = ilwr_kernels.apply_affine(src, a, t)
-    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, _float64_numpy(neg_grid), tol, finfo.tiny, MIN_EXPONENT)
-    out = [torch.from_numpy(arr).to(source.dtype)[None] for arr in (a, t, c, v, nr2)]
+    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, finfo.tiny, MIN_EXPONENT)
+    out = [torch.from_numpy(arr)[None] for arr in (a, t, c, v, nr2)]
     return tuple(out[:2]), tuple(out[2:])
-
-
-def _float64_numpy(x: torch.Tensor):
-    """A CPU tensor as a float64 numpy array (no copy when it is float64 already)."""
-    return (x if x.dtype == torch.float64 else x.double()).numpy()
 
 
 def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):

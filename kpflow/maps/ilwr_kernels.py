@@ -42,22 +42,31 @@ def _best_candidate(d2, rv, vn2, neg_grid, min_exponent):  # pragma: no cover  (
 
     The candidates are :func:`kpflow.maps.ilwr.step_candidates`' in its order. Their exponents for one width are
     e, 4 e, 16 e, 64 e (scalings by powers of two, exact), so one exp and repeated squaring give all four
-    weights: a quarter of the exps, which are this search's cost, at a few ulps of difference.
+    weights: a quarter of the exps, which are this search's cost, at a relative difference of at most ~100 ulps
+    (each squaring doubles it).
     """
     n_grid = neg_grid.shape[0]
     sw = np.zeros(N_ALPHA * n_grid)
     sww = np.zeros(N_ALPHA * n_grid)
     floor = math.exp(min_exponent)  # the weight of a clamped exponent
+    nrho2 = np.empty(N_ALPHA)
     for g in range(n_grid):
-        nrho2 = max(neg_grid[g] / vn2, -1e30)
+        squaring = True  # the widths, clamped as the torch path clamps them; squaring needs them exact multiples
+        for b in range(N_ALPHA):
+            nrho2[b] = max(neg_grid[g] * 4.0**b / vn2, -1e30)
+            squaring = squaring and nrho2[b] == nrho2[0] * 4.0**b
         for i in range(d2.shape[0]):
-            e = d2[i] * nrho2
+            e = d2[i] * nrho2[0]
             w = math.exp(e) if e > min_exponent else floor
             for b in range(N_ALPHA):
                 if b > 0:
-                    e *= 4.0
-                    w = w * w
-                    w = w * w if e > min_exponent else floor
+                    if squaring:
+                        e *= 4.0
+                        w = w * w
+                        w = w * w if e > min_exponent else floor
+                    else:  # |v| ~ 0 clamped a width: each weight directly
+                        e = d2[i] * nrho2[b]
+                        w = math.exp(e) if e > min_exponent else floor
                 q = b * n_grid + g
                 sw[q] += w * rv[i]
                 sww[q] += w * w
@@ -124,7 +133,9 @@ ALIGN_KINDS = {"rigid": 0, "similarity": 1, "translation": 2}
 def align(source, target, kind, eps, tiny):  # pragma: no cover  (compiled)
     """:func:`kpflow.maps.affine.fit_affine` for one pair ``[N, D]`` (``kind`` a code of ``ALIGN_KINDS``; the same
     Umeyama steps in units of the sources' RMS spread): ``(A [D, D], t [D], ok)``. ``ok`` is False where the sources
-    coincide; the caller then takes the torch path, which raises the error that names it."""
+    coincide or where the rotation is ill-determined (rank of H below D - 1, or a reflection fix between two nearly
+    equal singular values: there two SVD implementations may pick different valid rotations); the caller then takes
+    the torch path, which raises the error that names the first and decides the second as a batch would."""
     n, d = source.shape
     mu_s, mu_t = np.zeros(d), np.zeros(d)
     for i in range(n):
@@ -144,7 +155,10 @@ def align(source, target, kind, eps, tiny):  # pragma: no cover  (compiled)
     u, s, vh = np.linalg.svd(x.T @ y / n)
     v = vh.T
     e = np.ones(d)
-    if np.linalg.det(v @ u.T) < 0:
+    reflect = np.linalg.det(v @ u.T) < 0
+    if s[0] <= tiny or s[d - 2] <= 1e-6 * s[0] or (reflect and s[d - 2] - s[d - 1] <= 1e-6 * s[0]):
+        return a, mu_t - mu_s, False
+    if reflect:
         e[d - 1] = -1.0
     r = v @ (np.expand_dims(e, 1) * u.T)
     if kind == 1:
