@@ -4,7 +4,7 @@ transported points, to 1e-9 in float64, on random, clustered, batched-then-split
 import pytest
 import torch
 
-from kpflow.maps import ILWRMap
+from kpflow.maps import ILWRMap, ilwr_kernels
 from tests.helpers import grid, keypoint_pair
 
 
@@ -65,6 +65,8 @@ def test_an_ill_determined_rotation_is_decided_as_the_torch_path_decides_it():
     t = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)[:, None]
     src = t * torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)  # collinear in 3-D: the spin about the line is free
     tgt = src + torch.tensor([0.1, 0.0, -0.2], dtype=torch.float64) + 0.01 * t**2
+    finfo = torch.finfo(torch.float64)
+    assert not ilwr_kernels.align(src.numpy(), tgt.numpy(), ilwr_kernels.ALIGN_KINDS["rigid"], finfo.eps, finfo.tiny)[2]
     fused, plain = ILWRMap().fit(src, tgt), ILWRMap(fused=False).fit(src, tgt)
     torch.testing.assert_close(fused.alignment.A, plain.alignment.A, atol=1e-12, rtol=0)
     torch.testing.assert_close(fused(src), plain(src), atol=1e-9, rtol=0)

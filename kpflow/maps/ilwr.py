@@ -102,7 +102,8 @@ class ILWRMap(AlignedMap):
             fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol, affine)
             if fitted is not None:  # None: coincident sources (the torch path raises) or an ill-determined rotation
                 (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
-                self._fit_alignment(source, target, fitted=(a, t))
+                if affine is None:
+                    self._fit_alignment(source, target, fitted=(a, t))
                 return
         self._fit_alignment(source, target)
         z = self.alignment._forward(source)
@@ -178,7 +179,7 @@ class ILWRMap(AlignedMap):
 def step_candidates(neg_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The step search's candidates ``[C]``: each step length alpha in (1, 1/2, 1/4, 1/8) with every width of
     ``neg_grid``, as (alpha, -(rho |alpha v|)^2 / alpha^2)."""
-    alpha = torch.tensor([1.0, 0.5, 0.25, 0.125], dtype=neg_grid.dtype, device=neg_grid.device)
+    alpha = 0.5 ** torch.arange(ilwr_kernels.N_ALPHA, dtype=neg_grid.dtype, device=neg_grid.device)  # as the kernels
     return alpha.repeat_interleave(neg_grid.shape[0]), (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
 
 
@@ -186,7 +187,8 @@ def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: b
                neg_grid: torch.Tensor, tol: float, affine: tuple[torch.Tensor, torch.Tensor] | None = None):  # fmt: skip
     """The alignment (:func:`kpflow.maps.affine.fit_affine`, unless ``affine = (A, t)`` is given) and
     :func:`fit_steps` for one keypoint set through the compiled kernels (the same formulas, candidates and order):
-    ``((A, t), (centres, vectors, -rho^2))`` with a leading batch dimension of 1, or None where the sources coincide."""
+    ``((A, t), (centres, vectors, -rho^2))`` with a leading batch dimension of 1, or None where the sources coincide
+    or the rotation is ill-determined (:func:`.ilwr_kernels.align`)."""
     src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
     finfo = torch.finfo(torch.float64)
     if affine is not None:
