@@ -43,10 +43,10 @@ from sklearn.neighbors import NearestNeighbors
 
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
-from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.utils.io import publish

@@ -26,10 +26,10 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from kpflow.data.episode_store import EpisodeStore  # noqa: E402
+from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
 from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
 from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
-from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
 from kpflow.utils.io import publish  # noqa: E402
 

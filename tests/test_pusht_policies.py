@@ -6,10 +6,10 @@ import pytest
 from kpflow.data.chunks import ChunkDataset
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.maps import AffineMap
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.nearest import NearestNeighbourPolicy
-from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.tasks.base import Policy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.rollout import run_episode

@@ -13,10 +13,10 @@ import torch
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.kcfm import KCFM, MAX_STEPS
 from kpflow.policies.kcfm_policy import KCFMPolicy
-from kpflow.policies.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.base import Policy
 from tests.helpers import walk_to_block_store

@@ -24,10 +24,10 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from ..utils.config_checks import Key
-from .source_index import SourceIndex
 
 
 def clip_steps(start: np.ndarray, targets: np.ndarray, max_step: float) -> np.ndarray:

@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..data.source_index import SourceIndex
 from ..maps.affine import fit_affine
-from .source_index import SourceIndex
 
 
 class NearestNeighbourPolicy:

@@ -7,11 +7,11 @@ from typing import Callable
 
 from ..data.chunks import ChunkDataModule
 from ..data.episode_store import EpisodeStore
+from ..data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .chunk_transport import TransportPolicy
 from .nearest import NearestNeighbourPolicy
-from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 
 FRAMES = {"world": None, "block": PUSHT_BLOCK}
 

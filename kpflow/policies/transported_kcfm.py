@@ -37,11 +37,11 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
-from .source_index import SourceIndex
 
 PULL_BACK = ("agent", "all")
 

@@ -16,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..data.chunks import ChunkDataset
-from ..data.episode_store import EpisodeStore
 from ..maps.affine import fit_affine
 from ..tasks.pusht.geometry import N_T_KEYPOINTS
 from ..utils.config_checks import Key
+from .chunks import ChunkDataset
+from .episode_store import EpisodeStore
 
 PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
 
