@@ -69,3 +69,25 @@ class StandStill:
 
     def act(self, obs):
         return np.asarray(obs["agent_pos"], dtype=np.float64)
+
+
+def train_learned_map(tmp_path, sampler, n_keypoints: int, steps: int, dim: int = 2) -> str:
+    """Train a small :class:`~kpflow.maps.map_module.MapModule` for ``steps`` steps on 64 pairs from ``sampler``
+    (``(n, rng) -> (source, target)``) with the real Lightning loop and checkpointing; returns its last.ckpt."""
+    import lightning
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from kpflow.data.keypoint_pairs import KeypointPairDataModule
+    from kpflow.maps.map_module import MapModule
+    from kpflow.utils.checkpoint import SafeCheckpointIO
+
+    lightning.seed_everything(0, verbose=False)
+    model = MapModule(n_keypoints, dim, n_layers=8, hidden=32, context=32, lr=3e-3)
+    data = KeypointPairDataModule(sampler, n_pairs=64, n_queries=8, batch_size=32)
+    checkpoints = ModelCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True)
+    trainer = lightning.Trainer(
+        max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[checkpoints],
+        plugins=[SafeCheckpointIO()], accelerator="cpu", deterministic=True, num_sanity_val_steps=0,
+    )
+    trainer.fit(model, datamodule=data)
+    return str(tmp_path / "checkpoints" / "last.ckpt")

@@ -1,6 +1,7 @@
 """Every option of every ``conf/`` group composes with its entry point and instantiates into what it names
 (lightning-hydra-template's config tests). A new file in ``conf/`` must be added here, or the coverage test fails."""
 
+from dataclasses import is_dataclass
 from functools import partial
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import OmegaConf, open_dict
 
 from kpflow.maps.base import TransportMap
-from tests.helpers import keypoint_pair, walk_to_block_store
+from tests.helpers import keypoint_pair, train_learned_map, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -21,17 +22,17 @@ RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 
 # group -> {option: entry point that composes it}
 ENTRIES = {
-    "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_matern", "flow", "mlp", "ensemble"], "evaluate"),
+    "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_matern", "flow", "mlp", "ensemble", "learned"], "evaluate"),
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp"], "train"),
     "callbacks": {"default": "train"},
-    "data": {"frames_transported": "train", "pusht_expert": "train", "pusht_human": "train", "pusht_store": "train"},
-    "model": {"kcfm": "train", "neural_field": "train"},
+    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs"], "train"),
+    "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "task": dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
-        **dict.fromkeys(["frames_field", "pusht_kcfm", "pusht_kcfm_gpu"], "train"),
+        **dict.fromkeys(["frames_field", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map"], "train"),
     },
 }
 
@@ -60,10 +61,23 @@ def test_every_config_file_is_covered():
     assert on_disk == {group: set(options) for group, options in ENTRIES.items()}
 
 
+@pytest.fixture(scope="module")
+def learned_checkpoint(tmp_path_factory):
+    """A learned map for 25 2-D keypoints, trained for a few steps (the map option's checkpoint)."""
+    def pairs(n, rng):
+        src, tgt = keypoint_pair(2)
+        return src.expand(n, -1, -1).numpy(), tgt.expand(n, -1, -1).numpy()
+
+    return train_learned_map(tmp_path_factory.mktemp("learned"), pairs, n_keypoints=25, steps=2)
+
+
 @pytest.mark.parametrize("name", sorted(ENTRIES["map"]))
-def test_map_options_build_a_fitted_map(name, tmp_path):
+def test_map_options_build_a_fitted_map(name, tmp_path, request):
     src, tgt = keypoint_pair(2)
-    cfg = _compose("evaluate", [f"map={name}", "logger=none"] + (["map.steps=5"] if name in ("flow", "mlp") else []), tmp_path)
+    options = {"flow": ["map.steps=5"], "mlp": ["map.steps=5"]}.get(name, [])
+    if name == "learned":
+        options = [f"map.checkpoint={request.getfixturevalue('learned_checkpoint')}"]
+    cfg = _compose("evaluate", [f"map={name}", "logger=none", *options], tmp_path)
     phi = instantiate(cfg.map)().fit(src, tgt)
     assert isinstance(phi, TransportMap) and phi(src).shape == src.shape
 
@@ -95,12 +109,15 @@ def test_callbacks_checkpoint_into_the_run_folder(tmp_path):
 @pytest.mark.parametrize("name", sorted(ENTRIES["data"]))
 def test_data_options_build_datamodules(name, store, tmp_path):
     path = [f"data.path={store}", "data.n_episodes=null"] if name.startswith("pusht") else []
+    if name == "pusht_pairs":
+        path = [f"data.sampler.path={store}", "data.sampler.n_episodes=null", "data.n_pairs=20"]
     cfg = _compose("train", [f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)
     datamodule.setup("fit")
     batch = next(iter(datamodule.train_dataloader()))
-    assert all(torch.isfinite(v).all() for v in (batch.values() if isinstance(batch, dict) else batch))
+    values = batch.values() if isinstance(batch, dict) else vars(batch).values() if is_dataclass(batch) else batch
+    assert all(torch.isfinite(v).all() for v in values)
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["model"]))

@@ -95,3 +95,30 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"][0]["episodes"] == 1
+
+
+@pytest.mark.slow
+def test_learned_map_trains_resumes_and_transports_from_the_cli(tmp_path):
+    """train.py experiment=pusht_map (on a store collected for the run), resumed; then evaluate.py policy=transport
+    map=learned with its checkpoint."""
+    import json
+
+    root = Path(__file__).resolve().parents[1]
+    demos = f"data.sampler.path={tmp_path / 'demos.zarr'}"
+    train = [sys.executable, "train.py", "experiment=pusht_map", "data.sampler.n_episodes=2", "data.sampler.workers=1", demos,
+             "data.n_pairs=96", "data.batch_size=32", "model.n_layers=4", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    first_step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
+    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2 * first_step
+    assert (tmp_path / "run" / "config.yaml").exists()
+
+    evaluate = [sys.executable, "evaluate.py", "policy=transport", "map=learned", f"map.checkpoint={last}", "data.n_episodes=2",
+                f"data.path={tmp_path / 'demos.zarr'}", "split=in_distribution", "n_configs=1", "workers=1",
+                "experiment.trial.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
+    done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"][0]["episodes"] == 1

@@ -6,7 +6,8 @@ from kpflow.maps.ensemble import EnsembleMap
 from kpflow.maps.flow import FlowMap
 from kpflow.maps.gp import GPMap
 from kpflow.maps.ilwr import ILWRMap
+from kpflow.maps.learned import LearnedMap
 from kpflow.maps.matching import MatchResult, match_keypoints
 from kpflow.maps.mlp import MLPMap
 
-__all__ = ["AffineMap", "EnsembleMap", "FlowMap", "GPMap", "ILWRMap", "MLPMap", "MatchResult", "TransportMap", "match_keypoints"]
+__all__ = ["AffineMap", "EnsembleMap", "FlowMap", "GPMap", "ILWRMap", "LearnedMap", "MLPMap", "MatchResult", "TransportMap", "match_keypoints"]
