@@ -33,6 +33,9 @@ Tables:
 3. "batched": one ILWRMap (and one AffineMap) fitted on 1000 different source sets ``[1000, 25, 2]`` to one
    target ``[25, 2]``, then transporting 20 points per set ``[1000, 20, 2]``.
 
+``--learned CKPT`` appends the learned map's tables (``benchmarks/learned_map.py``: held-out Push-T pairs, beside
+ILWR and GP in the same run; ``--learned-store`` names the demonstrations the sources come from).
+
 ``--profile`` adds a cProfile listing of ILWRMap fit + 20-point transport on 25 keypoints (where the time goes).
 """
 
@@ -408,6 +411,8 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/maps.md"), help="markdown output file")
     ap.add_argument("--dtype", choices=tuple(DTYPES), default="float32", help="dtype of table 1 (default float32)")
     ap.add_argument("--profile", action="store_true", help="append a cProfile of ILWRMap fit on 25 keypoints")
+    ap.add_argument("--learned", help="a learned-map checkpoint: append its tables on held-out Push-T pairs")
+    ap.add_argument("--learned-store", default="data/pusht_expert_200.zarr", help="the store the learned map's pair sources come from")
     args = ap.parse_args(argv)
 
     warnings.filterwarnings("ignore")  # sklearn ConvergenceWarning, gpytorch NumericalWarning (jitter added)
@@ -446,6 +451,13 @@ def main(argv=None) -> None:
     t3, batch = table_batched(cfg, log)
     sections.append("## 3. batched fit: 1000 source sets [1000, 25, 2] -> one target [25, 2], 20 query points per set\n\n" + t3)
     sections.append("## targets from the issue\n\n" + targets_section(vs, batch))
+    if args.learned:
+        from learned_map import learned_map_tables
+
+        log("table 4: learned map")
+        n = 10 if args.quick else 200
+        sections.append(f"## 4. learned map on held-out Push-T pairs ({n} per kind)\n\n"
+                        + learned_map_tables(args.learned, args.learned_store, n, log))
     if args.profile:
         log("profile")
         sections.append("## where ILWRMap.fit spends its time\n\n" + profile_ilwr())

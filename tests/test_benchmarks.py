@@ -59,3 +59,24 @@ def test_metrics_benchmark_checks_itself_against_the_double_loop(tmp_path):
     rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| discrete") or line.startswith("| DTW")]
     assert len(rows) == 2
     assert all(float(row[6]) < 1e-6 for row in rows)  # kpflow's value agrees with the cell-by-cell recursion
+
+
+@pytest.mark.slow
+def test_learned_map_benchmark_writes_its_tables(tmp_path):
+    from tests.helpers import keypoint_pair, train_learned_map, walk_to_block_store
+
+    store = tmp_path / "demos.zarr"
+    walk_to_block_store(store)
+
+    def pairs(n, rng):
+        src, tgt = keypoint_pair(2)
+        return src.expand(n, -1, -1).numpy(), tgt.expand(n, -1, -1).numpy()
+
+    ckpt = train_learned_map(tmp_path, pairs, n_keypoints=25, steps=2)
+    out = tmp_path / "learned.md"
+    cmd = [sys.executable, "benchmarks/learned_map.py", "--checkpoint", ckpt, "--store", str(store), "--quick", "--batch", "20", "--out", str(out)]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    text = out.read_text()
+    assert "| object-OOD resets (1024 px) |" in text and "| LearnedMap + 3 ILWR steps |" in text
+    assert "det J > 0 at 100.00 %" in text  # by construction

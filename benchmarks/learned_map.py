@@ -1,0 +1,201 @@
+"""Benchmark of the learned map (``map=learned``) beside ILWR and GP on held-out Push-T keypoint pairs, one CPU thread.
+
+Run::
+
+    python benchmarks/learned_map.py --checkpoint outputs/pusht_map/<run>/checkpoints/last.ckpt \\
+        [--store data/pusht_expert_200.zarr] [--pairs 200] [--out PATH] [--quick]
+
+(``python benchmarks/maps.py --learned CKPT`` appends the same tables to the maps benchmark.) The pairs come from
+:class:`kpflow.data.pusht_pairs.PushTPairs` with seeds the training never uses (``1000 + kind``), one kind at a time:
+resets of each split (``in_distribution`` in the 512-px workspace; ``robot_ood`` and ``object_ood`` in the 1024-px
+one) and jittered demonstration steps. The source is one of the 5 nearest demonstrated steps, as the policies draw
+it. All maps run in float64 on tensors made before the clock starts.
+
+Tables:
+
+1. keypoint residual ``max_i |phi(s_i) - t_i|`` (px), median and p90 over the pairs, per kind and map;
+2. time per scene: fit + transport of 20 query points, and the inverse of those 20 points (medians over the pairs,
+   after two untimed warm-ups); a batch of 1,000 scenes ``[1000, 25, 2]`` fitted at once and 20 points each
+   transported (median of 3), for the maps that fit batches;
+3. the learned map's invertibility on every pair: the share of points of a grid three times the keypoints' extent
+   with det J > 0 (by construction: 100 %), and the largest inverse round-trip error there (px).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ[_var] = "1"  # before numpy / torch are imported
+
+import argparse
+import functools
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+torch.set_num_threads(1)
+
+from kpflow.data.pusht_pairs import PushTPairs  # noqa: E402
+from kpflow.maps import AffineMap, GPMap, ILWRMap, LearnedMap  # noqa: E402
+from kpflow.utils.io import write_text  # noqa: E402
+
+KINDS = {  # name: PushTPairs options
+    "in-distribution resets": dict(splits=("in_distribution",), demo_fraction=0.0),
+    "robot-OOD resets (1024 px)": dict(splits=("robot_ood",), demo_fraction=0.0),
+    "object-OOD resets (1024 px)": dict(splits=("object_ood",), demo_fraction=0.0),
+    "demonstration steps, jittered": dict(demo_fraction=1.0),
+}
+
+
+def maps(checkpoint: str) -> dict:
+    return {
+        "rigid": functools.partial(AffineMap, "rigid"),
+        "ILWRMap": ILWRMap,
+        "GPMap": GPMap,
+        "LearnedMap": functools.partial(LearnedMap, checkpoint),
+        "LearnedMap + 3 ILWR steps": functools.partial(LearnedMap, checkpoint, refine_steps=3),
+        "LearnedMap + 10 ILWR steps": functools.partial(LearnedMap, checkpoint, refine_steps=10),
+    }
+
+
+def held_out_pairs(store: str, n: int) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    out = {}
+    for k, (name, options) in enumerate(KINDS.items()):
+        sampler = PushTPairs(store, n_episodes=None, **options)
+        src, tgt = sampler(n, np.random.default_rng(1000 + k))
+        out[name] = (torch.from_numpy(src), torch.from_numpy(tgt))
+    return out
+
+
+def queries(src: torch.Tensor, m: int = 20, seed: int = 0) -> torch.Tensor:
+    """``m`` points uniform over the source keypoints' bounding box ``[m, D]``."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = src.amin(0), src.amax(0)
+    return lo + (hi - lo) * torch.rand(m, src.shape[-1], generator=g, dtype=src.dtype)
+
+
+def residuals(factory, src, tgt) -> np.ndarray:
+    out = []
+    for s, t in zip(src, tgt):
+        with torch.no_grad():
+            out.append(float((factory().fit(s, t)(s) - t).norm(dim=-1).max()))
+    return np.asarray(out)
+
+
+def time_scene(factory, src, tgt) -> tuple[float, float]:
+    """Median fit + 20-point transport and median 20-point inverse (s) over the pairs."""
+    fit, inv = [], []
+    for i in range(len(src) + 2):
+        s, t = src[i % len(src)], tgt[i % len(src)]
+        q = queries(s, seed=i)
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            phi = factory().fit(s, t)
+            y = phi(q)
+            t1 = time.perf_counter()
+            phi.inverse(y)
+            t2 = time.perf_counter()
+        if i >= 2:
+            fit.append(t1 - t0)
+            inv.append(t2 - t1)
+    return float(np.median(fit)), float(np.median(inv))
+
+
+def time_batch(factory, src, tgt, b: int = 1000, reps: int = 3) -> float:
+    idx = torch.arange(b) % len(src)
+    s, t = src[idx], tgt[idx]
+    q = torch.stack([queries(x, seed=i) for i, x in enumerate(s)])
+    times = []
+    for _ in range(reps + 1):
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            factory().fit(s, t)(q)
+            times.append(time.perf_counter() - t0)
+    return float(np.median(times[1:]))
+
+
+def grid_checks(checkpoint: str, src, tgt, n: int = 15) -> tuple[float, float]:
+    """Share of grid points with det J > 0 and the largest round-trip error (px) over all pairs."""
+    positive, total, worst = 0, 0, 0.0
+    for s, t in zip(src, tgt):
+        centre, half = s.mean(0), (s.amax(0) - s.amin(0)).amax() * 1.5
+        axis = torch.linspace(-1, 1, n, dtype=s.dtype)
+        grid = centre + half * torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
+        phi = LearnedMap(checkpoint).fit(s, t)
+        with torch.no_grad():
+            worst = max(worst, float((phi.inverse(phi(grid)) - grid).norm(dim=-1).max()))
+        positive += int((torch.linalg.det(phi.jacobian(grid)) > 0).sum())
+        total += len(grid)
+    return positive / total, worst
+
+
+def fmt_ms(s: float) -> str:
+    return f"{s * 1e3:.2f} ms" if s < 1 else f"{s:.2f} s"
+
+
+def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000) -> str:
+    """The three tables of the module docstring, as markdown."""
+    warnings.filterwarnings("ignore")
+    pairs = held_out_pairs(store, n)
+    family = maps(checkpoint)
+    rows = []
+    for kind, (src, tgt) in pairs.items():
+        log(f"residuals: {kind}")
+        cells = []
+        for name, factory in family.items():
+            r = residuals(factory, src, tgt)
+            cells.append(f"{np.median(r):.2f} / {np.quantile(r, 0.9):.2f}")
+        rows.append(f"| {kind} | " + " | ".join(cells) + " |")
+    t1 = "\n".join([f"| pairs ({n} each) | " + " | ".join(family) + " |", "|---" * (len(family) + 1) + "|", *rows])
+
+    src, tgt = pairs["in-distribution resets"]
+    rows = []
+    for name in ("ILWRMap", "GPMap", "LearnedMap", "LearnedMap + 3 ILWR steps", "LearnedMap + 10 ILWR steps"):
+        log(f"timing: {name}")
+        fit, inv = time_scene(family[name], src, tgt)
+        at_once = time_batch(family[name], src, tgt, batch) if name != "GPMap" else None
+        rows.append(f"| {name} | {fmt_ms(fit)} | {fmt_ms(inv)} | {fmt_ms(at_once) if at_once else 'no batched fit'} |")
+    t2 = "\n".join([f"| map | fit + 20-point transport, per scene | inverse of 20 points | {batch:,} scenes at once |", "|---|---|---|---|", *rows])
+
+    log("grid checks")
+    all_src = torch.cat([p[0] for p in pairs.values()])
+    all_tgt = torch.cat([p[1] for p in pairs.values()])
+    share, worst = grid_checks(checkpoint, all_src, all_tgt)
+    t3 = (f"{len(all_src)} pairs, a 15 x 15 grid over three times each source's extent: det J > 0 at "
+          f"{100 * share:.2f} % of the points; largest |phi^-1(phi(x)) - x| = {worst:.2e} px.")
+    return "\n\n".join([
+        "### residual (px; median / p90 over pairs)", t1,
+        "### time (float64, one thread; in-distribution pairs)", t2,
+        "### invertibility", t3,
+    ])
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", required=True, help="a MapModule checkpoint (train.py experiment=pusht_map)")
+    ap.add_argument("--store", default="data/pusht_expert_200.zarr", help="the demonstrations the sources come from")
+    ap.add_argument("--pairs", type=int, default=200, help="held-out pairs per kind")
+    ap.add_argument("--quick", action="store_true", help="smoke test: 10 pairs per kind")
+    ap.add_argument("--batch", type=int, default=1000, help="scenes fitted at once in the batched timing")
+    ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/learned_map.md"))
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    text = (f"# learned map vs ILWR and GP on held-out Push-T pairs{' (--quick)' if args.quick else ''}\n\n"
+            f"checkpoint `{args.checkpoint}`, sources from `{args.store}`; torch {torch.__version__}, 1 thread.\n\n"
+            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch) + "\n")
+    print(text)
+    write_text(args.out, text)
+    log(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
