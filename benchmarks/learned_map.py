@@ -18,7 +18,9 @@ Tables:
    after two untimed warm-ups); a batch of 1,000 scenes ``[1000, 25, 2]`` fitted at once and 20 points each
    transported (median of 3), for the maps that fit batches;
 3. the learned map's invertibility on every pair: the share of points of a grid three times the keypoints' extent
-   with det J > 0 (by construction: 100 %), and the largest inverse round-trip error there (px).
+   with det J > 0 (by construction: 100 %), and the largest inverse round-trip error there (px);
+4. decision latency of the Push-T policies with each map (medians over 50 in-distribution resets after warm-up):
+   policy transportation (``conf/policy/transport.yaml``'s options) and, with ``--kcfm CKPT``, the transported K-CFM.
 """
 
 from __future__ import annotations
@@ -134,11 +136,41 @@ def grid_checks(checkpoint: str, src, tgt, n: int = 15) -> tuple[float, float]:
     return positive / total, worst
 
 
+def decision_latency(make_map, store: str, kcfm: str | None, n: int = 50) -> tuple[float, float | None]:
+    """Median seconds per ``act`` of policy transportation and (with a K-CFM checkpoint) the transported K-CFM."""
+    from kpflow.data.episode_store import EpisodeStore
+    from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+    from kpflow.policies.chunk_transport import TransportPolicy
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
+    from kpflow.tasks.pusht import PushTEnv, split_config
+
+    env = PushTEnv()
+    observations = [env.reset(options={"config": split_config("in_distribution", i, seed=7)})[0] for i in range(n)]
+    index = SourceIndex.from_store(EpisodeStore(store), 20, pusht_weights(agent=4.0), PUSHT_BLOCK)
+    policies = [TransportPolicy(index, make_map, execute=8, candidates=5, temperature=1.2)]
+    if kcfm:
+        model = KCFMPolicy.from_checkpoint(kcfm).model
+        index_h = SourceIndex.from_store(EpisodeStore(store), int(model.hparams.horizon), pusht_weights(agent=4.0), PUSHT_BLOCK)
+        policies.append(TransportedKCFMPolicy(model, index_h, make_map))
+    out = []
+    for policy in policies:
+        policy.reset(0)
+        times = []
+        for i, obs in enumerate(observations[:3] + observations):
+            t0 = time.perf_counter()
+            policy.act(obs)
+            if i >= 3:
+                times.append(time.perf_counter() - t0)
+        out.append(float(np.median(times)))
+    return out[0], (out[1] if kcfm else None)
+
+
 def fmt_ms(s: float) -> str:
     return f"{s * 1e3:.2f} ms" if s < 1 else f"{s:.2f} s"
 
 
-def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000) -> str:
+def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000, kcfm: str | None = None) -> str:
     """The three tables of the module docstring, as markdown."""
     warnings.filterwarnings("ignore")
     pairs = held_out_pairs(store, n)
@@ -168,10 +200,20 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
     share, worst = grid_checks(checkpoint, all_src, all_tgt)
     t3 = (f"{len(all_src)} pairs, a 15 x 15 grid over three times each source's extent: det J > 0 at "
           f"{100 * share:.2f} % of the points; largest |phi^-1(phi(x)) - x| = {worst:.2e} px.")
+    rows = []
+    base = None
+    for name in ("ILWRMap", "LearnedMap", "LearnedMap + 3 ILWR steps"):
+        log(f"decision latency: {name}")
+        pt, tk = decision_latency(family[name], store, kcfm, 10 if n <= 10 else 50)
+        base = base or (pt, tk)
+        ratio = lambda x, b: f" ({x / b:.2f}x ILWR's)" if b and name != "ILWRMap" else ""  # noqa: E731
+        rows.append(f"| {name} | {fmt_ms(pt)}{ratio(pt, base[0])} | " + (f"{fmt_ms(tk)}{ratio(tk, base[1])}" if tk else "-") + " |")
+    t4 = "\n".join(["| map | policy transportation | transported K-CFM |", "|---|---|---|", *rows])
     return "\n\n".join([
         "### residual (px; median / p90 over pairs)", t1,
         "### time (float64, one thread; in-distribution pairs)", t2,
         "### invertibility", t3,
+        "### decision latency (one thread; median over in-distribution resets)", t4,
     ])
 
 
@@ -182,6 +224,7 @@ def main(argv=None) -> None:
     ap.add_argument("--pairs", type=int, default=200, help="held-out pairs per kind")
     ap.add_argument("--quick", action="store_true", help="smoke test: 10 pairs per kind")
     ap.add_argument("--batch", type=int, default=1000, help="scenes fitted at once in the batched timing")
+    ap.add_argument("--kcfm", help="a K-CFM checkpoint (n_obs=1): adds the transported K-CFM's decision latency")
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/learned_map.md"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -191,7 +234,7 @@ def main(argv=None) -> None:
 
     text = (f"# learned map vs ILWR and GP on held-out Push-T pairs{' (--quick)' if args.quick else ''}\n\n"
             f"checkpoint `{args.checkpoint}`, sources from `{args.store}`; torch {torch.__version__}, 1 thread.\n\n"
-            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch) + "\n")
+            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch, args.kcfm) + "\n")
     print(text)
     write_text(args.out, text)
     log(f"wrote {args.out}")

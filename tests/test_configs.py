@@ -26,13 +26,13 @@ ENTRIES = {
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp"], "train"),
     "callbacks": {"default": "train"},
-    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs"], "train"),
+    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "task": dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
-        **dict.fromkeys(["frames_field", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map"], "train"),
+        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map"], "train"),
     },
 }
 
@@ -111,6 +111,8 @@ def test_data_options_build_datamodules(name, store, tmp_path):
     path = [f"data.path={store}", "data.n_episodes=null"] if name.startswith("pusht") else []
     if name == "pusht_pairs":
         path = [f"data.sampler.path={store}", "data.sampler.n_episodes=null", "data.n_pairs=20"]
+    if name == "frames_pairs":
+        path = ["data.n_pairs=20"]
     cfg = _compose("train", [f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)

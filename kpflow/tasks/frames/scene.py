@@ -37,15 +37,22 @@ def random_scenes(n: int, n_points: int, seed: int, min_distance: float = 0.8, w
     g = torch.Generator().manual_seed(seed)
     scenes = []
     while len(scenes) < n:
-        p = torch.rand(4, generator=g, dtype=torch.float64) * 2 - 1
-        if (p[:2] - p[2:]).norm() < min_distance:
-            continue
-        heading = math.atan2(float(p[3] - p[1]), float(p[2] - p[0]))
-        th = heading + (torch.rand(2, generator=g, dtype=torch.float64) - 0.5) * 1.6
-        start = Frame.from_2d(float(p[0]), float(p[1]), float(th[0]), dtype=torch.float64)
-        goal = Frame.from_2d(float(p[2]), float(p[3]), float(th[1]), dtype=torch.float64)
+        start, goal = random_frames(g, min_distance)
         scenes.append(Scene(start, goal, demonstrate(start, goal, n=n_points, generator=g, wiggle=wiggle)))
     return scenes
+
+
+def random_frames(g: torch.Generator, min_distance: float = 0.8) -> tuple[Frame, Frame]:
+    """One start and goal frame of :func:`random_scenes` (drawn from ``g``, redrawn until ``min_distance`` apart)."""
+    while True:
+        p = torch.rand(4, generator=g, dtype=torch.float64) * 2 - 1
+        if (p[:2] - p[2:]).norm() >= min_distance:
+            break
+    heading = math.atan2(float(p[3] - p[1]), float(p[2] - p[0]))
+    th = heading + (torch.rand(2, generator=g, dtype=torch.float64) - 0.5) * 1.6
+    start = Frame.from_2d(float(p[0]), float(p[1]), float(th[0]), dtype=torch.float64)
+    goal = Frame.from_2d(float(p[2]), float(p[3]), float(th[1]), dtype=torch.float64)
+    return start, goal
 
 
 def lookahead_velocity(x: torch.Tensor, duration: float, fraction: float = 0.05) -> torch.Tensor:
