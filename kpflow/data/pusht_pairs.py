@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import shapely
+from tqdm import tqdm
 
 from ..tasks.pusht.geometry import AGENT_RADIUS, N_T_KEYPOINTS, observation_keypoints, t_polygon
 from ..tasks.pusht.scene import SPLITS, sample_config
@@ -81,7 +82,7 @@ class PushTPairs:
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         target = np.stack([self._demo_step(rng) if rng.random() < self.demo_fraction else self._reset(rng) for _ in range(n)])
         source = np.empty_like(target)
-        for i, t in enumerate(target):
+        for i, t in enumerate(tqdm(target, desc="Push-T pairs: nearest sources", disable=n < 1000)):
             near, _ = self.index.query_k(t, self.candidates)
             source[i] = self.index.keypoints[near[rng.integers(len(near))]]
         return source, target
