@@ -14,9 +14,9 @@ from kpflow.utils.checkpoint import load_checkpoint
 from tests.helpers import grid, keypoint_pair, rotation, train_learned_map
 
 
-def random_flow(n: int = 25, d: int = 2, layers: int = 4, seed: int = 0) -> ConditionalFlow:
+def random_flow(n: int = 25, d: int = 2, layers: int = 4, seed: int = 0, depth: int = 2) -> ConditionalFlow:
     """A flow with every weight random (the zero-initialised last layers too), so it is far from the identity."""
-    flow = ConditionalFlow(n, d, n_layers=layers, hidden=16, context=16, seed=seed).double()
+    flow = ConditionalFlow(n, d, n_layers=layers, hidden=16, context=16, seed=seed, coupling_depth=depth).double()
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in flow.parameters():
@@ -30,9 +30,9 @@ def random_condition(flow: ConditionalFlow, b: int = 3, seed: int = 1):
     return flow.condition(a, a + 0.3 * torch.randn(a.shape, generator=g, dtype=torch.float64))
 
 
-@pytest.mark.parametrize("d", [2, 3])
-def test_flow_inverts_exactly_on_random_conditions(d):
-    flow = random_flow(d=d)
+@pytest.mark.parametrize(("d", "depth"), [(2, 2), (3, 2), (2, 1)])
+def test_flow_inverts_exactly_on_random_conditions(d, depth):
+    flow = random_flow(d=d, depth=depth)
     cond = random_condition(flow)
     u = 3 * torch.randn(3, 200, d, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     y = flow(u, cond)
@@ -167,11 +167,11 @@ def test_checkpoint_round_trip(tmp_path):
         LearnedMap(checkpoint=ckpt).fit(*keypoint_pair(2, n=25))
 
 
-@pytest.mark.parametrize("d", [2, 3])
-def test_compiled_path_equals_the_torch_layers(d):
+@pytest.mark.parametrize(("d", "depth"), [(2, 2), (3, 2), (2, 1)])
+def test_compiled_path_equals_the_torch_layers(d, depth):
     src, tgt = keypoint_pair(d)
     src, tgt = torch.stack([src, src + 0.1]), torch.stack([tgt, tgt * 1.1])
-    flow = random_flow(d=d)
+    flow = random_flow(d=d, depth=depth)
     fast, slow = LearnedMap(flow=flow).fit(src, tgt), LearnedMap(flow=flow, compiled=False).fit(src, tgt)
     assert fast._packed is not None and slow._packed is None
     x = grid(d, n=6 if d == 2 else 4)

@@ -7,7 +7,8 @@ different split of directions). Layer k sees the keypoints where the layers befo
 ``p^k = L_{k-1} o ... o L_1(a)``, rotated: ``P = p^k Q_k^T``, ``B = b Q_k^T``; for a point ``v = Q_k u = (v_I, v_J)``
 
     k(v_I, P_i) = exp(-|v_I - P_{i,I}|^2 / (2 l_k^2)),     tau = alpha_k (K + mu_k I)^-1 (B_J - P_J),  K_ij = k(P_i, P_j),
-    h = tanh(W_2 tanh(W_1 v_I + P_k c + b_1) + b_2),       [s~, t~] = W_3 h + b_3,
+    h = tanh(W_2 tanh(W_1 v_I + P_k c + b_1) + b_2),       [s~, t~] = W_3 h + b_3   (coupling_depth 2;
+                                                           depth 1: h = tanh(W_1 v_I + P_k c + b_1)),
     s = g_k * s_max * tanh(s~ / s_max),
     t = g_k * t~ + sum_i k(v_I, P_i) tau_i,
     L_k(u) = Q_k^T (v_I, v_J * exp(s) + t).
@@ -70,10 +71,14 @@ class ConditionalFlow(nn.Module):
         encoder_depth: int = 2,
         s_max: float = 2.0,
         seed: int = 0,
+        coupling_depth: int = 1,
     ) -> None:
         super().__init__()
         if dim < 2:
             raise ValueError(f"a coupling flow needs dim >= 2, got {dim}")
+        if coupling_depth not in (1, 2):
+            raise ValueError(f"coupling_depth must be 1 or 2 (hidden layers of each coupling's MLP), got {coupling_depth}")
+        self.coupling_depth = coupling_depth
         self.n_keypoints, self.dim, self.n_layers, self.hidden, self.s_max = n_keypoints, dim, n_layers, hidden, s_max
         self.n_keep = dim // 2
         self.n_move = dim - self.n_keep
@@ -87,7 +92,7 @@ class ConditionalFlow(nn.Module):
             self.heads.bias.copy_(torch.tensor([-1.0, 2.0, -6.0]).repeat(n_layers))  # l 0.31, alpha 0.88, mu 0.0025
         self.w1 = nn.ModuleList(nn.Linear(self.n_keep, hidden) for _ in range(n_layers))
         self.p1 = nn.Linear(context, n_layers * hidden, bias=False)
-        self.w2 = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(n_layers))
+        self.w2 = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(n_layers if coupling_depth == 2 else 0))
         self.w3 = nn.ModuleList(nn.Linear(hidden, 2 * self.n_move) for _ in range(n_layers))
         for last in self.w3:
             nn.init.zeros_(last.weight)
@@ -97,7 +102,7 @@ class ConditionalFlow(nn.Module):
         """Casts and moves rebuild the rotations from the seed, so they stay orthogonal to the new precision (a
         float32 rotation cast to float64 is not orthogonal to float64 precision, and Q^T would not invert it)."""
         out = super()._apply(fn, recurse)
-        like = self.w2[0].weight
+        like = self.w1[0].weight
         self.rotations = rotations(self.n_layers, self.dim, self.seed).to(device=like.device, dtype=like.dtype)
         return out
 
@@ -117,7 +122,7 @@ class ConditionalFlow(nn.Module):
             "gates": torch.tanh(self.gate(r)),
             "width": nn.functional.softplus(heads[..., 0]) + 1e-3,
             "step": torch.sigmoid(heads[..., 1]),
-            "ridge": nn.functional.softplus(heads[..., 2]) + 1e-4,
+            "ridge": nn.functional.softplus(heads[..., 2]) + 1e-3,
         }
 
     def condition(self, a: torch.Tensor, b: torch.Tensor) -> dict:
@@ -147,7 +152,7 @@ class ConditionalFlow(nn.Module):
     def _params(self, k: int, keep: torch.Tensor, cond) -> tuple[torch.Tensor, torch.Tensor]:
         """Log-scale s and shift t ``[B, M, n_move]`` of layer ``k`` at kept coordinates ``keep [B, M, n_keep]``."""
         h = torch.tanh(self.w1[k](keep) + cond["pc"][:, k, None])
-        st = self.w3[k](torch.tanh(self.w2[k](h)))
+        st = self.w3[k](torch.tanh(self.w2[k](h)) if self.coupling_depth == 2 else h)
         g = cond["gates"][:, k, None, None]
         s = g * self.s_max * torch.tanh(st[..., : self.n_move] / self.s_max)
         kernel = self._kernel(keep, cond["points"][k], cond["width"][:, k])  # [B, M, N]

@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import functools
 import os
-from pathlib import Path
+import stat
 
+import numpy as np
 import torch
 
-from kpflow.maps import learned_kernels
+from kpflow.maps import ilwr_kernels, learned_kernels
 from kpflow.maps.affine import AlignedMap
 from kpflow.maps.conditional_flow import ConditionalFlow
 from kpflow.maps.ilwr import ILWRMap
@@ -53,10 +54,14 @@ def _load(path: str, mtime_ns: int, dtype: torch.dtype, device: str) -> tuple[Co
 def load_flow(path: str | os.PathLike, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> tuple[ConditionalFlow, str]:
     """The trained flow of a :class:`~kpflow.maps.map_module.MapModule` checkpoint (frozen, in ``dtype`` on ``device``)
     and the alignment it was trained behind. Cached per file (re-read when the file changes), dtype and device."""
-    p = Path(path).resolve()
-    if not p.is_file():
+    p = os.path.abspath(path)
+    try:
+        st = os.stat(p)
+    except OSError:
+        st = None
+    if st is None or not stat.S_ISREG(st.st_mode):
         raise FileNotFoundError(f"no learned-map checkpoint at {path} (train one: python train.py experiment=pusht_map)")
-    return _load(str(p), p.stat().st_mtime_ns, dtype, str(torch.device(device)))
+    return _load(p, st.st_mtime_ns, dtype, str(torch.device(device)))
 
 
 class LearnedMap(AlignedMap):
@@ -83,12 +88,12 @@ class LearnedMap(AlignedMap):
     ) -> None:
         if (checkpoint is None) == (flow is None):
             raise ValueError("LearnedMap needs exactly one of checkpoint (a MapModule checkpoint) or flow")
-        if checkpoint is not None:
-            load_flow(checkpoint)  # fail here, with the path, not at the first fit
-        super().__init__(alignment)
+        loaded = load_flow(checkpoint) if checkpoint is not None else None  # fail here, with the path, not at the first fit
+        super().__init__(alignment if loaded is None else loaded[1] if loaded[1] != "none" else None)
         if int(refine_steps) < 0:
             raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
         self.checkpoint, self.refine_steps, self._given_flow, self.compiled = checkpoint, int(refine_steps), flow, compiled
+        self._loaded = {(torch.float64, "cpu"): loaded[0]} if loaded is not None else {}
         self.flow: ConditionalFlow | None = None
         self.refiner: ILWRMap | None = None
         self._cond = None  # the torch condition, built on first need
@@ -97,14 +102,14 @@ class LearnedMap(AlignedMap):
     def _flow_for(self, dtype: torch.dtype, device: torch.device | str = "cpu") -> ConditionalFlow:
         if self._given_flow is not None:
             return self._given_flow.to(device=device, dtype=dtype)
-        flow, alignment = load_flow(self.checkpoint, dtype, device)
-        self.alignment.kind, self.aligned = (alignment, True) if alignment != "none" else ("translation", False)
-        return flow
+        key = (dtype, str(torch.device(device)))
+        if key not in self._loaded:
+            self._loaded[key] = load_flow(self.checkpoint, dtype, device)[0]
+        return self._loaded[key]
 
     def required_points(self, dim: int) -> int:
         if self.checkpoint is not None:
-            flow = self._flow_for(torch.float64)
-            return flow.n_keypoints
+            return self._flow_for(torch.float64).n_keypoints
         return super().required_points(dim)
 
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
@@ -115,15 +120,33 @@ class LearnedMap(AlignedMap):
                 f"keypoints in {source.shape[-1]}-D"
             )
         self.flow = flow
-        self._fit_alignment(source, target)
-        self._a, self._b, self.centre, self.spread = normalise(self.alignment._forward(source), target)
-        self._cond, self._packed = None, None
         needs_grad = torch.is_grad_enabled() and (source.requires_grad or target.requires_grad)
-        if self.compiled and source.dtype == torch.float64 and source.device.type == "cpu" and not needs_grad:
-            self._packed = self._compile(flow, self._a, self._b)
+        fast = self.compiled and source.dtype == torch.float64 and source.device.type == "cpu" and not needs_grad
+        if not (fast and self._compiled_alignment(source, target)):
+            self._fit_alignment(source, target)
+        self._a, self._b, self.centre, self.spread = normalise(self.alignment._forward(source), target)
+        self._cond = None
+        self._packed = self._compile(flow, self._a, self._b) if fast else None
         self.refiner = None
         if self.refine_steps:
             self.refiner = ILWRMap(n_steps=self.refine_steps, alignment="none").fit(self._net_forward(source), target)
+
+    def _compiled_alignment(self, source: torch.Tensor, target: torch.Tensor) -> bool:
+        """Fit the rigid, similarity or translation alignment with ILWR's compiled kernel; False (nothing fitted)
+        where it declines (another kind, coincident sources, an ill-determined rotation): torch then decides."""
+        kind = self.alignment.kind
+        if kind not in ilwr_kernels.ALIGN_KINDS:
+            return False
+        finfo = torch.finfo(torch.float64)
+        fits = []
+        for s, t in zip(source.numpy(), (target if self.aligned else source).numpy()):
+            a, b, ok = ilwr_kernels.align(s, t, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
+            if not ok:
+                return False
+            fits.append((a, b))
+        A = torch.from_numpy(np.stack([f[0] for f in fits]))
+        self._fit_alignment(source, target, fitted=(A, torch.from_numpy(np.stack([f[1] for f in fits]))))
+        return True
 
     @staticmethod
     def _compile(flow: ConditionalFlow, a: torch.Tensor, b: torch.Tensor) -> tuple:

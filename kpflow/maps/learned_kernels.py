@@ -21,12 +21,14 @@ import torch
 
 
 def pack(flow) -> tuple[np.ndarray, ...]:
-    """``(rotations, w1, b1, w2, b2, w3, b3)`` of a :class:`~kpflow.maps.conditional_flow.ConditionalFlow`, float64."""
+    """``(rotations, w1, b1, w2, b2, w3, b3)`` of a :class:`~kpflow.maps.conditional_flow.ConditionalFlow`, float64
+    (``w2, b2`` empty, ``[K, 0, 0]`` and ``[K, 0]``, for a coupling depth of 1)."""
     as_np = lambda ts: np.ascontiguousarray(torch.stack(list(ts)).detach().to("cpu", torch.float64).numpy())  # noqa: E731
+    k = flow.n_layers
+    w2, b2 = (as_np(m.weight for m in flow.w2), as_np(m.bias for m in flow.w2)) if len(flow.w2) else (np.zeros((k, 0, 0)), np.zeros((k, 0)))
     return (
         np.ascontiguousarray(flow.rotations.detach().to("cpu", torch.float64).numpy()),
-        as_np(m.weight for m in flow.w1), as_np(m.bias for m in flow.w1),
-        as_np(m.weight for m in flow.w2), as_np(m.bias for m in flow.w2),
+        as_np(m.weight for m in flow.w1), as_np(m.bias for m in flow.w1), w2, b2,
         as_np(m.weight for m in flow.w3), as_np(m.bias for m in flow.w3),
     )
 
@@ -40,7 +42,9 @@ def _shift_scale(k, keep, w1, b1, w2, b2, w3, b3, pc, gate, width, pts, vals, s_
         for j in range(n_keep):
             acc += w1[k, i, j] * keep[j]
         h1[i] = math.tanh(acc)
-    for i in range(hidden):
+    if w2.shape[1] == 0:  # one hidden layer
+        h2[:] = h1
+    for i in range(w2.shape[1]):
         acc = b2[k, i]
         for j in range(hidden):
             acc += w2[k, i, j] * h1[j]

@@ -58,7 +58,7 @@ class MapModule(lightning.LightningModule):
     Args:
         n_keypoints, dim: the keypoint sets' shape (every pair of a task has the same).
         alignment: the alignment the flow sits on (``rigid``, ``similarity``, ``affine``, ``translation``, ``none``).
-        n_layers, hidden, context, encoder_depth, s_max: the flow's size (:class:`ConditionalFlow`).
+        n_layers, hidden, context, encoder_depth, s_max, coupling_depth: the flow's size (:class:`ConditionalFlow`).
         distill_weight, far_weight, far_radius: the regularisers of the loss.
         lr, weight_decay: AdamW, with a cosine decay over the run.
     """
@@ -73,6 +73,7 @@ class MapModule(lightning.LightningModule):
         context: int = 128,
         encoder_depth: int = 2,
         s_max: float = 2.0,
+        coupling_depth: int = 1,
         distill_weight: float = 1.0,
         far_weight: float = 0.1,
         far_radius: float = 3.0,
@@ -87,7 +88,7 @@ class MapModule(lightning.LightningModule):
             if not (math.isfinite(w) and w >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {w}")
         self.save_hyperparameters()
-        self.flow = ConditionalFlow(n_keypoints, dim, n_layers, hidden, context, encoder_depth, s_max, seed)
+        self.flow = ConditionalFlow(n_keypoints, dim, n_layers, hidden, context, encoder_depth, s_max, seed, coupling_depth)
         self.register_buffer("far", far_points(dim, 64, far_radius, seed), persistent=False)
 
     def losses(self, batch: KeypointPairs) -> dict[str, torch.Tensor]:
