@@ -13,7 +13,9 @@ it. All maps run in float64 on tensors made before the clock starts.
 
 Tables:
 
-1. keypoint residual ``max_i |phi(s_i) - t_i|`` (px), median and p90 over the pairs, per kind and map;
+1. keypoint residual ``max_i |phi(s_i) - t_i|`` (px), median and p90 over the pairs, per kind and map (``--also
+   NAME=CKPT`` adds other learned maps, e.g. trained with other regularisers); then their regularity
+   (:func:`regularity`);
 2. time per scene: fit + transport of 20 query points, and the inverse of those 20 points (medians over the pairs,
    after two untimed warm-ups); a batch of 1,000 scenes ``[1000, 25, 2]`` fitted at once and 20 points each
    transported (median of 3), for the maps that fit batches;
@@ -54,8 +56,9 @@ KINDS = {  # name: PushTPairs options
 }
 
 
-def maps(checkpoint: str) -> dict:
-    return {
+def maps(checkpoint: str, also: dict[str, str] | None = None) -> dict:
+    variants = {name: functools.partial(LearnedMap, ckpt) for name, ckpt in (also or {}).items()}
+    return variants | {
         "rigid": functools.partial(AffineMap, "rigid"),
         "ILWRMap": ILWRMap,
         "GPMap": GPMap,
@@ -170,11 +173,32 @@ def fmt_ms(s: float) -> str:
     return f"{s * 1e3:.2f} ms" if s < 1 else f"{s:.2f} s"
 
 
-def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000, kcfm: str | None = None) -> str:
-    """The three tables of the module docstring, as markdown."""
+def regularity(factory, src, tgt, n: int = 12) -> tuple[float, float]:
+    """Medians over the pairs of ``max |log det J|`` on a grid over the sources' box widened by half (how much the map
+    stretches or squeezes area anywhere near the keypoints) and of the mean distance (px) from the rigid alignment at
+    points 2-3 box half-sizes from the keypoints' centre (how far from rigid the map is far away)."""
+    stretch, far = [], []
+    g = torch.Generator().manual_seed(0)
+    for s, t in zip(src, tgt):
+        lo, hi = s.amin(0), s.amax(0)
+        lo, hi = lo - 0.25 * (hi - lo), hi + 0.25 * (hi - lo)
+        axis = torch.linspace(0, 1, n, dtype=s.dtype)
+        grid = lo + (hi - lo) * torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
+        direction = torch.randn(64, 2, generator=g, dtype=s.dtype)
+        ring = s.mean(0) + direction / direction.norm(dim=-1, keepdim=True) * (0.5 * (hi - lo).amax()) * (2 + torch.rand(64, 1, generator=g, dtype=s.dtype))
+        phi, rigid = factory().fit(s, t), AffineMap("rigid").fit(s, t)
+        stretch.append(float(torch.linalg.slogdet(phi.jacobian(grid)).logabsdet.abs().max()))
+        with torch.no_grad():
+            far.append(float((phi(ring) - rigid(ring)).norm(dim=-1).mean()))
+    return float(np.median(stretch)), float(np.median(far))
+
+
+def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000, kcfm: str | None = None,
+                       also: dict[str, str] | None = None) -> str:
+    """The tables of the module docstring, as markdown."""
     warnings.filterwarnings("ignore")
     pairs = held_out_pairs(store, n)
-    family = maps(checkpoint)
+    family = maps(checkpoint, also)
     rows = []
     for kind, (src, tgt) in pairs.items():
         log(f"residuals: {kind}")
@@ -184,6 +208,14 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
             cells.append(f"{np.median(r):.2f} / {np.quantile(r, 0.9):.2f}")
         rows.append(f"| {kind} | " + " | ".join(cells) + " |")
     t1 = "\n".join([f"| pairs ({n} each) | " + " | ".join(family) + " |", "|---" * (len(family) + 1) + "|", *rows])
+
+    src, tgt = pairs["in-distribution resets"]
+    rows = []
+    for name in [*(also or {}), "ILWRMap", "GPMap", "LearnedMap"]:
+        log(f"regularity: {name}")
+        st, far = regularity(family[name], src[:50], tgt[:50])
+        rows.append(f"| {name} | {st:.2f} | {far:.1f} |")
+    t1b = "\n".join(["| map | max abs log det J near the keypoints | distance from the rigid motion far away (px) |", "|---|---|---|", *rows])
 
     src, tgt = pairs["in-distribution resets"]
     rows = []
@@ -211,6 +243,7 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
     t4 = "\n".join(["| map | policy transportation | transported K-CFM |", "|---|---|---|", *rows])
     return "\n\n".join([
         "### residual (px; median / p90 over pairs)", t1,
+        "### regularity (medians over 50 in-distribution pairs)", t1b,
         "### time (float64, one thread; in-distribution pairs)", t2,
         "### invertibility", t3,
         "### decision latency (one thread; median over in-distribution resets)", t4,
@@ -225,6 +258,7 @@ def main(argv=None) -> None:
     ap.add_argument("--quick", action="store_true", help="smoke test: 10 pairs per kind")
     ap.add_argument("--batch", type=int, default=1000, help="scenes fitted at once in the batched timing")
     ap.add_argument("--kcfm", help="a K-CFM checkpoint (n_obs=1): adds the transported K-CFM's decision latency")
+    ap.add_argument("--also", nargs="*", default=[], metavar="NAME=CKPT", help="more learned maps for the residual and regularity tables")
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/learned_map.md"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -234,7 +268,8 @@ def main(argv=None) -> None:
 
     text = (f"# learned map vs ILWR and GP on held-out Push-T pairs{' (--quick)' if args.quick else ''}\n\n"
             f"checkpoint `{args.checkpoint}`, sources from `{args.store}`; torch {torch.__version__}, 1 thread.\n\n"
-            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch, args.kcfm) + "\n")
+            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch, args.kcfm,
+                                 dict(a.split("=", 1) for a in args.also)) + "\n")
     print(text)
     write_text(args.out, text)
     log(f"wrote {args.out}")
