@@ -62,6 +62,19 @@ def test_bad_data_config_is_a_clear_error():
         TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)
 
 
+def train_then_resume(train: list[str], root: Path, run: Path) -> Path:
+    """Run the ``train.py`` command for one epoch, then resume it to two; the resumed run continues the step count.
+    Returns the run's last.ckpt."""
+    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    last = run / "checkpoints" / "last.ckpt"
+    first_step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
+    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2 * first_step  # continued
+    return last
+
+
 @pytest.mark.slow
 def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     import json
@@ -75,13 +88,7 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     demos = f"data.path={tmp_path / 'demos.zarr'}"
     train = [sys.executable, "train.py", "model=kcfm", "data=pusht_expert", "data.n_episodes=2", "data.workers=1", demos,
              "data.batch_size=64", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
-    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    first_step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
-    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2 * first_step  # continued
+    last = train_then_resume(train, root, tmp_path / "run")
 
     policy = kpflow.load_policy(last, steps=4, execute=8)
     obs, _ = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})
@@ -107,13 +114,7 @@ def test_learned_map_trains_resumes_and_transports_from_the_cli(tmp_path):
     demos = f"data.sampler.path={tmp_path / 'demos.zarr'}"
     train = [sys.executable, "train.py", "experiment=pusht_map", "data.sampler.n_episodes=2", "data.sampler.workers=1", demos,
              "data.n_pairs=96", "data.batch_size=32", "model.n_layers=4", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
-    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    first_step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
-    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2 * first_step
+    last = train_then_resume(train, root, tmp_path / "run")
     assert (tmp_path / "run" / "config.yaml").exists()
 
     evaluate = [sys.executable, "evaluate.py", "policy=transport", "map=learned", f"map.checkpoint={last}", "data.n_episodes=2",
