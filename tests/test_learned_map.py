@@ -163,8 +163,9 @@ def test_checkpoint_round_trip(tmp_path):
     ref = module.flow.double()
     expected = ref(a, ref.condition(a, b)) * sigma + m
     torch.testing.assert_close(phi(src), expected[0], atol=1e-10, rtol=0)
-    with pytest.raises(ValueError, match="trained on 12 keypoints"):
-        LearnedMap(checkpoint=ckpt).fit(*keypoint_pair(2, n=25))
+    for n in (25, 5):  # more or fewer than trained
+        with pytest.raises(ValueError, match=f"trained on 12 keypoints in 2-D; got {n} keypoints"):
+            LearnedMap(checkpoint=ckpt).fit(*keypoint_pair(2, n=n))
 
 
 @pytest.mark.parametrize(("d", "depth"), [(2, 2), (3, 2), (2, 1)])

@@ -107,11 +107,6 @@ class LearnedMap(AlignedMap):
             self._loaded[key] = load_flow(self.checkpoint, dtype, device)[0]
         return self._loaded[key]
 
-    def required_points(self, dim: int) -> int:
-        if self.checkpoint is not None:
-            return self._flow_for(torch.float64).n_keypoints
-        return super().required_points(dim)
-
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         flow = self._flow_for(source.dtype, source.device)
         if source.shape[-2:] != (flow.n_keypoints, flow.dim):

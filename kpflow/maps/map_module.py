@@ -80,7 +80,7 @@ class MapModule(lightning.LightningModule):
         distill_weight: float = 0.0,
         far_weight: float = 0.1,
         far_radius: float = 3.0,
-        lr: float = 1e-3,
+        lr: float = 5e-4,
         weight_decay: float = 1e-6,
         seed: int = 0,
     ) -> None:
