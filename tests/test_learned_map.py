@@ -180,3 +180,10 @@ def test_compiled_path_equals_the_torch_layers(d, depth):
     torch.testing.assert_close(fast(x), y, atol=1e-10, rtol=0)
     torch.testing.assert_close(fast.inverse(y), slow.inverse(y), atol=1e-10, rtol=0)
     torch.testing.assert_close(fast.jacobian(x), slow.jacobian(x), atol=1e-10, rtol=0)  # gradients: the torch layers
+
+
+def test_pairs_that_require_grad_fit_under_no_grad():
+    src, tgt = keypoint_pair(2)
+    with torch.no_grad():
+        phi = LearnedMap(flow=random_flow()).fit(src.requires_grad_(True), tgt)
+        assert phi._packed is not None and torch.isfinite(phi(src)).all()

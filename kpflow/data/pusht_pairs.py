@@ -27,7 +27,8 @@ from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
 
 class PushTPairs:
     """Pair sampler ``(n, rng) -> (source, target) [n, 25, 2]`` (module docstring) over the store at ``path``
-    (collected on first use, as ``data=pusht_expert`` does)."""
+    (collected on first use, as ``data=pusht_expert`` does, with ``n_episodes``, ``seed`` and ``workers``; with
+    ``n_episodes=None`` any existing store). The pairs themselves are drawn from the ``rng`` each call is given."""
 
     def __init__(
         self,

@@ -134,7 +134,7 @@ class LearnedMap(AlignedMap):
             return False
         finfo = torch.finfo(torch.float64)
         fits = []
-        for s, t in zip(source.numpy(), (target if self.aligned else source).numpy()):
+        for s, t in zip(source.detach().numpy(), (target if self.aligned else source).detach().numpy()):
             a, b, ok = ilwr_kernels.align(s, t, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
             if not ok:
                 return False
@@ -151,7 +151,7 @@ class LearnedMap(AlignedMap):
         with torch.no_grad():
             enc = {k: v.numpy() for k, v in flow.encode(a, b).items()}
         pts, vals = learned_kernels.condition_layers(
-            a.numpy(), b.numpy(), *weights, enc["pc"], enc["gates"], enc["width"], enc["step"], enc["ridge"], flow.s_max
+            a.detach().numpy(), b.detach().numpy(), *weights, enc["pc"], enc["gates"], enc["width"], enc["step"], enc["ridge"], flow.s_max
         )
         return weights, (enc["pc"], enc["gates"], enc["width"], pts, vals, flow.s_max)
 
