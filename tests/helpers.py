@@ -83,7 +83,7 @@ def train_learned_map(tmp_path, sampler, n_keypoints: int, steps: int, dim: int 
 
     lightning.seed_everything(0, verbose=False)
     model = MapModule(n_keypoints, dim, n_layers=8, hidden=32, context=32, lr=3e-3)
-    data = KeypointPairDataModule(sampler, n_pairs=64, n_queries=8, batch_size=32)
+    data = KeypointPairDataModule(sampler, n_pairs=64, batch_size=32)
     checkpoints = ModelCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True)
     trainer = lightning.Trainer(
         max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[checkpoints],

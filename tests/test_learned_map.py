@@ -132,7 +132,7 @@ def _one_pair(n, rng):
 
 
 def test_datamodule_is_seeded_and_checks_its_sampler():
-    a, b = (KeypointPairDataModule(lambda n, rng: (rng.random((n, 5, 2)), rng.random((n, 5, 2))), n_pairs=20, seed=3) for _ in range(2))
+    a, b = (KeypointPairDataModule(lambda n, rng: (rng.random((n, 5, 2)), rng.random((n, 5, 2))), n_pairs=20, n_queries=4, seed=3) for _ in range(2))
     for dm in (a, b):
         dm.setup()
     torch.testing.assert_close(a.train_set.queries, b.train_set.queries)
@@ -187,3 +187,15 @@ def test_pairs_that_require_grad_fit_under_no_grad():
     with torch.no_grad():
         phi = LearnedMap(flow=random_flow()).fit(src.requires_grad_(True), tgt)
         assert phi._packed is not None and torch.isfinite(phi(src)).all()
+
+
+def test_distillation_needs_query_points():
+    src, tgt = (torch.stack([p] * 2).float() for p in keypoint_pair(2))
+    module = MapModule(n_keypoints=25, n_layers=2, hidden=8, context=8, distill_weight=1.0)
+    no_queries = KeypointPairs(src, tgt, src[:, :0], tgt[:, :0])
+    with pytest.raises(ValueError, match="distill_weight > 0 needs query points"):
+        module.losses(no_queries)
+    assert "distill" not in MapModule(n_keypoints=25, n_layers=2, hidden=8, context=8).losses(no_queries)
+    with_queries = add_queries(src.double().numpy(), tgt.double().numpy(), 4, np.random.default_rng(0))
+    out = module.losses(with_queries)
+    assert torch.isfinite(out["distill"]) and out["loss"] >= out["keypoints"] + out["distill"]

@@ -39,7 +39,7 @@ def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.
     queries = torch.cat([near, box], 1)
     targets = torch.empty_like(queries)
     with torch.no_grad():
-        for i in range(0, b, chunk):
+        for i in range(0, b if n_queries else 0, chunk):
             s = slice(i, i + chunk)
             targets[s] = ILWRMap().fit(src[s], tgt[s])(queries[s])
     return KeypointPairs(src.float(), tgt.float(), queries.float(), targets.float())
@@ -62,7 +62,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
     Args:
         sampler: the task's pair sampler.
         n_pairs: pairs drawn (``val_fraction`` of them held out for validation).
-        n_queries: query points per pair (distillation targets).
+        n_queries: query points per pair, for the distillation term (``model.distill_weight > 0``); 0: none.
         jitter: spread of the near-keypoint queries, relative to the source's RMS spread.
     """
 
@@ -71,7 +71,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
         sampler: PairSampler,
         n_pairs: int = 20000,
         val_fraction: float = 0.1,
-        n_queries: int = 32,
+        n_queries: int = 0,
         jitter: float = 0.1,
         batch_size: int = 256,
         seed: int = 0,
@@ -81,8 +81,8 @@ class KeypointPairDataModule(lightning.LightningDataModule):
             raise ValueError(f"n_pairs must be >= 2 (one for validation), got {n_pairs}")
         if not 0 < val_fraction < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
-        if n_queries < 2:
-            raise ValueError(f"n_queries must be >= 2, got {n_queries}")
+        if n_queries < 0:
+            raise ValueError(f"n_queries must be >= 0, got {n_queries}")
         self.sampler, self.n_pairs, self.val_fraction = sampler, n_pairs, val_fraction
         self.n_queries, self.jitter, self.batch_size, self.seed = n_queries, jitter, batch_size, seed
         self.train_set: KeypointPairs | None = None

@@ -22,6 +22,7 @@ from typing import Literal
 
 import torch
 
+from kpflow.maps import ilwr_kernels
 from kpflow.maps.base import TransportMap
 
 Kind = Literal["rigid", "similarity", "affine", "translation"]
@@ -117,6 +118,24 @@ class AlignedMap(TransportMap):
 
     def required_points(self, dim: int) -> int:
         return self.alignment.required_points(dim) if self.aligned else 1
+
+    def _fit_alignment_compiled(self, source: torch.Tensor, target: torch.Tensor) -> bool:
+        """Fit a rigid, similarity or translation alignment on float64 CPU ``[B, N, D]`` pairs with the compiled
+        kernel (:func:`~kpflow.maps.ilwr_kernels.align`, the same Umeyama steps, one set at a time). Returns False,
+        having fitted nothing, where it declines: another kind, coincident sources or an ill-determined rotation
+        (the torch fit then raises the error or decides the rotation as a batch would)."""
+        kind = self.alignment.kind
+        if kind not in ilwr_kernels.ALIGN_KINDS:
+            return False
+        finfo = torch.finfo(torch.float64)
+        fits = []
+        for s, t in zip(source.detach().numpy(), (target if self.aligned else source).detach().numpy()):
+            a, b, ok = ilwr_kernels.align(s, t, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
+            if not ok:
+                return False
+            fits.append((torch.from_numpy(a), torch.from_numpy(b)))
+        self._fit_alignment(source, target, fitted=(torch.stack([f[0] for f in fits]), torch.stack([f[1] for f in fits])))
+        return True
 
     def _fit_alignment(self, source: torch.Tensor, target: torch.Tensor, fitted: tuple | None = None) -> None:
         """Fit the alignment on ``[B, N, D]`` pairs, or take ``fitted = (A, t)`` computed elsewhere (a compiled path)."""

@@ -94,16 +94,14 @@ class ILWRMap(AlignedMap):
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:
         self._chol = None  # the uncertainty model is built on first use (predict/sample)
         if self._fused(source) and not target.requires_grad:
-            affine = None  # the kernels fit rigid, similarity and translation alignments; torch fits the affine one
-            if self.alignment.kind not in ilwr_kernels.ALIGN_KINDS:
+            compiled = self.alignment.kind in ilwr_kernels.ALIGN_KINDS  # the kernels fit these; torch the affine one
+            if not compiled:
                 self._fit_alignment(source, target)
-                affine = self.alignment.A, self.alignment.t
-            grid = self._width_grid(torch.float64, source.device)
-            fitted = _fit_fused(source, target, self.alignment.kind, self.aligned, self.n_steps, self.beta, grid, self.tol, affine)
-            if fitted is not None:  # None: coincident sources (the torch path raises) or an ill-determined rotation
-                (a, t), (self.centres, self.vectors, self.neg_rho2) = fitted
-                if affine is None:
-                    self._fit_alignment(source, target, fitted=(a, t))
+            if not compiled or self._fit_alignment_compiled(source, target):  # declined: the torch path below
+                grid = self._width_grid(torch.float64, source.device)
+                self.centres, self.vectors, self.neg_rho2 = _fit_steps_fused(
+                    source, target, self.alignment, self.n_steps, self.beta, grid, self.tol
+                )
                 return
         self._fit_alignment(source, target)
         z = self.alignment._forward(source)
@@ -183,24 +181,14 @@ def step_candidates(neg_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return alpha.repeat_interleave(neg_grid.shape[0]), (neg_grid[None, :] / alpha[:, None] ** 2).reshape(-1)
 
 
-def _fit_fused(source: torch.Tensor, target: torch.Tensor, kind: str, aligned: bool, n_steps: int, beta: float,
-               neg_grid: torch.Tensor, tol: float, affine: tuple[torch.Tensor, torch.Tensor] | None = None):  # fmt: skip
-    """The alignment (:func:`kpflow.maps.affine.fit_affine`, unless ``affine = (A, t)`` is given) and
-    :func:`fit_steps` for one keypoint set through the compiled kernels (the same formulas, candidates and order):
-    ``((A, t), (centres, vectors, -rho^2))`` with a leading batch dimension of 1, or None where the sources coincide
-    or the rotation is ill-determined (:func:`.ilwr_kernels.align`)."""
+def _fit_steps_fused(source: torch.Tensor, target: torch.Tensor, alignment, n_steps: int, beta: float, neg_grid: torch.Tensor,
+                     tol: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """:func:`fit_steps` for one keypoint set behind its fitted ``alignment`` through the compiled kernels (the same
+    formulas, candidates and order): ``(centres, vectors, -rho^2)`` with a leading batch dimension of 1."""
     src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
-    finfo = torch.finfo(torch.float64)
-    if affine is not None:
-        a, t = affine[0][0].detach().numpy(), affine[1][0].detach().numpy()
-    else:
-        a, t, ok = ilwr_kernels.align(src, tgt if aligned else src, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
-        if not ok:
-            return None
-    z = ilwr_kernels.apply_affine(src, a, t)
-    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, finfo.tiny, MIN_EXPONENT)
-    out = [torch.from_numpy(arr)[None] for arr in (a, t, c, v, nr2)]
-    return tuple(out[:2]), tuple(out[2:])
+    z = ilwr_kernels.apply_affine(src, alignment.A[0].detach().numpy(), alignment.t[0].detach().numpy())
+    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, torch.finfo(torch.float64).tiny, MIN_EXPONENT)
+    return tuple(torch.from_numpy(arr)[None] for arr in (c, v, nr2))
 
 
 def fit_steps(z: torch.Tensor, target: torch.Tensor, n_steps: int, beta: float, neg_grid: torch.Tensor, tol: float):

@@ -24,10 +24,9 @@ import functools
 import os
 import stat
 
-import numpy as np
 import torch
 
-from kpflow.maps import ilwr_kernels, learned_kernels
+from kpflow.maps import learned_kernels
 from kpflow.maps.affine import AlignedMap
 from kpflow.maps.conditional_flow import ConditionalFlow
 from kpflow.maps.ilwr import ILWRMap
@@ -117,7 +116,7 @@ class LearnedMap(AlignedMap):
         self.flow = flow
         needs_grad = torch.is_grad_enabled() and (source.requires_grad or target.requires_grad)
         fast = self.compiled and source.dtype == torch.float64 and source.device.type == "cpu" and not needs_grad
-        if not (fast and self._compiled_alignment(source, target)):
+        if not (fast and self._fit_alignment_compiled(source, target)):
             self._fit_alignment(source, target)
         self._a, self._b, self.centre, self.spread = normalise(self.alignment._forward(source), target)
         self._cond = None
@@ -125,23 +124,6 @@ class LearnedMap(AlignedMap):
         self.refiner = None
         if self.refine_steps:
             self.refiner = ILWRMap(n_steps=self.refine_steps, alignment="none").fit(self._net_forward(source), target)
-
-    def _compiled_alignment(self, source: torch.Tensor, target: torch.Tensor) -> bool:
-        """Fit the rigid, similarity or translation alignment with ILWR's compiled kernel; False (nothing fitted)
-        where it declines (another kind, coincident sources, an ill-determined rotation): torch then decides."""
-        kind = self.alignment.kind
-        if kind not in ilwr_kernels.ALIGN_KINDS:
-            return False
-        finfo = torch.finfo(torch.float64)
-        fits = []
-        for s, t in zip(source.detach().numpy(), (target if self.aligned else source).detach().numpy()):
-            a, b, ok = ilwr_kernels.align(s, t, ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
-            if not ok:
-                return False
-            fits.append((a, b))
-        A = torch.from_numpy(np.stack([f[0] for f in fits]))
-        self._fit_alignment(source, target, fitted=(A, torch.from_numpy(np.stack([f[1] for f in fits]))))
-        return True
 
     @staticmethod
     def _compile(flow: ConditionalFlow, a: torch.Tensor, b: torch.Tensor) -> tuple:

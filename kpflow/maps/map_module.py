@@ -95,7 +95,8 @@ class MapModule(lightning.LightningModule):
         self.register_buffer("far", far_points(dim, 64, far_radius, seed), persistent=False)
 
     def losses(self, batch: KeypointPairs) -> dict[str, torch.Tensor]:
-        """The loss terms of the module docstring and the per-pair keypoint residual ``[B]`` (``residual``)."""
+        """The loss terms of the module docstring (``distill`` only with a positive weight) and the per-pair
+        keypoint residual ``[B]`` (``residual``)."""
         src, tgt = batch.source, batch.target
         if self.hparams.alignment == "none":
             aligned_src, aligned_q = src, batch.queries
@@ -107,18 +108,24 @@ class MapModule(lightning.LightningModule):
         cond = self.flow.condition(a, b)
         ga = self.flow(a, cond)
         out = {"keypoints": (ga - b).square().sum(-1).mean()}
-        out["distill"] = (self.flow((aligned_q - m) / sigma, cond) - (batch.query_targets - m) / sigma).square().sum(-1).mean()
         far = self.far.to(a).expand(len(a), -1, -1)
         out["far"] = (self.flow(far, cond) - far).square().sum(-1).mean()
         h = self.hparams
-        out["loss"] = out["keypoints"] + h.distill_weight * out["distill"] + h.far_weight * out["far"]
+        out["loss"] = out["keypoints"] + h.far_weight * out["far"]
+        if h.distill_weight > 0:  # (off by default: no flow pass over the queries then)
+            if batch.queries.shape[1] == 0:
+                raise ValueError("distill_weight > 0 needs query points: set the data module's n_queries (e.g. data.n_queries=32)")
+            q, q_target = (aligned_q - m) / sigma, (batch.query_targets - m) / sigma
+            out["distill"] = (self.flow(q, cond) - q_target).square().sum(-1).mean()
+            out["loss"] = out["loss"] + h.distill_weight * out["distill"]
         out["residual"] = ((ga - b).norm(dim=-1) * sigma[..., 0]).amax(-1)
         return out
 
     def training_step(self, batch: KeypointPairs, batch_idx: int) -> torch.Tensor:
         out = self.losses(batch)
         for k in ("loss", "keypoints", "distill", "far"):
-            self.log(f"train/{k}", out[k], prog_bar=k == "loss", batch_size=len(batch))
+            if k in out:
+                self.log(f"train/{k}", out[k], prog_bar=k == "loss", batch_size=len(batch))
         return out["loss"]
 
     def validation_step(self, batch: KeypointPairs, batch_idx: int) -> None:
