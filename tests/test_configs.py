@@ -29,7 +29,7 @@ ENTRIES = {
     "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
-    "task": dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
+    "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
         **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map"], "train"),
@@ -144,13 +144,27 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
     assert chunk.ndim == 2 and chunk.shape[1] == 2 and torch.isfinite(torch.as_tensor(chunk)).all()
 
 
-@pytest.mark.parametrize("name", sorted(ENTRIES["task"]))
+@pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "evaluate"))
 def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
     cfg = _compose("evaluate", [f"task={name}", "logger=none"], tmp_path)
     task = instantiate(cfg.task, _convert_="all")
     assert task.name == name
     scenes = [task.sample_scene(task.conditions[-1], i).as_dict() for i in range(3)]
     assert scenes[0] == task.sample_scene(task.conditions[-1], 0).as_dict() and scenes[0] != scenes[1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "generate"))
+def test_generation_tasks_and_transports_build_from_the_generate_config(name, tmp_path):
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    cfg = _compose("generate", [f"task={name}"], tmp_path)
+    task = instantiate(cfg.task)
+    assert task.name == name and set(cfg.families) <= set(cfg.transports)
+    assert all(isinstance(instantiate(t), SegmentTransport) for t in cfg.transports.values())
+    env = task.make_env()
+    scenes = [task.sample_scene(env, "wide", i).as_dict() for i in (0, 0, 1)]
+    assert scenes[0] == scenes[1] != scenes[2]
 
 
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))

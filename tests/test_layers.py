@@ -17,7 +17,7 @@ LAYERS = [
     {"data"},
     {"policies"},
     {"eval"},
-    {"collect", "correct", "teleop", "release", "__init__"},  # command-line tools and the package's front door
+    {"collect", "correct", "generate", "teleop", "release", "__init__"},  # command-line tools and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 

@@ -139,7 +139,7 @@ def test_identical_scenes_reproduce_the_demonstration(source, make_map):
     moved, _ = DemoTransportPolicy(make_map).plan(source.trajectory, Keypoints(kp, kp))
     np.testing.assert_allclose(moved.positions, source.trajectory.positions, atol=1e-5)
     np.testing.assert_allclose(moved.rotations, source.trajectory.rotations, atol=1e-5)
-    np.testing.assert_array_equal(moved.suction, source.trajectory.suction)
+    np.testing.assert_array_equal(moved.grasp, source.trajectory.grasp)
     assert moved.std.shape == (len(moved), 3)
     with pytest.raises(ValueError, match="source and target keypoints"):
         Keypoints(kp, kp[:31])

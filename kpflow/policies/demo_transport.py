@@ -3,7 +3,7 @@ the whole end-effector trajectory through it, open loop.
 
 With phi fitted from the source scene's keypoints S to the new scene's T (phi(S) ~= T), every commanded position
 goes through phi and every orientation through the polar factor of phi's Jacobian there
-(:func:`kpflow.transport.transport_trajectory`); suction and phases are kept as they are, and the map's standard
+(:func:`kpflow.transport.transport_trajectory`); the grasp and phases are kept as they are, and the map's standard
 deviation at each position is kept as ``std``. In an identical scene phi is the identity and the demonstration is
 replayed exactly.
 
@@ -71,7 +71,7 @@ class DemoTransportPolicy:
             if len(over):
                 n = self.stopped_at = int(over[0])
                 d = demonstration
-                demonstration = replace(d, positions=d.positions[:n], rotations=d.rotations[:n], suction=d.suction[:n], phases=d.phases[:n])
+                demonstration = replace(d, positions=d.positions[:n], rotations=d.rotations[:n], grasp=d.grasp[:n], phases=d.phases[:n])
                 pos, rot, std = pos[:n], rot[:n], std[:n]
             return pos, rot, std, demonstration
         lam = np.clip(u / self.max_std - 1.0, 0.0, 1.0)

@@ -34,23 +34,23 @@ class Policy(Protocol):
 @dataclass(frozen=True)
 class Trajectory:
     """An end-effector trajectory, one row per 20 Hz control step: ``positions [T, 3]`` and ``rotations [T, 3, 3]``
-    of the cup's tip (absolute targets for the operational-space controller), ``suction [T]`` (vacuum on),
+    of the cup's tip (absolute targets for the operational-space controller), ``grasp [T]`` (holding: the suction cup's vacuum on, or the jaws closed),
     ``phases [T]`` (the segment each step belongs to: approach, descend, seal, ...) and, once transported, ``std
     [T, 3]`` (the map's uncertainty at each position)."""
 
     positions: np.ndarray
     rotations: np.ndarray
-    suction: np.ndarray
+    grasp: np.ndarray
     phases: np.ndarray
     std: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)
-        shapes = (np.shape(self.positions)[1:], np.shape(self.rotations)[1:], len(self.rotations), len(self.suction), len(self.phases))
+        shapes = (np.shape(self.positions)[1:], np.shape(self.rotations)[1:], len(self.rotations), len(self.grasp), len(self.phases))
         if shapes != ((3,), (3, 3), n, n, n):
             raise ValueError(
-                "a trajectory needs positions [T, 3], rotations [T, 3, 3], suction [T] and phases [T] of one length T; got"
-                f" {np.shape(self.positions)}, {np.shape(self.rotations)}, {np.shape(self.suction)}, {np.shape(self.phases)}"
+                "a trajectory needs positions [T, 3], rotations [T, 3, 3], grasp [T] and phases [T] of one length T; got"
+                f" {np.shape(self.positions)}, {np.shape(self.rotations)}, {np.shape(self.grasp)}, {np.shape(self.phases)}"
             )
         if not (np.isfinite(self.positions).all() and np.isfinite(self.rotations).all()):
             raise ValueError("the trajectory contains NaN or inf")
@@ -68,7 +68,7 @@ class Trajectory:
         return int(steps[0])
 
     def moved(self, positions: np.ndarray, rotations: np.ndarray, std: np.ndarray) -> Trajectory:
-        """The same suction and phases at new poses (a transported copy)."""
+        """The same grasp and phases at new poses (a transported copy)."""
         return replace(self, positions=positions, rotations=rotations, std=std)
 
 
@@ -110,6 +110,21 @@ class Demonstration:
     observation: Any
     trajectory: Trajectory
     execution: Execution
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One object-centric segment of a recorded demonstration (``name``: ``"pick"``, ``"place"``): its commanded
+    ``trajectory`` and the scene when it began: ``poses`` (object or fixture -> (position [3], rotation [3, 3])),
+    the ``keypoints`` it depends on (object -> ``[N, 3]``), the objects' ``yaws`` and the ``gripper`` keypoint
+    ``[1, 3]`` (the grip site)."""
+
+    name: str
+    trajectory: Trajectory
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]
+    keypoints: dict[str, np.ndarray]
+    yaws: dict[str, float]
+    gripper: np.ndarray
 
 
 @dataclass

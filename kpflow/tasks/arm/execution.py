@@ -16,7 +16,7 @@ def follow(
 ) -> dict:
     """Command each step of ``trajectory`` on ``env`` (after ``reset_to``), then hold the last pose ``settle`` steps.
 
-    While ``suction`` is on, the cup seals as soon as an object is within reach; when it goes off, the object is let
+    While ``grasp`` is on, the cup seals as soon as an object is within reach; when it goes off, the object is let
     go. Returns the measured ``tip [T, 3]``, the ``tracking_error [T]`` (m), ``grasp_step`` (None if nothing was
     sealed), ``grasped`` (the object sealed first), ``collided`` (the arm touched one of the geoms ``touching``) and
     ``min_singular_value`` (of the arm's Jacobian, over the run). Appends a side-view frame every ``frame_every``
@@ -24,15 +24,15 @@ def follow(
     """
     if not isinstance(trajectory, Trajectory):
         raise ValueError(f"follow needs a kpflow.tasks.base.Trajectory, got {type(trajectory).__name__}")
-    positions, rotations, suction = trajectory.positions, trajectory.rotations, trajectory.suction
+    positions, rotations, grasp = trajectory.positions, trajectory.rotations, trajectory.grasp
     tip, error = [], []
     grasp_step, grasped, collided, min_sv = None, None, False, np.inf
     for t in range(len(positions)):
         env.command(positions[t], rotations[t])
-        if suction[t] and not env.holding():
+        if grasp[t] and not env.holding():
             if env.suction_on() and grasp_step is None:
                 grasp_step, grasped = t, env.held_object()
-        elif not suction[t] and env.holding():
+        elif not grasp[t] and env.holding():
             env.suction_off()
         pos, _ = env.ee_pose()
         tip.append(pos)

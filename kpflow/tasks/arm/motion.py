@@ -44,12 +44,12 @@ def interpolate(p0, r0, p1, r1) -> tuple[np.ndarray, np.ndarray]:
 
 
 def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> Trajectory:
-    """A trajectory from ``segments`` of ``(phase, target position, rotation, settle steps, suction)``: each moves
+    """A trajectory from ``segments`` of ``(phase, target position, rotation, settle steps, grasp)``: each moves
     in :func:`interpolate`'s steps to its target (``"seal"`` and ``"release"`` stay where they are) and holds it for
     ``settle`` steps. Returns the :class:`~kpflow.tasks.base.Trajectory`."""
     pos, rot = np.asarray(start_pos, float), np.asarray(start_rot, float)
-    out = {"positions": [], "rotations": [], "suction": [], "phases": []}
-    for phase, target, target_rot, settle, suction in segments:
+    out = {"positions": [], "rotations": [], "grasp": [], "phases": []}
+    for phase, target, target_rot, settle, grasp in segments:
         target, target_rot = np.asarray(target, float), np.asarray(target_rot, float)
         if phase in ("seal", "release"):
             ps, rs = np.empty((0, 3)), np.empty((0, 3, 3))
@@ -59,7 +59,7 @@ def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> Traje
         rs = np.concatenate([rs, np.repeat(target_rot[None], settle, 0)])
         out["positions"].append(ps)
         out["rotations"].append(rs)
-        out["suction"].append(np.full(len(ps), suction))
+        out["grasp"].append(np.full(len(ps), grasp))
         out["phases"] += [phase] * len(ps)
         pos, rot = target, target_rot
     return Trajectory(**{k: (np.concatenate(v) if k != "phases" else np.array(v)) for k, v in out.items()})

@@ -43,7 +43,7 @@ def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: 
 def execute(env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> Execution:
     """Run ``trajectory`` on ``env`` (a :class:`~.env.PackingEnv` after ``reset_to``) and say how it went.
 
-    Each step commands the pose; while ``suction`` is on the cup seals as soon as it is within reach of the object,
+    Each step commands the pose; while ``grasp`` is on the cup seals as soon as it is within reach of the object,
     and when it goes off the object is let go. After the last step the arm holds still for ``settle`` steps.
 
     Returns the :class:`~kpflow.tasks.base.Execution`: ``success`` (the object rests in the container) and

@@ -1,0 +1,122 @@
+"""The scripted source demonstrations of the benchmark tasks: each segment planned from the simulator's state at its
+start, from the objects' geometry.
+
+* ``pick`` (every task): over the grasp point, straight down, close the jaws, lift. The jaws close across the
+  object: across a cube's faces (the face pair nearest the arm's home yaw), across the can at the home yaw, across
+  the square nut's handle (``NUT_GRASP`` along its x axis; of the two ways round, the one nearer the home yaw).
+* ``place`` (stack, can, square): carry the held object over its goal at a safe height, lower it, open, retreat
+  upwards. Its goal comes from where the object is in the hand now: cube A's centre on top of cube B; the can over
+  its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the turn (of those
+  within ``MAX_PLACE_TURN`` that keep the last joint inside ``WRIST_LIMIT``) that keeps the grip site nearest the robot's base: with the handle pointing away,
+  the peg is at the edge of the Panda's reach.
+
+Poses are the grip site's (between the finger pads), as :class:`~kpflow.tasks.base.Trajectory` rows in the
+interpolated straight segments of :func:`kpflow.tasks.arm.motion.segments_to_trajectory`; ``grasp`` is the jaws'
+command (closed while True).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kpflow.tasks.arm.motion import segments_to_trajectory
+from kpflow.tasks.base import Trajectory
+
+from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, _rz, cube_half, reduced_yaw, yaw_of
+from .specs import TaskSpec
+
+APPROACH = 0.10  # m above the grasp point before going down
+LIFT = 0.12  # m the object is lifted after the grasp
+CLOSE_STEPS = 12  # control steps holding still while the jaws close (and open)
+RETREAT = {"cubeB": 0.12, "bin": 0.06, "peg": 0.12}  # m up after opening (the can's quarter of the bin is at the Panda's reach)
+CARRY_CLEARANCE = {"cubeB": 0.06, "bin": 0.14, "peg": 0.20}  # m of the held object's centre above its goal while carried
+CAN_COMPARTMENT = (0.05, 0.065, 0.0)  # in the can's quarter of the target bin (from the bin's centre), on the robot's side
+MAX_PLACE_TURN = 0.75 * np.pi  # rad the wrist may turn the nut to align it with the peg
+WRIST_LIMIT = 2.65  # rad: the Panda's last joint stops at +-2.9
+RELEASE_HEIGHT = {"cubeB": 0.004, "bin": 0.09, "peg": 0.03}  # m above the goal (see plan_place) at which the jaws open
+
+
+def jaws_down(yaw: float) -> np.ndarray:
+    """The gripper pointing down with its jaws closing along the world direction ``yaw``."""
+    return _rz(yaw) @ np.diag([1.0, -1.0, -1.0])
+
+
+def grasp_pose(env, spec: TaskSpec, home_yaw: float) -> tuple[np.ndarray, float]:
+    """Where the jaws close on ``spec.grasp`` now: the grip site's position and the jaws' yaw."""
+    kind = spec.kinds[spec.grasp]
+    pos, rot = env.object_pose(spec.grasp)
+    yaw = yaw_of(rot)
+    if kind == "cube":
+        return pos, reduced_yaw(yaw, 4, home_yaw)
+    if kind == "can":
+        return pos + [0.0, 0.0, 0.2 * CAN_HALF_HEIGHT], home_yaw
+    if kind == "nut":
+        handle = pos + rot @ np.array([NUT_GRASP, 0.0, 0.0])
+        return handle + [0.0, 0.0, 0.004], reduced_yaw(yaw + np.pi / 2, 2, home_yaw)
+    raise ValueError(f"no grasp for a {kind!r}")
+
+
+def plan_pick(env, spec: TaskSpec, home_yaw: float) -> Trajectory:
+    """The pick segment from the arm's pose now (module docstring)."""
+    start_pos, start_rot = env.ee_pose()
+    grasp, yaw = grasp_pose(env, spec, home_yaw)
+    rot = jaws_down(yaw)
+    above = grasp + [0.0, 0.0, APPROACH]
+    segments = [  # (phase, target, rotation, settle steps, jaws closed)
+        ("approach", above, rot, 8, False),
+        ("descend", grasp, rot, 8, False),
+        ("close", grasp, rot, CLOSE_STEPS, True),
+        ("lift", grasp + [0.0, 0.0, LIFT], rot, 5, True),
+    ]
+    return segments_to_trajectory(start_pos, start_rot, segments)
+
+
+def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
+    """The held object's goal: the position of its body and the yaw change that gets it there (module docstring)."""
+    pos, rot = env.object_pose(spec.grasp)
+    goal_pos, goal_rot = env.object_pose(spec.target)
+    kind = spec.kinds[spec.target]
+    if kind == "cube":
+        return goal_pos + [0.0, 0.0, cube_half(env, spec.grasp) + cube_half(env, spec.target)], 0.0
+    if kind == "bin":
+        return goal_pos + goal_rot @ np.array(CAN_COMPARTMENT), 0.0
+    if kind == "peg":
+        goal = np.array([goal_pos[0], goal_pos[1], env.env.table_offset[2] + 0.01])
+        smallest = reduced_yaw(yaw_of(goal_rot), 4, yaw_of(rot)) - yaw_of(rot)
+        wrist = env.arm_joints()[6]  # turning the jaws by +t turns the Panda's last joint by about -t
+        turns = [t for t in smallest + np.pi / 2 * np.arange(-2, 3) if abs(t) <= MAX_PLACE_TURN and abs(wrist - t) <= WRIST_LIMIT]
+        grip = env.ee_pose()[0]
+        base = env.sim.data.xpos[env.sim.model.body_name2id("robot0_base")]
+        reach = [np.linalg.norm((goal + _rz(t) @ (grip - pos) - base)[:2]) for t in turns]
+        return goal, float(turns[int(np.argmin(reach))])
+    raise ValueError(f"no placement on a {kind!r}")
+
+
+def plan_place(env, spec: TaskSpec) -> Trajectory:
+    """The place segment from the arm's pose now, carrying the object it holds (module docstring)."""
+    start_pos, start_rot = env.ee_pose()
+    held, _ = env.object_pose(spec.grasp)
+    goal, turn = place_goal(env, spec)
+    rz = _rz(turn)
+    rot = rz @ start_rot
+    offset = rz @ (start_pos - held)  # the grip site seen from the held object, after the turn
+    clearance, release = CARRY_CLEARANCE[spec.target], RELEASE_HEIGHT[spec.target]
+    carry = goal + offset + [0.0, 0.0, clearance]
+    carry[2] = max(carry[2], start_pos[2])
+    lower = goal + offset + [0.0, 0.0, release]
+    segments = [
+        ("carry", carry, rot, 25, True),
+        ("lower", lower, rot, 8, True),
+        ("open", lower, rot, CLOSE_STEPS, False),
+        ("retreat", lower + [0.0, 0.0, RETREAT[spec.target]], rot, 10, False),
+    ]
+    return segments_to_trajectory(start_pos, start_rot, segments)
+
+
+def plan_segment(env, spec: TaskSpec, segment: str, home_yaw: float) -> Trajectory:
+    """The scripted ``segment`` (``"pick"`` or ``"place"``) from the state now."""
+    if segment == "pick":
+        return plan_pick(env, spec, home_yaw)
+    if segment == "place":
+        return plan_place(env, spec)
+    raise ValueError(f"unknown segment {segment!r}; the task has {spec.segments}")

@@ -1,0 +1,150 @@
+"""robosuite's own benchmark tasks as they ship, driven on absolute end-effector poses.
+
+:class:`SuiteEnv` builds one of robosuite 1.5's environments (``Lift``, ``Stack``, ``PickPlaceCan``,
+``NutAssemblySquare``) with the Panda and its standard parallel-jaw gripper, under robosuite's operational-space
+controller (``OSC_POSE``) on **absolute** poses of the grip site in the world frame (``[x, y, z]``, an axis-angle
+``[rx, ry, rz]``, and the gripper: -1 open, +1 closed). Success is robosuite's own ``_check_success()``.
+
+Scenes are set, not sampled here: :meth:`SuiteEnv.reset_to` puts every object at the pose the scene gives (the
+draw of robosuite's placement initializer, :mod:`.scene`) and moves the fixtures the wide variants move (the peg of
+``NutAssemblySquare``, the target bin of ``PickPlaceCan``) by changing the static body's position in the compiled
+model, so nothing is rebuilt between scenes. The arm starts from robosuite's home configuration every time
+(``initialization_noise=None``).
+
+Rendering is headless on the CPU (``MUJOCO_GL=osmesa`` when Debian's libosmesa6 is installed, ``egl`` otherwise).
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import os
+
+if "MUJOCO_GL" not in os.environ:
+    os.environ["MUJOCO_GL"] = "osmesa" if ctypes.util.find_library("OSMesa") else "egl"
+if os.environ["MUJOCO_GL"] == "osmesa":
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import numpy as np  # noqa: E402
+import robosuite  # noqa: E402
+from robosuite.controllers import load_composite_controller_config  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from .specs import TaskSpec  # noqa: E402
+
+OPEN, CLOSED = -1.0, 1.0  # the gripper's action
+SETTLE_STEPS = 5  # control steps after a reset, holding the home pose, for the objects to come to rest
+
+
+class SuiteEnv:
+    """One robosuite benchmark environment (module docstring) for the task ``spec``.
+
+    Args:
+        spec: the task (:data:`~.specs.TASKS`).
+        render: whether frames can be rendered (an offscreen renderer; slower to build).
+        control_freq: control steps per second (robosuite's default, 20).
+    """
+
+    def __init__(self, spec: TaskSpec, render: bool = False, control_freq: int = 20):
+        self.spec = spec
+        controller = load_composite_controller_config(controller="BASIC", robot="Panda")
+        controller["body_parts"]["right"].update(input_type="absolute", input_ref_frame="world")
+        self.env = robosuite.make(
+            spec.env_name,
+            robots="Panda",
+            gripper_types="default",
+            controller_configs=controller,
+            initialization_noise=None,
+            has_renderer=False,
+            has_offscreen_renderer=render,
+            use_camera_obs=False,
+            control_freq=control_freq,
+            horizon=100_000,
+            ignore_done=True,
+            hard_reset=False,
+            **spec.env_kwargs,
+        )
+        self.env.reset()
+        self.sim = self.env.sim
+        robot = self.env.robots[0]
+        self.grip_site = robot.eef_site_id["right"]
+        self._arm_qpos = robot._ref_joint_pos_indexes
+        self._home_qpos = np.array(self.sim.data.qpos[self._arm_qpos])
+        model = self.sim.model
+        self.object_body = {name: model.body_name2id(body) for name, body in spec.object_bodies.items()}
+        self.object_joint = {name: joint for name, joint in spec.object_joints.items()}
+        self.fixture_body = {name: model.body_name2id(body) for name, body in spec.fixture_bodies.items()}
+        self._fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
+        self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
+        self.home_pose = self.ee_pose()
+        self.scene = None
+        self._gripper = OPEN
+        self.last_action = np.zeros(7)  # the last action sent to robosuite
+
+    # ------------------------------------------------------------------------------------------ scenes
+    def reset_to(self, scene) -> None:
+        """Set up ``scene`` (a :class:`~.scene.Scene`): fixtures moved, objects placed, the arm at home, at rest."""
+        env, data, model = self.env, self.sim.data, self.sim.model
+        env.reset()
+        for name, body in self.fixture_body.items():
+            model.body_pos[body] = self._fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
+        self.spec.move_fixtures(env, {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()})
+        for name, (pos, quat) in scene.objects.items():
+            data.set_joint_qpos(self.object_joint[name], np.concatenate([pos, quat]))
+        data.qpos[self._arm_qpos] = self._home_qpos
+        data.qvel[:] = 0.0
+        self.sim.forward()
+        self.scene = scene
+        self._gripper = OPEN
+        home_pos, home_rot = self.home_pose
+        for _ in range(SETTLE_STEPS):
+            self.command(home_pos, home_rot, OPEN)
+
+    # ------------------------------------------------------------------------------------------ state
+    def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position ``[3]`` and rotation ``[3, 3]`` of the grip site (between the finger pads) in the world."""
+        d = self.sim.data
+        return d.site_xpos[self.grip_site].copy(), d.site_xmat[self.grip_site].reshape(3, 3).copy()
+
+    def object_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Position ``[3]`` and rotation ``[3, 3]`` of an object's (or a fixture's) body in the world."""
+        b = self.object_body[name] if name in self.object_body else self.fixture_body[name]
+        d = self.sim.data
+        return d.xpos[b].copy(), d.xmat[b].reshape(3, 3).copy()
+
+    def object_state(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every object's free-joint pose now: name -> (position [3], quaternion (w, x, y, z) [4])."""
+        out = {}
+        for name, joint in self.object_joint.items():
+            q = self.sim.data.get_joint_qpos(joint)
+            out[name] = (np.array(q[:3]), np.array(q[3:7]))
+        return out
+
+    def gripper_closed(self) -> bool:
+        return self._gripper == CLOSED
+
+    def grasping(self, name: str) -> bool:
+        """robosuite's own grasp test: both finger pads touch object ``name``."""
+        robot = self.env.robots[0]
+        obj = next(o for o in self.env.model.mujoco_objects if o.joints and o.joints[0] == self.object_joint[name])
+        return bool(self.env._check_grasp(gripper=robot.gripper["right"], object_geoms=obj))
+
+    def success(self) -> bool:
+        """robosuite's own success test for this task."""
+        return bool(self.env._check_success())
+
+    def arm_joints(self) -> np.ndarray:
+        return np.array(self.sim.data.qpos[self._arm_qpos])
+
+    # ------------------------------------------------------------------------------------------ acting
+    def command(self, pos: np.ndarray, rot: np.ndarray, gripper: float) -> None:
+        """One control step towards the absolute grip-site pose ``(pos [3], rot [3, 3])`` with the gripper command
+        (``OPEN`` or ``CLOSED``)."""
+        self._gripper = CLOSED if gripper > 0 else OPEN
+        rotvec = Rotation.from_matrix(np.asarray(rot, float)).as_rotvec()
+        self.last_action = np.concatenate([np.asarray(pos, float), rotvec, [self._gripper]])
+        self.env.step(self.last_action)
+
+    def render_view(self, camera: str = "frontview", size: tuple[int, int] = (240, 320)) -> np.ndarray:
+        """An RGB frame ``[H, W, 3]`` from one of the task's cameras (for videos; needs ``render=True``)."""
+        rgb = self.sim.render(camera_name=camera, width=size[1], height=size[0])
+        return np.ascontiguousarray(rgb[::-1])

@@ -1,0 +1,100 @@
+"""Keypoints of the benchmark tasks' objects, from the simulator's object pose and geometry.
+
+A keypoint set names what a grasp or a placement depends on, and keeps the object's symmetries: a cube's eight
+corners look the same after a quarter turn, so they are ordered by the cube's axis nearest a reference yaw (the
+source scene's), not by its body frame; the transport then turns the gripper by at most 45 degrees, where an
+object-frame transform turns it by the cube's full yaw. Per kind (``[N, 3]``, world frame, m):
+
+* ``cube`` (lift, stack): the 8 corners of the box; symmetric under quarter turns about the vertical.
+* ``can``: the centres of its top and bottom and 4 points on the rim in fixed world directions: a cylinder has no
+  yaw to see, so none is transported.
+* ``nut`` (square): the ring's centre, its 4 outer corners and the handle's two ends: the handle fixes the yaw.
+* ``nut_ring``: the ring alone (centre and corners; symmetric under quarter turns), what the peg holds.
+* ``peg``: its bottom and top centres and the 4 top corners; symmetric under quarter turns.
+* ``bin``: the 4 corners of its rim; symmetric under half turns.
+
+The end effector's keypoint is the grip site's position (:func:`gripper_keypoints`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .specs import TaskSpec
+
+# geometry (m), read from robosuite 1.5's models
+CAN_RADIUS, CAN_HALF_HEIGHT = 0.025, 0.0407
+NUT_RING_HALF = 0.0543  # centre to the ring's outer edge
+NUT_HANDLE = (0.029, 0.079)  # the handle's extent along the nut's x axis
+NUT_GRASP = 0.054  # where the jaws close on the handle, along the nut's x axis
+PEG_HALF, PEG_HEIGHT = 0.016, 0.1  # half side, and half length (its body origin is at its middle)
+BIN_HALF = (0.195, 0.245)
+SYMMETRY = {"cube": 4, "can": 0, "nut": 1, "nut_ring": 4, "peg": 4, "bin": 2}  # turns that leave it unchanged (0: any)
+
+
+def yaw_of(rot: np.ndarray) -> float:
+    """Yaw (rad) of a rotation's x axis in the world's XY plane."""
+    return float(np.arctan2(rot[1, 0], rot[0, 0]))
+
+
+def reduced_yaw(yaw: float, order: int, reference: float) -> float:
+    """``yaw`` plus the multiple of ``2 pi / order`` that brings it nearest ``reference`` (``order`` 1: as it is)."""
+    period = 2 * np.pi / order
+    return float(reference + (yaw - reference + period / 2) % period - period / 2)
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _box(centre, yaw, half) -> np.ndarray:
+    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    return np.asarray(centre) + (signs * np.asarray(half)) @ _rz(yaw).T
+
+
+def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw: float = 0.0, half: float | None = None) -> np.ndarray:
+    """The keypoints ``[N, 3]`` of an object of ``kind`` at body pose ``(pos, rot)`` (module docstring), symmetric
+    ones ordered by the turn nearest ``reference_yaw``; ``half`` is a cube's half side."""
+    order = SYMMETRY.get(kind)
+    if order is None:
+        raise ValueError(f"unknown keypoint kind {kind!r}; choose one of {sorted(SYMMETRY)}")
+    yaw = reduced_yaw(yaw_of(rot), order, reference_yaw) if order else reference_yaw
+    pos = np.asarray(pos, float)
+    if kind == "cube":
+        return _box(pos, yaw, (half, half, half))
+    if kind == "can":
+        ring = [pos + _rz(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.arange(4) * np.pi / 2]
+        return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
+    if kind in ("nut", "nut_ring"):
+        r = _rz(yaw)
+        corners = [pos + r @ (NUT_RING_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        handle = [pos + r @ np.array([x, 0.0, 0.0]) for x in NUT_HANDLE] if kind == "nut" else []
+        return np.stack([pos, *corners, *handle])
+    if kind == "peg":
+        top = pos + [0, 0, PEG_HEIGHT]
+        corners = [top + _rz(yaw) @ (PEG_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        return np.stack([pos - [0, 0, PEG_HEIGHT], top, *corners])
+    corners = [pos + _rz(yaw) @ np.array([sx * BIN_HALF[0], sy * BIN_HALF[1], 0.0]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    return np.stack(corners)
+
+
+def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
+    """Keypoints of object or fixture ``name`` in ``env`` now (``kind`` overrides the task's, e.g. ``nut_ring``)."""
+    pos, rot = env.object_pose(name)
+    kind = kind or spec.kinds[name]
+    half = cube_half(env, name) if kind == "cube" else None
+    return object_keypoints(kind, pos, rot, reference_yaw, half)
+
+
+def cube_half(env, name: str) -> float:
+    """Half side (m) of cube ``name``, from its collision geom."""
+    model = env.sim.model
+    body = env.object_body[name]
+    geoms = [g for g in np.flatnonzero(model.geom_bodyid == body) if model.geom_contype[g]]
+    return float(model.geom_size[geoms[0]][0])
+
+
+def gripper_keypoints(env) -> np.ndarray:
+    """The grip site's position ``[1, 3]``."""
+    return env.ee_pose()[0][None]

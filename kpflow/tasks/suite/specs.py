@@ -1,0 +1,96 @@
+"""What each robosuite benchmark task is: its environment, objects, fixtures, the object each segment acts on, and
+the wide variant's placement ranges.
+
+A task is a pick (segment ``"pick"``, acting on ``grasp``) and, except ``lift``, a place (segment ``"place"``,
+carrying ``grasp`` to ``target``). ``kinds`` names each object's geometry for :mod:`.keypoints` (``cube``,
+``can``, ``nut``, ``peg``, ``bin``).
+
+Variants (:mod:`.scene`): ``d0`` is robosuite's placement initializer as it ships (what MimicGen calls D0);
+``wide`` widens it like MimicGen's D1:
+
+| task | d0 (robosuite) | wide |
+|---|---|---|
+| lift | cube x, y in +-0.03 m, any yaw | x, y in +-0.15 m, any yaw |
+| stack | both cubes x, y in +-0.08 m, any yaw | +-0.20 m (MimicGen's Stack D1) |
+| can | the can anywhere in bin 1, any yaw | the same, and the target bin moved by up to 0.08 m in x and 0.10 m in y |
+| square | nut x in [-0.115, -0.11], y in [0.11, 0.225], any yaw | nut x in +-0.115, y in +-0.255 and the square peg anywhere in x in [-0.1, 0.3], y in [-0.2, 0.2] (MimicGen's Square D1), kept 0.13 m from the nut |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WideRange:
+    """A wider placement for one object: ``x``, ``y`` (m, about ``reference``: the table's centre) and the yaw
+    range (None: any)."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+    rotation: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """One benchmark task (module docstring)."""
+
+    name: str
+    env_name: str
+    object_bodies: dict[str, str]  # name -> MuJoCo body
+    object_joints: dict[str, str]  # name -> its free joint
+    kinds: dict[str, str]  # object or fixture name -> keypoint geometry
+    grasp: str
+    target: str | None = None
+    fixture_bodies: dict[str, str] = field(default_factory=dict)
+    wide_objects: dict[str, WideRange] = field(default_factory=dict)
+    #: fixture -> ((x lo, x hi), (y lo, y hi)) offsets of the wide variant
+    wide_fixtures: dict[str, tuple[tuple[float, float], tuple[float, float]]] = field(default_factory=dict)
+    #: the wide variant keeps fixtures this far (m, in the plane) from the objects
+    fixture_clearance: float = 0.0
+    env_kwargs: dict = field(default_factory=dict)
+    #: after fixtures moved: ``(env, name -> body position)``, to update what robosuite caches about them
+    move_fixtures: Callable = lambda env, positions: None
+
+    @property
+    def segments(self) -> tuple[str, ...]:
+        return ("pick",) if self.target is None else ("pick", "place")
+
+
+def _move_bin(env, positions: dict) -> None:
+    """PickPlace checks success against its cached ``bin2_pos``: keep it where the bin is."""
+    env.bin2_pos = np.array(positions["bin"], float)
+
+
+TASKS: dict[str, TaskSpec] = {
+    "lift": TaskSpec(
+        "lift", "Lift", {"cube": "cube_main"}, {"cube": "cube_joint0"}, {"cube": "cube"}, grasp="cube",
+        wide_objects={"cube": WideRange((-0.15, 0.15), (-0.15, 0.15))},
+    ),
+    "stack": TaskSpec(
+        "stack", "Stack", {"cubeA": "cubeA_main", "cubeB": "cubeB_main"}, {"cubeA": "cubeA_joint0", "cubeB": "cubeB_joint0"},
+        {"cubeA": "cube", "cubeB": "cube"}, grasp="cubeA", target="cubeB",
+        wide_objects={"cubeA": WideRange((-0.2, 0.2), (-0.2, 0.2)), "cubeB": WideRange((-0.2, 0.2), (-0.2, 0.2))},
+    ),
+    "can": TaskSpec(
+        "can", "PickPlaceCan", {"can": "Can_main"}, {"can": "Can_joint0"}, {"can": "can", "bin": "bin"}, grasp="can",
+        target="bin", fixture_bodies={"bin": "bin2"}, wide_fixtures={"bin": ((-0.08, 0.08), (0.0, 0.10))},
+        move_fixtures=_move_bin,
+    ),
+    "square": TaskSpec(
+        "square", "NutAssemblySquare", {"nut": "SquareNut_main"}, {"nut": "SquareNut_joint0"}, {"nut": "nut", "peg": "peg"},
+        grasp="nut", target="peg", fixture_bodies={"peg": "peg1"},
+        wide_objects={"nut": WideRange((-0.115, 0.115), (-0.255, 0.255))},
+        wide_fixtures={"peg": ((-0.33, 0.07), (-0.30, 0.10))},  # peg1 ships at (0.23, 0.10): x in [-0.1, 0.3], y in [-0.2, 0.2]
+        fixture_clearance=0.13,
+    ),
+}  # fmt: skip
+
+
+def task_spec(name: str) -> TaskSpec:
+    if name not in TASKS:
+        raise ValueError(f"unknown robosuite task {name!r}; choose one of {sorted(TASKS)}")
+    return TASKS[name]

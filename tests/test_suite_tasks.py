@@ -1,0 +1,156 @@
+"""robosuite's own benchmark tasks (kpflow/tasks/suite) and generation by segment transport (kpflow/eval/generation):
+real robosuite 1.5 environments with the Panda's parallel-jaw gripper, headless on the CPU."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.robomimic_export import export_robomimic
+from kpflow.maps import GPMap, ILWRMap
+from kpflow.tasks.base import Trajectory
+from kpflow.tasks.suite.keypoints import object_keypoints, reduced_yaw
+from kpflow.tasks.suite.scene import Scene
+from kpflow.tasks.suite.specs import TASKS, task_spec
+from kpflow.tasks.suite.task import SuiteTask
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def worlds():
+    """One environment per task and its scripted demonstration in the first d0 scene."""
+    out = {}
+    for name in TASKS:
+        task = SuiteTask(name)
+        env = task.make_env()
+        segments, success, failure = task.demonstrate(env, task.sample_scene(env, "d0", 0))
+        out[name] = (task, env, segments, success, failure)
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_the_scripted_source_succeeds_by_robosuites_own_check(worlds, name):
+    task, env, segments, success, failure = worlds[name]
+    assert success and failure is None and env.success()
+    assert [s.name for s in segments] == list(task.spec.segments)
+    closed = np.concatenate([s.trajectory.grasp for s in segments])
+    assert closed.any() and not closed.all()  # the jaws close on the object (and open again to place it)
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_each_task_resets_to_its_scene_and_the_jaws_close(worlds, name):
+    task, env, *_ = worlds[name]
+    scene = task.sample_scene(env, "wide", 3)
+    env.reset_to(scene)
+    for obj, (pos, quat) in scene.objects.items():
+        assert np.linalg.norm(env.object_pose(obj)[0][:2] - np.asarray(pos)[:2]) < 0.01
+    pos, rot = env.ee_pose()
+    fingers = env.env.robots[0]._ref_gripper_joint_pos_indexes["right"]
+    opened = np.abs(env.sim.data.qpos[fingers]).sum()
+    for _ in range(10):
+        env.command(pos, rot, 1.0)
+    assert np.abs(env.sim.data.qpos[fingers]).sum() < opened - 0.01 and env.gripper_closed()
+
+
+def test_scenes_are_seeded_and_the_wide_variant_is_wider(worlds):
+    task, env, *_ = worlds["stack"]
+    a, b = task.sample_scene(env, "d0", 5), task.sample_scene(env, "d0", 5)
+    assert a.as_dict() == b.as_dict() and a.as_dict() != task.sample_scene(env, "d0", 6).as_dict()
+    spread = {v: np.ptp([task.sample_scene(env, v, i).objects["cubeA"][0][0] for i in range(30)]) for v in ("d0", "wide")}
+    assert spread["d0"] <= 0.16 + 1e-9 and spread["wide"] > 0.2
+    square, senv, *_ = worlds["square"]
+    offsets = [square.sample_scene(senv, "wide", i).fixture_offsets["peg"] for i in range(10)]
+    assert len({tuple(o) for o in offsets}) == 10
+    assert Scene.from_dict(a.as_dict()).as_dict() == a.as_dict()
+
+
+def test_bad_scenes_tasks_and_variants_are_refused_by_name(worlds):
+    with pytest.raises(ValueError, match="quaternion"):
+        Scene({"cube": ((0.0, 0.0, 0.8), (2.0, 0.0, 0.0, 0.0))})
+    with pytest.raises(ValueError, match="unknown robosuite task 'door'"):
+        task_spec("door")
+    task, env, *_ = worlds["lift"]
+    with pytest.raises(ValueError, match="unknown variant 'd9'"):
+        task.sample_scene(env, "d9", 0)
+
+
+def test_symmetric_keypoints_turn_the_gripper_least():
+    # closed form: the quarter turn nearest the reference
+    assert reduced_yaw(np.pi - 0.1, 4, 0.0) == pytest.approx(-0.1)
+    assert reduced_yaw(2.0, 2, 0.0) == pytest.approx(2.0 - np.pi)
+    assert reduced_yaw(2.0, 1, 0.0) == pytest.approx(2.0)
+    pos = np.array([0.1, 0.0, 0.82])
+    for kind in ("cube", "peg"):  # a quarter turn leaves the keypoints where they were, in the same order
+        r0, r1 = (Rotation.from_euler("z", y).as_matrix() for y in (0.3, 0.3 + np.pi / 2))
+        np.testing.assert_allclose(object_keypoints(kind, pos, r0, 0.3, half=0.02), object_keypoints(kind, pos, r1, 0.3, half=0.02), atol=1e-12)
+    spun = [object_keypoints("can", pos, Rotation.from_euler("z", y).as_matrix(), 0.0) for y in (0.0, 1.0, 2.5)]
+    np.testing.assert_allclose(spun[0], spun[1], atol=1e-12)
+    np.testing.assert_allclose(spun[0], spun[2], atol=1e-12)  # a can has no yaw to transport
+    nut = [object_keypoints("nut", pos, Rotation.from_euler("z", y).as_matrix(), 0.0) for y in (0.0, np.pi / 2)]
+    assert np.abs(nut[0] - nut[1]).max() > 0.05  # the handle fixes the nut's yaw
+
+
+@pytest.mark.parametrize("family", ["mimicgen", "ilwr", "gp"])
+def test_transport_into_the_source_scene_reproduces_the_source(worlds, family):
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family])
+    task, env, segments, *_ = worlds["square"]
+    for segment in segments:
+        now = {"poses": segment.poses, "keypoints": segment.keypoints, "gripper": segment.gripper}
+        carried = transport.carry(segment, now)
+        np.testing.assert_allclose(carried.positions, segment.trajectory.positions, atol=1e-7)
+        np.testing.assert_allclose(carried.rotations, segment.trajectory.rotations, atol=1e-7)
+        np.testing.assert_array_equal(carried.grasp, segment.trajectory.grasp)
+
+
+def test_failure_reasons(worlds):
+    task, env, *_ = worlds["lift"]
+    env.reset_to(task.sample_scene(env, "d0", 1))
+    pos, rot = env.ee_pose()
+    n = 20
+    closing_in_the_air = Trajectory(np.repeat(pos[None], n, 0), np.repeat(rot[None], n, 0), np.ones(n, bool), np.full(n, "close"))
+    assert task.run_segment(env, closing_in_the_air).failure is None
+    assert task.segment_failure(env, "pick") == "not grasped"
+    far = pos + [1.5, 0.0, 0.0]
+    unreachable = Trajectory(np.repeat(far[None], n, 0), np.repeat(rot[None], n, 0), np.zeros(n, bool), np.full(n, "approach"))
+    assert task.run_segment(env, unreachable).failure in ("unreachable", "joint limit")
+    assert task.finish(env, unreachable) == (False, "not lifted")
+
+
+def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(tmp_path):
+    from kpflow.eval.generation import generate
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    families = {"mimicgen": SegmentTransport(None), "gp": SegmentTransport(GPMap)}
+    results = generate(tmp_path, SuiteTask("lift"), families, ["d0"], n=2, workers=1, videos=0, progress=False)
+    rows = {r["family"]: r for r in results["summary"]}
+    assert set(rows) == {"mimicgen", "gp"} and all(r["trials"] == 2 for r in rows.values())
+    assert rows["gp"]["successes"] >= 1
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert len(saved["attempts"]) == 4 and "| d0 | gp | 2 |" in (tmp_path / "results.md").read_text()
+    with EpisodeStore(tmp_path / "d0" / "gp" / "episodes.zarr") as store:
+        assert store.n_episodes == rows["gp"]["successes"]
+        episode = store.episode(0)
+        assert episode["action"].shape[1] == 7 and len(episode["state"]) == len(episode["action"])
+    with h5py.File(tmp_path / "d0" / "gp" / "demos.hdf5", "r") as f:
+        env_args = json.loads(f["data"].attrs["env_args"])
+        assert env_args["env_name"] == "Lift" and env_args["type"] == 1
+        demo = f["data/demo_0"]
+        t = demo.attrs["num_samples"]
+        assert demo["actions"].shape == (t, 7) and demo["states"].shape[0] == t and demo["obs/robot0_eef_pos"].shape == (t, 3)
+        assert demo["dones"][-1] == 1 and demo["rewards"][:-1].sum() == 0
+        assert f["data"].attrs["total"] == sum(f[f"data/{k}"].attrs["num_samples"] for k in f["data"])
+        assert [n.decode() for n in f["mask/train"][:]] == sorted(f["data"], key=lambda k: int(k.split("_")[1]))
+
+
+def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):
+    with pytest.raises(ValueError, match="lacks"):
+        export_robomimic(tmp_path / "x.hdf5", [{"action": np.zeros((3, 7))}], "Lift", {})
+    with pytest.raises(ValueError, match="differ in length"):
+        export_robomimic(tmp_path / "x.hdf5", [{"action": np.zeros((3, 7)), "state": np.zeros((2, 5)), "ee_pos": np.zeros((3, 3))}], "Lift", {})
+    assert list(tmp_path.iterdir()) == []
