@@ -1,8 +1,9 @@
 """Rotation helpers: nearest rotation (polar factor), quaternion conversions (x, y, z, w order, as scipy and
-robosuite use), planar rotations, roll-pitch-yaw, and the SO(3) exponential and logarithm."""
+robosuite use), planar rotations, roll-pitch-yaw, the SO(3) exponential and logarithm, and the 6-D representation."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -137,3 +138,21 @@ def so3_log(R) -> torch.Tensor:
     if torch.dot(axis, v) < 0:
         axis = -axis
     return axis * angle
+
+
+def matrix_to_rot6d(r) -> np.ndarray:
+    """The continuous 6-D rotation representation of Zhou et al. (2019): the first two columns of ``R [..., 3, 3]``,
+    ``[..., 6]`` (column 1, then column 2)."""
+    r = np.asarray(r, float)
+    return r[..., :, :2].swapaxes(-1, -2).reshape(*r.shape[:-2], 6)
+
+
+def rot6d_to_matrix(x) -> np.ndarray:
+    """The rotation ``[..., 3, 3]`` of a 6-D representation ``[..., 6]`` (Zhou et al. 2019, Eq. 15-16): Gram-Schmidt,
+    ``b1 = a1/|a1|``, ``b2 = (a2 - (b1.a2) b1)/|.|``, ``b3 = b1 x b2``."""
+    x = np.asarray(x, float)
+    a1, a2 = x[..., :3], x[..., 3:]
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
+    b2 = b2 / np.linalg.norm(b2, axis=-1, keepdims=True)
+    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)

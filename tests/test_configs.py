@@ -26,13 +26,13 @@ ENTRIES = {
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp"], "train"),
     "callbacks": {"default": "train"},
-    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs"], "train"),
+    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
-        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking"], "evaluate"),
-        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map"], "train"),
+        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy"], "evaluate"),
+        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm"], "train"),
     },
 }
 
@@ -113,6 +113,8 @@ def test_data_options_build_datamodules(name, store, tmp_path):
         path = [f"data.sampler.path={store}", "data.sampler.n_episodes=null", "data.n_pairs=20"]
     if name == "frames_pairs":
         path = ["data.n_pairs=20"]
+    if name == "suite_store":  # any store with keypoints and an action field (a generated one has ee_target)
+        path = [f"data.path={store}", "data.action_key=action"]
     cfg = _compose("train", [f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)
@@ -169,7 +171,9 @@ def test_generation_tasks_and_transports_build_from_the_generate_config(name, tm
 
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))
 def test_experiment_options_compose_and_instantiate(name, entry, tmp_path):
-    cfg = _compose(entry, [f"experiment={name}", "logger=none"], tmp_path)
+    # suite_policy evaluates a trained checkpoint: any K-CFM builds it (the released Push-T one here)
+    extra = [f"policy.checkpoint={RELEASED}"] if name == "suite_policy" else []
+    cfg = _compose(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
     if entry == "evaluate":
         run = instantiate(cfg.experiment)
         assert isinstance(run, partial) and callable(run)

@@ -98,10 +98,10 @@ def test_symmetric_keypoints_turn_the_gripper_least():
 def test_transport_into_the_source_scene_reproduces_the_source(worlds, family):
     from kpflow.policies.segment_transport import SegmentTransport
 
-    transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family])
+    transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family], in_hand=family != "mimicgen")
     task, env, segments, *_ = worlds["square"]
     for segment in segments:
-        now = {"poses": segment.poses, "keypoints": segment.keypoints, "gripper": segment.gripper}
+        now = {"poses": segment.poses, "keypoints": segment.keypoints, "gripper": segment.gripper, "in_hand": segment.in_hand}
         carried = transport.carry(segment, now)
         np.testing.assert_allclose(carried.positions, segment.trajectory.positions, atol=1e-7)
         np.testing.assert_allclose(carried.rotations, segment.trajectory.rotations, atol=1e-7)
@@ -122,12 +122,19 @@ def test_failure_reasons(worlds):
     assert task.finish(env, unreachable) == (False, "not lifted")
 
 
-def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(tmp_path):
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """Two generation attempts per family on lift's d0 scenes, written like a CLI run."""
     from kpflow.eval.generation import generate
     from kpflow.policies.segment_transport import SegmentTransport
 
-    families = {"mimicgen": SegmentTransport(None), "gp": SegmentTransport(GPMap)}
-    results = generate(tmp_path, SuiteTask("lift"), families, ["d0"], n=2, workers=1, videos=0, progress=False)
+    out = tmp_path_factory.mktemp("generated")
+    families = {"mimicgen": SegmentTransport(None, in_hand=False), "gp": SegmentTransport(GPMap)}
+    return out, generate(out, SuiteTask("lift"), families, ["d0"], n=2, workers=1, videos=0, progress=False)
+
+
+def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(generated):
+    tmp_path, results = generated
     rows = {r["family"]: r for r in results["summary"]}
     assert set(rows) == {"mimicgen", "gp"} and all(r["trials"] == 2 for r in rows.values())
     assert rows["gp"]["successes"] >= 1
@@ -136,7 +143,9 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(tmp_p
     with EpisodeStore(tmp_path / "d0" / "gp" / "episodes.zarr") as store:
         assert store.n_episodes == rows["gp"]["successes"]
         episode = store.episode(0)
-        assert episode["action"].shape[1] == 7 and len(episode["state"]) == len(episode["action"])
+        t = len(episode["action"])
+        assert episode["action"].shape == (t, 7) and episode["ee_target"].shape == (t, 10) and episode["keypoints"].shape == (t, 11, 3)
+        np.testing.assert_allclose(episode["ee_target"][:, :3], episode["action"][:, :3])
     with h5py.File(tmp_path / "d0" / "gp" / "demos.hdf5", "r") as f:
         env_args = json.loads(f["data"].attrs["env_args"])
         assert env_args["env_name"] == "Lift" and env_args["type"] == 1
@@ -146,6 +155,31 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(tmp_p
         assert demo["dones"][-1] == 1 and demo["rewards"][:-1].sum() == 0
         assert f["data"].attrs["total"] == sum(f[f"data/{k}"].attrs["num_samples"] for k in f["data"])
         assert [n.decode() for n in f["mask/train"][:]] == sorted(f["data"], key=lambda k: int(k.split("_")[1]))
+
+
+def test_a_kcfm_trained_on_generated_demos_drives_the_arm_in_closed_loop(generated, tmp_path):
+    import lightning
+
+    from kpflow.data.chunks import ChunkDataModule
+    from kpflow.policies.kcfm import KCFM
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.tasks.suite.rollout import run_policy_episode
+
+    out, _ = generated
+    data = ChunkDataModule(out / "d0" / "gp" / "episodes.zarr", horizon=16, obs_key="keypoints", action_key="ee_target",
+                           val_fraction=0.0, batch_size=64, n_obs=2)  # fmt: skip
+    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32))
+    trainer = lightning.Trainer(max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                                enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
+    trainer.fit(model, datamodule=data)
+    trainer.save_checkpoint(tmp_path / "last.ckpt")
+    policy = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt", steps=2, execute=8)
+    with pytest.raises(ValueError, match=r"\[B, 2, 11, 3\]"):
+        policy.model.sample(np.zeros((2, 11, 2)))
+    task = SuiteTask("lift")
+    env = task.make_env()
+    episode = run_policy_episode(env, policy, task.sample_scene(env, "d0", 0, seed=20_000), max_steps=24)
+    assert episode.steps <= 24 and episode.decisions == (episode.steps + 7) // 8
 
 
 def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):

@@ -54,7 +54,9 @@ class Generator:
             raise RuntimeError(f"{self.task.name}: none of the {self.n_sources} scripted source demonstrations succeeded")
 
     def attempt(self, variant: str, index: int, family: str, frames: list | None = None) -> tuple[dict, dict | None]:
-        """One attempt: its record (and, if it succeeded, the episode's ``actions``, ``states``, ``ee_pos``)."""
+        """One attempt: its record and, if it succeeded, the episode (``action [T, 7]``, robosuite's; ``ee_target
+        [T, 10]``, the same as position, 6-D rotation and gripper; ``keypoints [T, K, 3]``; ``state [T, S]``;
+        ``ee_pos [T, 3]``)."""
         task, env, transport = self.task, self.env, self.families[family]
         scene = task.sample_scene(env, variant, index, self.seed)
         source_id = int(np.random.default_rng([self.seed, index]).integers(len(self.sources)))
@@ -81,9 +83,11 @@ class Generator:
         episode = None
         if success:
             episode = {
-                "action": np.concatenate([r.actions for r in runs]).astype(np.float64),
-                "state": np.concatenate([r.states for r in runs]).astype(np.float64),
-                "ee_pos": np.concatenate([r.tip for r in runs]).astype(np.float64),
+                "action": np.concatenate([r.actions for r in runs]),
+                "ee_target": np.concatenate([r.ee_targets for r in runs]),
+                "keypoints": np.concatenate([r.keypoints for r in runs]),
+                "state": np.concatenate([r.states for r in runs]),
+                "ee_pos": np.concatenate([r.tip for r in runs]),
             }
         return record, episode
 

@@ -123,6 +123,7 @@ class KCFM(lightning.LightningModule):
         n_obs: observation frames it conditions on, oldest first and ending at the current one (must match the
             datamodule's; Diffusion Policy uses 2).
         n_keypoints: keypoints per observation (25 for Push-T).
+        keypoint_dim: coordinates per keypoint (2 for Push-T, 3 for the robosuite tasks).
         action_dim: size of one action (2: an absolute agent target in px).
         goal_frame: express keypoints and actions in the frame of the goal T (keypoints 12..23), fitted by
             :func:`goal_pose`; predictions are mapped back to the world. Needs the Push-T layout (25 keypoints,
@@ -148,6 +149,7 @@ class KCFM(lightning.LightningModule):
         n_obs: int = 1,
         n_keypoints: int = N_KEYPOINTS,
         action_dim: int = 2,
+        keypoint_dim: int = 2,
         goal_frame: bool = False,
         relative: bool = False,
         objective: str = "icfm",
@@ -167,8 +169,12 @@ class KCFM(lightning.LightningModule):
         ema_decay: float = 0.999,
     ) -> None:
         super().__init__()
-        if horizon < 1 or n_obs < 1 or n_keypoints < 1 or action_dim < 1:
-            raise ValueError(f"need horizon, n_obs, n_keypoints, action_dim >= 1; got {horizon}, {n_obs}, {n_keypoints}, {action_dim}")
+        if horizon < 1 or n_obs < 1 or n_keypoints < 1 or action_dim < 1 or keypoint_dim < 1:
+            raise ValueError(
+                f"need horizon, n_obs, n_keypoints, action_dim, keypoint_dim >= 1; got {horizon}, {n_obs}, {n_keypoints}, {action_dim}, {keypoint_dim}"
+            )
+        if (goal_frame or relative) and keypoint_dim != 2:
+            raise ValueError(f"goal_frame and relative are planar (Push-T): they need keypoint_dim=2; got {keypoint_dim}")
         if network not in NETWORKS:
             raise ValueError(f"network must be one of {NETWORKS}; got {network!r}")
         if goal_frame and (n_keypoints != N_KEYPOINTS or action_dim != 2):
@@ -183,14 +189,14 @@ class KCFM(lightning.LightningModule):
             raise ValueError(f"warmup_steps must be >= 0; got {warmup_steps}")
         self.objective = build_objective(objective, **(objective_options or {}))  # validates the name and options
         self.save_hyperparameters()
-        cond_dim = 2 * n_keypoints * n_obs
+        cond_dim = keypoint_dim * n_keypoints * n_obs
         if network == "unet":
             self.net = ConditionalUnet1D(action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim)
         else:
             self.net = ConditionalTransformer1D(action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
-        self.register_buffer("kp_mean", torch.zeros(2 * n_keypoints))
-        self.register_buffer("kp_std", torch.ones(2 * n_keypoints))
+        self.register_buffer("kp_mean", torch.zeros(keypoint_dim * n_keypoints))
+        self.register_buffer("kp_std", torch.ones(keypoint_dim * n_keypoints))
         self.register_buffer("action_center", torch.zeros(action_dim))
         self.register_buffer("action_scale", torch.ones(action_dim))
         self.register_buffer("stats_set", torch.tensor(False))
@@ -198,7 +204,7 @@ class KCFM(lightning.LightningModule):
     # ------------------------------------------------------------------------------------ normalisation
 
     def set_normalisation(self, keypoints, chunks, mask=None) -> None:
-        """Fit the statistics to world-frame ``keypoints [N, K, 2]`` and their action ``chunks [N, H, A]`` (or single
+        """Fit the statistics to world-frame ``keypoints [N, K, D]`` and their action ``chunks [N, H, A]`` (or single
         actions ``[N, A]``), counting only the steps where ``mask [N, H]`` is true (all when None).
 
         Keypoints (in the goal frame if ``goal_frame``) are standardised per coordinate; a coordinate with a spread
@@ -206,12 +212,12 @@ class KCFM(lightning.LightningModule):
         to [-1, 1] per dimension by their min/max.
         """
         kp, act = _float64(keypoints), _float64(chunks)
-        k, a = self.hparams.n_keypoints, self.hparams.action_dim
+        k, a, d = self.hparams.n_keypoints, self.hparams.action_dim, self.hparams.keypoint_dim
         if act.ndim == 2:
             act = act[:, None]
-        if kp.ndim != 3 or kp.shape[1:] != (k, 2) or act.ndim != 3 or act.shape[::2] != (len(kp), a) or len(kp) == 0:
+        if kp.ndim != 3 or kp.shape[1:] != (k, d) or act.ndim != 3 or act.shape[::2] != (len(kp), a) or len(kp) == 0:
             raise ValueError(
-                f"need keypoints [N, {k}, 2] and actions [N, {a}] or [N, H, {a}] with N >= 1; "
+                f"need keypoints [N, {k}, {d}] and actions [N, {a}] or [N, H, {a}] with N >= 1; "
                 f"got {tuple(kp.shape)} and {tuple(_float64(chunks).shape)}"
             )
         mask = torch.ones(act.shape[:2], dtype=torch.bool) if mask is None else torch.as_tensor(np.asarray(mask)).bool()
@@ -256,7 +262,7 @@ class KCFM(lightning.LightningModule):
         self.set_normalisation(obs, chunks, mask)
 
     def _condition(self, history: torch.Tensor) -> torch.Tensor:
-        """Condition ``c [B, n_obs 2K]`` (float32) of world keypoint frames ``[B, n_obs, K, 2]``: every frame in the
+        """Condition ``c [B, n_obs D K]`` (float32) of world keypoint frames ``[B, n_obs, K, D]``: every frame in the
         current (last) frame's goal frame if ``goal_frame``, standardised, concatenated oldest first."""
         kp = history.to(torch.float64)
         b, n = kp.shape[:2]
@@ -301,11 +307,11 @@ class KCFM(lightning.LightningModule):
         return torch.randn(shape, generator=generator, device=device).to(self.device)
 
     def _history(self, batch: dict) -> torch.Tensor:
-        """The batch's keypoint frames ``[B, n_obs, K, 2]``: ``batch["history"]``, or ``batch["obs"]`` as one frame."""
+        """The batch's keypoint frames ``[B, n_obs, K, D]``: ``batch["history"]``, or ``batch["obs"]`` as one frame."""
         if "history" in batch:
             return batch["history"]
         if self.hparams.n_obs != 1:
-            raise ValueError(f"the model conditions on n_obs={self.hparams.n_obs} frames: the batch needs 'history' [B, n_obs, K, 2]")
+            raise ValueError(f"the model conditions on n_obs={self.hparams.n_obs} frames: the batch needs 'history' [B, n_obs, K, D]")
         return batch["obs"][:, None]
 
     def loss(self, batch: dict, net: torch.nn.Module | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -318,10 +324,10 @@ class KCFM(lightning.LightningModule):
         actions, mask = batch["actions"], batch["mask"]
         history = self._history(batch)
         k, h, a, n = self.hparams.n_keypoints, self.hparams.horizon, self.hparams.action_dim, self.hparams.n_obs
-        b = len(actions)
-        if history.shape != (b, n, k, 2) or actions.shape != (b, h, a) or mask.shape != (b, h):
+        d, b = self.hparams.keypoint_dim, len(actions)
+        if history.shape != (b, n, k, d) or actions.shape != (b, h, a) or mask.shape != (b, h):
             raise ValueError(
-                f"batch must hold history [B, {n}, {k}, 2] (or obs [B, {k}, 2] when n_obs=1), actions [B, {h}, {a}] and "
+                f"batch must hold history [B, {n}, {k}, {d}] (or obs [B, {k}, {d}] when n_obs=1), actions [B, {h}, {a}] and "
                 f"mask [B, {h}]; got {tuple(history.shape)}, {tuple(actions.shape)}, {tuple(mask.shape)}"
             )
         c = self._condition(history)
@@ -372,10 +378,10 @@ class KCFM(lightning.LightningModule):
     # ---------------------------------------------------------------------------------------- inference
 
     def _check_keypoints(self, keypoints) -> torch.Tensor:
-        """Keypoints as a finite float64 tensor ``[B, n_obs, K, 2]`` on the model's device.
+        """Keypoints as a finite float64 tensor ``[B, n_obs, K, D]`` on the model's device.
 
-        Accepted: ``[B, n_obs, K, 2]``; one history ``[n_obs, K, 2]``; and, when ``n_obs = 1``, one frame ``[K, 2]``
-        or a batch of frames ``[B, K, 2]``.
+        Accepted: ``[B, n_obs, K, D]``; one history ``[n_obs, K, D]``; and, when ``n_obs = 1``, one frame ``[K, D]``
+        or a batch of frames ``[B, K, D]``.
         """
         if isinstance(keypoints, torch.Tensor):
             kp = keypoints
@@ -386,14 +392,14 @@ class KCFM(lightning.LightningModule):
                 kp = torch.as_tensor(np.asarray(keypoints, dtype=np.float64))
             except (TypeError, ValueError) as e:
                 raise ValueError(f"keypoints must be an array of numbers ({e})") from e
-        k, n, shape = self.hparams.n_keypoints, self.hparams.n_obs, tuple(kp.shape)
+        k, n, d, shape = self.hparams.n_keypoints, self.hparams.n_obs, self.hparams.keypoint_dim, tuple(kp.shape)
         if kp.ndim == 2 and n == 1:
             kp = kp[None, None]
         elif kp.ndim == 3:
             kp = kp[:, None] if n == 1 else kp[None]
-        if kp.ndim != 4 or kp.shape[1:] != (n, k, 2) or len(kp) == 0:
-            single = f"[{k}, 2], [B, {k}, 2] or " if n == 1 else ""
-            raise ValueError(f"keypoints must have shape {single}[{n}, {k}, 2] or [B, {n}, {k}, 2] (n_obs={n} frames) with B >= 1; got {shape}")
+        if kp.ndim != 4 or kp.shape[1:] != (n, k, d) or len(kp) == 0:
+            single = f"[{k}, {d}], [B, {k}, {d}] or " if n == 1 else ""
+            raise ValueError(f"keypoints must have shape {single}[{n}, {k}, {d}] or [B, {n}, {k}, {d}] (n_obs={n} frames) with B >= 1; got {shape}")
         kp = kp.to(self.device, torch.float64)
         bad = ~torch.isfinite(kp).reshape(len(kp), -1).all(-1)
         if bad.any():

@@ -1,18 +1,26 @@
 """Carrying one recorded segment into the scene now: MimicGen's object-frame transform, or a keypoint map.
 
 A segment (:class:`~kpflow.tasks.base.Segment`) is planned when its start is reached in the new scene, from what
-the task observes there (:meth:`kpflow.tasks.suite.task.SuiteTask.observe`):
+the task observes there (:meth:`kpflow.tasks.suite.task.SuiteTask.observe`): the reference object's pose and
+keypoints (the object picked, or the goal of a place), the grip site, and the held object's keypoints in the hand.
 
-* ``object_frame`` (MimicGen's mechanism, the baseline): with the reference object's pose ``(R_s, p_s)`` in the
-  source and ``(R_n, p_n)`` now, every commanded pose moves rigidly with it,
-  ``x' = R_n R_s^T (x - p_s) + p_n`` and ``R' = R_n R_s^T R``. The reference object is the segment's first
-  (the object picked; the goal of a place).
-* a keypoint map phi (any :class:`~kpflow.maps.base.TransportMap`): fitted from the segment's source keypoints to
-  those now (the reference object's, optionally every object of the segment's (``objects="all"``: the goal and
-  the object in the hand) and the grip site's (``gripper_keypoint``)), positions go through phi and orientations
-  through the polar factor of its Jacobian (:func:`kpflow.transport.transport_trajectory`).
+* ``make_map=None``: MimicGen's mechanism, the baseline. With the reference object's pose ``(R_s, p_s)`` in the
+  source and ``(R_n, p_n)`` now, every commanded pose moves rigidly with it, ``x' = R_n R_s^T (x - p_s) + p_n``
+  and ``R' = R_n R_s^T R``.
+* a keypoint map phi (any :class:`~kpflow.maps.base.TransportMap`), fitted from the reference object's source
+  keypoints to those now (and the grip site's, with ``gripper_keypoint``): positions go through phi, orientations
+  through the polar factor of its Jacobian (:func:`kpflow.transport.transport_trajectory`). Symmetric keypoints
+  (:mod:`kpflow.tasks.suite.keypoints`) make phi turn by the least rotation that looks the same.
 
-Either way, the arm first moves from where it is to the transported segment's first pose in
+With ``in_hand`` (and a held object), the carried poses are corrected for how the object sits in the jaws now
+compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch, scipy's ``Rotation.align_vectors``) taking the
+held object's keypoints in the source's hand frame to those in the hand frame now, is undone on the right of every
+pose, ``R'' = R' R_A^T`` and ``x'' = x' - R'' t_A``, so the held object (not the hand) follows the source's path.
+Of the orders the object's symmetry allows (a square nut's ring: four ways to sit on the peg), the one whose end
+pose the arm reaches best is taken: within the last joint's range, nearest the robot's base (the Panda's reach
+ends just past the peg; a nut grasped the other way round would otherwise be placed by reaching past it).
+
+Either way, the arm first moves from where it is to the carried segment's first pose in
 :func:`kpflow.tasks.arm.motion.interpolate`'s straight steps (MimicGen's interpolation between segments), with the
 gripper as the segment begins.
 """
@@ -23,42 +31,60 @@ from typing import Callable
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
 from kpflow.tasks.base import Segment, Trajectory
 from kpflow.transport import transport_trajectory
 
-OBJECTS = ("reference", "all")
+
+def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` minimising ``sum |R s_i + t - t_i|^2`` over corresponding points ``[N, 3]`` (Kabsch)."""
+    ms, mt = source.mean(0), target.mean(0)
+    rot, _ = Rotation.align_vectors(target - mt, source - ms)
+    r = rot.as_matrix()
+    return r, mt - r @ ms
+
+
+def _yaw(rot: np.ndarray) -> float:
+    return float(np.arctan2(rot[1, 0], rot[0, 0]))
+
+
+def _arm_cost(position: np.ndarray, rotation: np.ndarray, now: dict) -> float:
+    """How hard an end pose is for the arm (:func:`SegmentTransport.carry`): infinite for a turn of the jaws past
+    ``now["max_turn"]`` or one taking the last joint past its limit (``now["wrist"]``: its angle, which turns by
+    about minus the jaws' yaw change, and ``now["wrist_limit"]``), else the distance from the robot's base
+    (``now["base"]``) in the plane."""
+    if "wrist" in now:
+        turn = (_yaw(rotation) - now["yaw"] + np.pi) % (2 * np.pi) - np.pi
+        if abs(turn) > now["max_turn"] or abs(now["wrist"] - turn) > now["wrist_limit"]:
+            return np.inf
+    return float(np.linalg.norm((position - now.get("base", np.zeros(3)))[:2]))
 
 
 class SegmentTransport:
     """Plan a source segment in the scene now (module docstring). ``make_map`` None is MimicGen's object-frame
-    transform; otherwise a factory of the keypoint map, fitted on ``objects`` (``"reference"`` or ``"all"``)
-    and, with ``gripper_keypoint``, the grip site."""
+    transform; otherwise a factory of the keypoint map, fitted on the reference object's keypoints (and the grip
+    site's with ``gripper_keypoint``); ``in_hand`` corrects for the held object's pose in the jaws."""
 
-    def __init__(self, make_map: Callable[[], TransportMap] | None = None, objects: str = "all", gripper_keypoint: bool = True):
-        if objects not in OBJECTS:
-            raise ValueError(f"objects must be one of {OBJECTS}, got {objects!r}")
-        self.make_map, self.objects, self.gripper_keypoint = make_map, objects, gripper_keypoint
+    def __init__(self, make_map: Callable[[], TransportMap] | None = None, gripper_keypoint: bool = False, in_hand: bool = True):
+        self.make_map, self.gripper_keypoint, self.in_hand = make_map, gripper_keypoint, in_hand
 
-    def keypoints(self, segment: Segment | dict) -> np.ndarray:
+    def keypoints(self, observed: Segment | dict) -> np.ndarray:
         """The keypoints ``[N, 3]`` the map is fitted on, from a recorded segment or an observation."""
-        kp = segment.keypoints if isinstance(segment, Segment) else segment["keypoints"]
-        gripper = segment.gripper if isinstance(segment, Segment) else segment["gripper"]
-        names = list(kp)[:1] if self.objects == "reference" else list(kp)
-        return np.concatenate([kp[n] for n in names] + ([gripper] if self.gripper_keypoint else []))
+        kp = observed.keypoints if isinstance(observed, Segment) else observed["keypoints"]
+        gripper = observed.gripper if isinstance(observed, Segment) else observed["gripper"]
+        return np.concatenate(list(kp.values()) + ([gripper] if self.gripper_keypoint else []))
 
-    def carry(self, source: Segment, now: dict) -> Trajectory:
-        """The source segment's trajectory moved into the scene ``now`` (without the transit to its start)."""
+    def _moved(self, source: Segment, now: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         traj = source.trajectory
         if self.make_map is None:
             reference = next(iter(source.keypoints))
             (p_s, r_s), (p_n, r_n) = source.poses[reference], now["poses"][reference]
             turn = r_n @ r_s.T
             positions = (traj.positions - p_s) @ turn.T + p_n
-            rotations = np.einsum("ij,tjk->tik", turn, traj.rotations)
-            return traj.moved(positions, rotations, np.zeros_like(positions))
+            return positions, np.einsum("ij,tjk->tik", turn, traj.rotations), np.zeros_like(positions)
         kp_s = torch.as_tensor(self.keypoints(source), dtype=torch.float64)
         kp_n = torch.as_tensor(self.keypoints(now), dtype=torch.float64)
         phi = self.make_map().fit(kp_s, kp_n)
@@ -66,7 +92,19 @@ class SegmentTransport:
             moved = transport_trajectory(
                 phi, torch.as_tensor(traj.positions, dtype=torch.float64), orientations=torch.as_tensor(traj.rotations, dtype=torch.float64)
             )
-        return traj.moved(moved.positions.numpy(), moved.orientations.numpy(), moved.std.numpy())
+        return moved.positions.numpy(), moved.orientations.numpy(), moved.std.numpy()
+
+    def carry(self, source: Segment, now: dict) -> Trajectory:
+        """The source segment's trajectory moved into the scene ``now`` (without the transit to its start)."""
+        positions, rotations, std = self._moved(source, now)
+        if self.in_hand and source.in_hand is not None and now.get("in_hand") is not None:
+            candidates = []
+            for keypoints in np.reshape(now["in_hand"], (-1, *source.in_hand.shape)):
+                r_a, t_a = rigid_fit(source.in_hand, keypoints)
+                rot = rotations @ r_a.T
+                candidates.append((positions - rot @ t_a, rot))
+            positions, rotations = min(candidates, key=lambda c: _arm_cost(c[0][-1], c[1][-1], now))
+        return source.trajectory.moved(positions, rotations, std)
 
     def plan(self, source: Segment, now: dict, start_pos: np.ndarray, start_rot: np.ndarray) -> Trajectory:
         """The transit from ``(start_pos, start_rot)`` to the carried segment, then the segment."""

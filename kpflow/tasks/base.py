@@ -116,8 +116,9 @@ class Demonstration:
 class Segment:
     """One object-centric segment of a recorded demonstration (``name``: ``"pick"``, ``"place"``): its commanded
     ``trajectory`` and the scene when it began: ``poses`` (object or fixture -> (position [3], rotation [3, 3])),
-    the ``keypoints`` it depends on (object -> ``[N, 3]``), the objects' ``yaws`` and the ``gripper`` keypoint
-    ``[1, 3]`` (the grip site)."""
+    the ``keypoints`` it depends on (object -> ``[N, 3]``), the objects' ``yaws``, the ``gripper`` keypoint
+    ``[1, 3]`` (the grip site) and, while an object is held, its keypoints ``in_hand [M, 3]`` in the grip site's
+    frame."""
 
     name: str
     trajectory: Trajectory
@@ -125,6 +126,7 @@ class Segment:
     keypoints: dict[str, np.ndarray]
     yaws: dict[str, float]
     gripper: np.ndarray
+    in_hand: np.ndarray | None = None
 
 
 @dataclass

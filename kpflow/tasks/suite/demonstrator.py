@@ -86,7 +86,7 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
         wrist = env.arm_joints()[6]  # turning the jaws by +t turns the Panda's last joint by about -t
         turns = [t for t in smallest + np.pi / 2 * np.arange(-2, 3) if abs(t) <= MAX_PLACE_TURN and abs(wrist - t) <= WRIST_LIMIT]
         grip = env.ee_pose()[0]
-        base = env.sim.data.xpos[env.sim.model.body_name2id("robot0_base")]
+        base = env.base_position()
         reach = [np.linalg.norm((goal + _rz(t) @ (grip - pos) - base)[:2]) for t in turns]
         return goal, float(turns[int(np.argmin(reach))])
     raise ValueError(f"no placement on a {kind!r}")

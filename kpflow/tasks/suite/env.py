@@ -75,6 +75,8 @@ class SuiteEnv:
         self.fixture_body = {name: model.body_name2id(body) for name, body in spec.fixture_bodies.items()}
         self._fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
         self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
+        pads = robot.gripper["right"].important_geoms
+        self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
         self.home_pose = self.ee_pose()
         self.scene = None
         self._gripper = OPEN
@@ -118,6 +120,15 @@ class SuiteEnv:
             q = self.sim.data.get_joint_qpos(joint)
             out[name] = (np.array(q[:3]), np.array(q[3:7]))
         return out
+
+    def base_position(self) -> np.ndarray:
+        """The robot base's position ``[3]`` in the world."""
+        return self.sim.data.xpos[self.sim.model.body_name2id("robot0_base")].copy()
+
+    def finger_pads(self) -> np.ndarray:
+        """The two finger pads' centres ``[2, 3]``."""
+        d = self.sim.data
+        return np.stack([d.geom_xpos[g] for g in self._pads])
 
     def gripper_closed(self) -> bool:
         return self._gripper == CLOSED

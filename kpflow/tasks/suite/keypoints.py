@@ -9,6 +9,8 @@ object-frame transform turns it by the cube's full yaw. Per kind (``[N, 3]``, wo
 * ``can``: the centres of its top and bottom and 4 points on the rim in fixed world directions: a cylinder has no
   yaw to see, so none is transported.
 * ``nut`` (square): the ring's centre, its 4 outer corners and the handle's two ends: the handle fixes the yaw.
+* ``nut_handle``: the 4 corners of the handle's top face and its centre, what the jaws close on; symmetric under
+  half turns about the handle, like the jaws themselves, so a grasp never turns the wrist by more than 90 degrees.
 * ``nut_ring``: the ring alone (centre and corners; symmetric under quarter turns), what the peg holds.
 * ``peg``: its bottom and top centres and the 4 top corners; symmetric under quarter turns.
 * ``bin``: the 4 corners of its rim; symmetric under half turns.
@@ -26,10 +28,11 @@ from .specs import TaskSpec
 CAN_RADIUS, CAN_HALF_HEIGHT = 0.025, 0.0407
 NUT_RING_HALF = 0.0543  # centre to the ring's outer edge
 NUT_HANDLE = (0.029, 0.079)  # the handle's extent along the nut's x axis
-NUT_GRASP = 0.054  # where the jaws close on the handle, along the nut's x axis
+NUT_GRASP = 0.054  # where the jaws close on the handle (its centre), along the nut's x axis
+NUT_HANDLE_HALF = (0.025, 0.0159, 0.01)  # half extents of the handle bar
 PEG_HALF, PEG_HEIGHT = 0.016, 0.1  # half side, and half length (its body origin is at its middle)
 BIN_HALF = (0.195, 0.245)
-SYMMETRY = {"cube": 4, "can": 0, "nut": 1, "nut_ring": 4, "peg": 4, "bin": 2}  # turns that leave it unchanged (0: any)
+SYMMETRY = {"cube": 4, "can": 0, "nut": 1, "nut_handle": 2, "nut_ring": 4, "peg": 4, "bin": 2}  # turns that leave it unchanged (0: any)
 
 
 def yaw_of(rot: np.ndarray) -> float:
@@ -66,6 +69,11 @@ def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw:
     if kind == "can":
         ring = [pos + _rz(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.arange(4) * np.pi / 2]
         return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
+    if kind == "nut_handle":
+        centre = pos + _rz(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
+        hx, hy, hz = NUT_HANDLE_HALF
+        corners = [centre + _rz(yaw) @ np.array([sx * hx, sy * hy, hz]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        return np.stack([centre, *corners])
     if kind in ("nut", "nut_ring"):
         r = _rz(yaw)
         corners = [pos + r @ (NUT_RING_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
@@ -95,6 +103,24 @@ def cube_half(env, name: str) -> float:
     return float(model.geom_size[geoms[0]][0])
 
 
+def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float) -> np.ndarray:
+    """The held object's placement keypoints (:attr:`~.specs.TaskSpec.hand_kinds`) in the grip site's frame
+    ``[N, 3]``, symmetric ones ordered by the turn nearest ``reference_yaw`` (the object's yaw relative to the
+    jaws)."""
+    ee_pos, ee_rot = env.ee_pose()
+    world = scene_keypoints(env, spec, spec.grasp, reference_yaw + yaw_of(ee_rot), spec.hand_kind)
+    return (world - ee_pos) @ ee_rot
+
+
 def gripper_keypoints(env) -> np.ndarray:
     """The grip site's position ``[1, 3]``."""
     return env.ee_pose()[0][None]
+
+
+def policy_keypoints(env, spec: TaskSpec) -> np.ndarray:
+    """What a policy observes ``[K, 3]``: the keypoints of the object to pick and of its goal (symmetric ones
+    ordered by the turn nearest the jaws' yaw, as a grasp would choose), the grip site and the two finger pads
+    (which carry the jaws' yaw and opening)."""
+    jaws = yaw_of(env.ee_pose()[1])
+    names = [spec.grasp] + ([spec.target] if spec.target else [])
+    return np.concatenate([scene_keypoints(env, spec, n, jaws) for n in names] + [gripper_keypoints(env), env.finger_pads()])

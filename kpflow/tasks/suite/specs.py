@@ -12,7 +12,7 @@ Variants (:mod:`.scene`): ``d0`` is robosuite's placement initializer as it ship
 |---|---|---|
 | lift | cube x, y in +-0.03 m, any yaw | x, y in +-0.15 m, any yaw |
 | stack | both cubes x, y in +-0.08 m, any yaw | +-0.20 m (MimicGen's Stack D1) |
-| can | the can anywhere in bin 1, any yaw | the same, and the target bin moved by up to 0.08 m in x and 0.10 m in y |
+| can | the can anywhere in bin 1, any yaw | the same, and the target bin moved by x in [-0.15, 0], y in [-0.03, 0.05] m (towards the robot: its far quarter is at the Panda's reach already) |
 | square | nut x in [-0.115, -0.11], y in [0.11, 0.225], any yaw | nut x in +-0.115, y in +-0.255 and the square peg anywhere in x in [-0.1, 0.3], y in [-0.2, 0.2] (MimicGen's Square D1), kept 0.13 m from the nut |
 """
 
@@ -51,9 +51,20 @@ class TaskSpec:
     wide_fixtures: dict[str, tuple[tuple[float, float], tuple[float, float]]] = field(default_factory=dict)
     #: the wide variant keeps fixtures this far (m, in the plane) from the objects
     fixture_clearance: float = 0.0
+    #: the keypoints a grasp and a held object's placement depend on, where they are not the object's own
+    grasp_kinds: dict[str, str] = field(default_factory=dict)
+    hand_kinds: dict[str, str] = field(default_factory=dict)
     env_kwargs: dict = field(default_factory=dict)
     #: after fixtures moved: ``(env, name -> body position)``, to update what robosuite caches about them
     move_fixtures: Callable = lambda env, positions: None
+
+    @property
+    def grasp_kind(self) -> str:
+        return self.grasp_kinds.get(self.grasp, self.kinds[self.grasp])
+
+    @property
+    def hand_kind(self) -> str:
+        return self.hand_kinds.get(self.grasp, self.kinds[self.grasp])
 
     @property
     def segments(self) -> tuple[str, ...]:
@@ -77,12 +88,12 @@ TASKS: dict[str, TaskSpec] = {
     ),
     "can": TaskSpec(
         "can", "PickPlaceCan", {"can": "Can_main"}, {"can": "Can_joint0"}, {"can": "can", "bin": "bin"}, grasp="can",
-        target="bin", fixture_bodies={"bin": "bin2"}, wide_fixtures={"bin": ((-0.08, 0.08), (0.0, 0.10))},
+        target="bin", fixture_bodies={"bin": "bin2"}, wide_fixtures={"bin": ((-0.15, 0.0), (-0.03, 0.05))},
         move_fixtures=_move_bin,
     ),
     "square": TaskSpec(
         "square", "NutAssemblySquare", {"nut": "SquareNut_main"}, {"nut": "SquareNut_joint0"}, {"nut": "nut", "peg": "peg"},
-        grasp="nut", target="peg", fixture_bodies={"peg": "peg1"},
+        grasp="nut", target="peg", fixture_bodies={"peg": "peg1"}, grasp_kinds={"nut": "nut_handle"}, hand_kinds={"nut": "nut_ring"},
         wide_objects={"nut": WideRange((-0.115, 0.115), (-0.255, 0.255))},
         wide_fixtures={"peg": ((-0.33, 0.07), (-0.30, 0.10))},  # peg1 ships at (0.23, 0.10): x in [-0.1, 0.3], y in [-0.2, 0.2]
         fixture_clearance=0.13,

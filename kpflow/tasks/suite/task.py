@@ -13,11 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.rotations import matrix_to_rot6d
 from kpflow.tasks.base import Segment, Trajectory
 
-from .demonstrator import plan_segment
+from .demonstrator import MAX_PLACE_TURN, WRIST_LIMIT, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import gripper_keypoints, scene_keypoints, yaw_of
+from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, scene_keypoints, yaw_of
 from .scene import VARIANTS, Scene, sample_scene
 from .specs import task_spec
 
@@ -29,11 +30,15 @@ HOLD_STEPS = 10  # control steps holding the last pose before robosuite's succes
 @dataclass(frozen=True)
 class SegmentRun:
     """How one segment went: the measured grip site ``tip [T, 3]``, the robosuite ``states [T, S]`` (MuJoCo's
-    flattened state before each step) and ``actions [T, 7]`` it took, and ``failure`` (None or the reason)."""
+    flattened state before each step), the ``keypoints [T, K, 3]`` a policy observes then
+    (:func:`~.keypoints.policy_keypoints`), the ``actions [T, 7]`` sent to robosuite and the same as ``ee_targets
+    [T, 10]`` (position, 6-D rotation, gripper: what a policy predicts), and ``failure`` (None or the reason)."""
 
     tip: np.ndarray
     states: np.ndarray
+    keypoints: np.ndarray
     actions: np.ndarray
+    ee_targets: np.ndarray
     failure: str | None
 
 
@@ -52,29 +57,41 @@ class SuiteTask:
         return sample_scene(self.spec, env.env, variant, index, seed)
 
     # ------------------------------------------------------------------------------------------ observing
-    def segment_objects(self, segment: str) -> tuple[str, ...]:
-        """The objects a segment's keypoints come from: the one picked, or the goal and the object held."""
-        return (self.spec.grasp,) if segment == "pick" else (self.spec.target, self.spec.grasp)
+    def reference_object(self, segment: str) -> str:
+        """The object a segment acts relative to: the one picked, or the goal of a place."""
+        return self.spec.grasp if segment == "pick" else self.spec.target
 
     def observe(self, env: SuiteEnv, segment: str, reference: Segment | None = None) -> dict:
         """What a segment depends on, now: ``poses`` (every object and fixture: (position, rotation)), ``keypoints``
-        (object -> ``[N, 3]``, symmetric ones ordered by the turn nearest the ``reference`` segment's yaws),
-        ``yaws`` and the ``gripper`` keypoint ``[1, 3]``."""
-        names = (*self.spec.object_bodies, *self.spec.fixture_bodies)
+        (the reference object's ``[N, 3]``: for a pick, its grasp keypoints), ``yaws`` (and ``"hand"``: the grasped
+        object's yaw relative to the jaws), the ``gripper`` keypoint ``[1, 3]`` and, for a place, the held object's
+        keypoints ``in_hand [S, M, 3]`` (:func:`~.keypoints.in_hand_keypoints`) in each of the ``S`` orders its
+        symmetry allows, the one nearest the reference's first; and where the arm is: its last joint's angle
+        ``wrist``, ``wrist_limit`` and ``max_turn``, the jaws' ``yaw``, the robot's ``base`` position. Symmetric keypoints are ordered by the turn
+        nearest the ``reference`` segment's yaws (the recorded source's)."""
+        spec = self.spec
+        names = (*spec.object_bodies, *spec.fixture_bodies)
         poses = {n: env.object_pose(n) for n in names}
         yaws = {n: yaw_of(r) for n, (_, r) in poses.items()}
-        keypoints = {
-            n: scene_keypoints(env, self.spec, n, reference.yaws[n] if reference is not None else yaws[n])
-            for n in self.segment_objects(segment)
-        }
-        return {"poses": poses, "keypoints": keypoints, "yaws": yaws, "gripper": gripper_keypoints(env)}
+        yaws["hand"] = yaws[spec.grasp] - yaw_of(env.ee_pose()[1])
+        ref = reference.yaws if reference is not None else yaws
+        name = self.reference_object(segment)
+        kind = spec.grasp_kind if segment == "pick" else None
+        keypoints = {name: scene_keypoints(env, spec, name, ref[name], kind)}
+        in_hand = None
+        if segment == "place":  # every order the held object's symmetry allows, the reference's first
+            order = max(SYMMETRY[spec.hand_kind], 1)
+            in_hand = np.stack([in_hand_keypoints(env, spec, ref["hand"] + 2 * np.pi * k / order) for k in range(order)])
+        arm = {"wrist": float(env.arm_joints()[6]), "wrist_limit": WRIST_LIMIT, "max_turn": MAX_PLACE_TURN, "yaw": yaw_of(env.ee_pose()[1]), "base": env.base_position()}
+        return {"poses": poses, "keypoints": keypoints, "yaws": yaws, "gripper": gripper_keypoints(env), "in_hand": in_hand, **arm}
 
     # ------------------------------------------------------------------------------------------ acting
     def run_segment(self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2) -> SegmentRun:
         """Command every step of ``trajectory`` and say whether the arm got there."""
-        tip, states, actions = [], [], []
+        tip, states, keypoints, actions = [], [], [], []
         for t in range(len(trajectory)):
             states.append(env.sim.get_state().flatten())
+            keypoints.append(policy_keypoints(env, self.spec))
             gripper = CLOSED if trajectory.grasp[t] else OPEN
             env.command(trajectory.positions[t], trajectory.rotations[t], gripper)
             actions.append(env.last_action.copy())
@@ -88,7 +105,8 @@ class SuiteTask:
             failure = "joint limit"
         elif np.linalg.norm(tip[-1] - trajectory.positions[-1]) > TRACKING_LIMIT:
             failure = "unreachable"
-        return SegmentRun(tip, np.array(states), np.array(actions), failure)
+        targets = np.concatenate([trajectory.positions, matrix_to_rot6d(trajectory.rotations), np.array(actions)[:, 6:]], axis=1)
+        return SegmentRun(tip, np.array(states), np.array(keypoints), np.array(actions), targets, failure)
 
     def segment_failure(self, env: SuiteEnv, segment: str) -> str | None:
         """After ``segment`` ran: ``"not grasped"`` when the pick left the object out of the jaws."""
@@ -113,7 +131,8 @@ class SuiteTask:
             seen = self.observe(env, name)
             trajectory = plan_segment(env, self.spec, name, home_yaw)
             run = self.run_segment(env, trajectory)
-            segments.append(Segment(name, trajectory, seen["poses"], seen["keypoints"], seen["yaws"], seen["gripper"]))
+            in_hand = None if seen["in_hand"] is None else seen["in_hand"][0]
+            segments.append(Segment(name, trajectory, seen["poses"], seen["keypoints"], seen["yaws"], seen["gripper"], in_hand))
             failure = run.failure or self.segment_failure(env, name)
             if failure:
                 return segments, False, failure
