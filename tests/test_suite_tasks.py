@@ -65,6 +65,12 @@ def test_scenes_are_seeded_and_the_wide_variant_is_wider(worlds):
     square, senv, *_ = worlds["square"]
     offsets = [square.sample_scene(senv, "wide", i).fixture_offsets["peg"] for i in range(10)]
     assert len({tuple(o) for o in offsets}) == 10
+    first = square.sample_scene(senv, "wide", 0).as_dict()
+    senv.reset_to(square.sample_scene(senv, "wide", 1))  # the peg moves in the model: the draw must not follow it
+    assert square.sample_scene(senv, "wide", 0).as_dict() == first
+    senv.reset_to(square.sample_scene(senv, "wide", 0))
+    peg, nut = senv.object_pose("peg")[0], senv.object_pose("nut")[0]
+    assert np.linalg.norm((peg - nut)[:2]) >= square.spec.fixture_clearance - 0.01
     assert Scene.from_dict(a.as_dict()).as_dict() == a.as_dict()
 
 
@@ -188,3 +194,39 @@ def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):
     with pytest.raises(ValueError, match="differ in length"):
         export_robomimic(tmp_path / "x.hdf5", [{"action": np.zeros((3, 7)), "state": np.zeros((2, 5)), "ee_pos": np.zeros((3, 3))}], "Lift", {})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
+    from functools import partial
+
+    from kpflow.maps import AffineMap
+    from kpflow.policies.segment_transport import SegmentTransport, rigid_fit
+    from kpflow.tasks.base import Segment
+
+    rng = np.random.default_rng(0)
+    held = rng.normal(size=(5, 3)) * 0.05  # the held object's keypoints in the source's hand frame
+    turn, shift = Rotation.from_rotvec([0.1, -0.2, 2.5]).as_matrix(), np.array([0.02, -0.01, 0.03])
+    r, t = rigid_fit(held, held @ turn.T + shift)  # closed form: Kabsch recovers the motion exactly
+    np.testing.assert_allclose(r, turn, atol=1e-12)
+    np.testing.assert_allclose(t, shift, atol=1e-12)
+    n = 6
+    rotations = Rotation.random(n, random_state=1).as_matrix()
+    trajectory = Trajectory(rng.normal(size=(n, 3)), rotations, np.ones(n, bool), np.full(n, "carry"))
+    goal = rng.normal(size=(6, 3))
+    segment = Segment("place", trajectory, {}, {"peg": goal}, {}, np.zeros((1, 3)), held)
+    now = {"keypoints": {"peg": goal}, "gripper": np.zeros((1, 3)), "in_hand": (held @ turn.T + shift)[None]}
+    carried = SegmentTransport(partial(AffineMap, kind="rigid")).carry(segment, now)
+    in_world = lambda rot, pos, points: np.einsum("tij,mj->tmi", rot, points) + pos[:, None]  # noqa: E731
+    np.testing.assert_allclose(in_world(carried.rotations, carried.positions, now["in_hand"][0]), in_world(rotations, trajectory.positions, held), atol=1e-9)
+    uncorrected = SegmentTransport(partial(AffineMap, kind="rigid"), in_hand=False).carry(segment, now)
+    np.testing.assert_allclose(uncorrected.positions, trajectory.positions, atol=1e-9)  # the goal did not move
+
+
+def test_the_six_dimensional_rotation_round_trips():
+    from kpflow.rotations import matrix_to_rot6d, rot6d_to_matrix
+
+    rotations = Rotation.random(20, random_state=2).as_matrix()
+    np.testing.assert_allclose(rot6d_to_matrix(matrix_to_rot6d(rotations)), rotations, atol=1e-12)
+    noisy = rot6d_to_matrix(matrix_to_rot6d(rotations) + 0.05)  # Gram-Schmidt gives a rotation for any input
+    np.testing.assert_allclose(np.einsum("tji,tjk->tik", noisy, noisy), np.broadcast_to(np.eye(3), (20, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(noisy), 1.0, atol=1e-12)

@@ -73,7 +73,8 @@ class SuiteEnv:
         self.object_body = {name: model.body_name2id(body) for name, body in spec.object_bodies.items()}
         self.object_joint = {name: joint for name, joint in spec.object_joints.items()}
         self.fixture_body = {name: model.body_name2id(body) for name, body in spec.fixture_bodies.items()}
-        self._fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
+        #: where robosuite puts each fixture (a scene's offsets are from here; the model's copy moves with the scene)
+        self.fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
         self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
@@ -88,7 +89,7 @@ class SuiteEnv:
         env, data, model = self.env, self.sim.data, self.sim.model
         env.reset()
         for name, body in self.fixture_body.items():
-            model.body_pos[body] = self._fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
+            model.body_pos[body] = self.fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
         self.spec.move_fixtures(env, {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()})
         for name, (pos, quat) in scene.objects.items():
             data.set_joint_qpos(self.object_joint[name], np.concatenate([pos, quat]))

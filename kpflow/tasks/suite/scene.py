@@ -90,13 +90,11 @@ def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict]:
     return placed, offsets
 
 
-def _clear(spec: TaskSpec, env, placed: dict, offsets: dict) -> bool:
+def _clear(spec: TaskSpec, fixture_home: dict, placed: dict, offsets: dict) -> bool:
     if not spec.fixture_clearance:
         return True
-    model = env.sim.model
     for fixture, offset in offsets.items():
-        home = model.body_pos[model.body_name2id(spec.fixture_bodies[fixture])]
-        xy = home[:2] + np.asarray(offset[:2])
+        xy = fixture_home[fixture][:2] + np.asarray(offset[:2])
         for name in spec.object_joints:
             if np.linalg.norm(placed[spec.object_joints[name]][0][:2] - xy) < spec.fixture_clearance:
                 return False
@@ -105,15 +103,16 @@ def _clear(spec: TaskSpec, env, placed: dict, offsets: dict) -> bool:
 
 def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -> Scene:
     """Scene ``index`` of ``variant`` for ``seed`` (module docstring), drawn with the placement initializers of
-    ``env`` (a :class:`~.env.SuiteEnv`'s robosuite environment)."""
+    ``env`` (a :class:`~.env.SuiteEnv`); the same whatever scene ``env`` was last reset to (fixtures are measured
+    from where robosuite puts them, not from where the last scene moved them)."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}; choose one of {VARIANTS}")
     if index < 0:
         raise ValueError(f"index must be >= 0, got {index}")
     rng = np.random.default_rng([seed, _VARIANT_IDS[variant], index])
     for _ in range(_MAX_DRAWS):
-        placed, offsets = _draw(spec, env, variant, rng)
-        if _clear(spec, env, placed, offsets):
+        placed, offsets = _draw(spec, env.env, variant, rng)
+        if _clear(spec, env.fixture_home, placed, offsets):
             break
     else:
         raise RuntimeError(f"{spec.name}/{variant}: no scene with the fixtures {spec.fixture_clearance} m clear in {_MAX_DRAWS} draws")

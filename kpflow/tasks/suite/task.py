@@ -54,7 +54,7 @@ class SuiteTask:
         return SuiteEnv(self.spec, render=render)
 
     def sample_scene(self, env: SuiteEnv, variant: str, index: int, seed: int = 0) -> Scene:
-        return sample_scene(self.spec, env.env, variant, index, seed)
+        return sample_scene(self.spec, env, variant, index, seed)
 
     # ------------------------------------------------------------------------------------------ observing
     def reference_object(self, segment: str) -> str:
