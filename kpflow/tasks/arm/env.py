@@ -21,13 +21,9 @@ installed (``make`` installs it) and Mesa's software ``egl`` otherwise.
 
 from __future__ import annotations
 
-import ctypes.util
-import os
+from kpflow.utils.headless import use_headless_gl
 
-if "MUJOCO_GL" not in os.environ:
-    os.environ["MUJOCO_GL"] = "osmesa" if ctypes.util.find_library("OSMesa") else "egl"
-if os.environ["MUJOCO_GL"] == "osmesa":
-    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+use_headless_gl()  # before MuJoCo is imported
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402

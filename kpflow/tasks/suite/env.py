@@ -16,13 +16,9 @@ Rendering is headless on the CPU (``MUJOCO_GL=osmesa`` when Debian's libosmesa6 
 
 from __future__ import annotations
 
-import ctypes.util
-import os
+from kpflow.utils.headless import use_headless_gl
 
-if "MUJOCO_GL" not in os.environ:
-    os.environ["MUJOCO_GL"] = "osmesa" if ctypes.util.find_library("OSMesa") else "egl"
-if os.environ["MUJOCO_GL"] == "osmesa":
-    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+use_headless_gl()  # before MuJoCo is imported
 
 import numpy as np  # noqa: E402
 import robosuite  # noqa: E402
