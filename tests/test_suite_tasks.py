@@ -155,12 +155,25 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
     with h5py.File(tmp_path / "d0" / "gp" / "demos.hdf5", "r") as f:
         env_args = json.loads(f["data"].attrs["env_args"])
         assert env_args["env_name"] == "Lift" and env_args["type"] == 1
+        assert env_args["env_kwargs"]["controller_configs"]["body_parts"]["right"]["input_type"] == "absolute"
         demo = f["data/demo_0"]
         t = demo.attrs["num_samples"]
         assert demo["actions"].shape == (t, 7) and demo["states"].shape[0] == t and demo["obs/robot0_eef_pos"].shape == (t, 3)
+        assert demo["obs/keypoints"].shape == (t, 11, 3)
         assert demo["dones"][-1] == 1 and demo["rewards"][:-1].sum() == 0
         assert f["data"].attrs["total"] == sum(f[f"data/{k}"].attrs["num_samples"] for k in f["data"])
         assert [n.decode() for n in f["mask/train"][:]] == sorted(f["data"], key=lambda k: int(k.split("_")[1]))
+
+
+def test_generation_refuses_to_append_to_an_earlier_run(generated):
+    from kpflow.eval.generation import generate
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    out, _ = generated
+    before = (out / "results.json").read_text()
+    with pytest.raises(FileExistsError, match="episodes.zarr exists"):
+        generate(out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False)
+    assert (out / "results.json").read_text() == before
 
 
 def test_a_kcfm_trained_on_generated_demos_drives_the_arm_in_closed_loop(generated, tmp_path):

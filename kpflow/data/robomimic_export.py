@@ -9,6 +9,7 @@
     data/demo_<i>/rewards     [T]      1 at the last step (the episode succeeded), else 0
     data/demo_<i>/dones       [T]      the same
     data/demo_<i>/obs/robot0_eef_pos  [T, 3]
+    data/demo_<i>/obs/keypoints       [T, K, 3] (when the episodes have them: what kpflow's policies observe)
     mask/train                the demo names (every exported episode is a training demo)
 
 The file is written to a temporary next to the target and renamed into place, so a reader never sees half of it.
@@ -56,7 +57,10 @@ def export_robomimic(path: str | Path, episodes: Sequence[dict], env_name: str, 
                 done[-1] = 1
                 g.create_dataset("rewards", data=done.astype(np.float64))
                 g.create_dataset("dones", data=done)
-                g.create_group("obs").create_dataset("robot0_eef_pos", data=np.asarray(e["ee_pos"], np.float64))
+                obs = g.create_group("obs")
+                obs.create_dataset("robot0_eef_pos", data=np.asarray(e["ee_pos"], np.float64))
+                if "keypoints" in e:
+                    obs.create_dataset("keypoints", data=np.asarray(e["keypoints"], np.float64))
                 total += t
                 names.append(name)
             data.attrs["total"] = total

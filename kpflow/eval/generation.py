@@ -22,6 +22,7 @@ from kpflow.data.robomimic_export import export_robomimic
 from kpflow.eval.parallel import map_jobs
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.policies.segment_transport import SegmentTransport
+from kpflow.tasks.suite.env import controller_config
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.io import write_json, write_text
 from kpflow.utils.video import write_video
@@ -141,6 +142,9 @@ def generate(
     if not families:
         raise ValueError("give at least one family")
     out = Path(output_dir)
+    taken = [str(out / v / f / "episodes.zarr") for v in variants for f in families if (out / v / f / "episodes.zarr").exists()]
+    if taken:
+        raise FileExistsError(f"{taken[0]} exists: generation writes a fresh store per variant and family (choose another output_dir)")
     out.mkdir(parents=True, exist_ok=True)
     generator = Generator(task, families, n_sources, seed)
     summaries, throughput, records = {}, {}, []
@@ -181,7 +185,7 @@ def generate(
 
 def generator_env_kwargs(task: SuiteTask) -> dict:
     """The robosuite ``env_kwargs`` recorded in the hdf5 export (what robomimic rebuilds the environment from)."""
-    return {"robots": ["Panda"], "controller": "OSC_POSE (absolute, world frame)", "control_freq": CONTROL_FREQ, **task.spec.env_kwargs}
+    return {"robots": ["Panda"], "controller_configs": controller_config(), "control_freq": CONTROL_FREQ, **task.spec.env_kwargs}
 
 
 def _film(out: Path, generator: Generator, variant: str, family: str, videos: int) -> list[str]:

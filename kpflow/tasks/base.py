@@ -34,7 +34,7 @@ class Policy(Protocol):
 @dataclass(frozen=True)
 class Trajectory:
     """An end-effector trajectory, one row per 20 Hz control step: ``positions [T, 3]`` and ``rotations [T, 3, 3]``
-    of the cup's tip (absolute targets for the operational-space controller), ``grasp [T]`` (holding: the suction cup's vacuum on, or the jaws closed),
+    of the cup's tip or the jaws' grip site (absolute targets for the operational-space controller), ``grasp [T]`` (holding: the suction cup's vacuum on, or the jaws closed),
     ``phases [T]`` (the segment each step belongs to: approach, descend, seal, ...) and, once transported, ``std
     [T, 3]`` (the map's uncertainty at each position)."""
 

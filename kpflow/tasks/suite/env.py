@@ -31,6 +31,13 @@ OPEN, CLOSED = -1.0, 1.0  # the gripper's action
 SETTLE_STEPS = 5  # control steps after a reset, holding the home pose, for the objects to come to rest
 
 
+def controller_config() -> dict:
+    """robosuite's BASIC composite controller for the Panda with its arm's OSC_POSE on absolute world poses."""
+    controller = load_composite_controller_config(controller="BASIC", robot="Panda")
+    controller["body_parts"]["right"].update(input_type="absolute", input_ref_frame="world")
+    return controller
+
+
 class SuiteEnv:
     """One robosuite benchmark environment (module docstring) for the task ``spec``.
 
@@ -42,13 +49,11 @@ class SuiteEnv:
 
     def __init__(self, spec: TaskSpec, render: bool = False, control_freq: int = 20):
         self.spec = spec
-        controller = load_composite_controller_config(controller="BASIC", robot="Panda")
-        controller["body_parts"]["right"].update(input_type="absolute", input_ref_frame="world")
         self.env = robosuite.make(
             spec.env_name,
             robots="Panda",
             gripper_types="default",
-            controller_configs=controller,
+            controller_configs=controller_config(),
             initialization_noise=None,
             has_renderer=False,
             has_offscreen_renderer=render,
