@@ -22,7 +22,7 @@ import numpy as np
 from kpflow.tasks.arm.motion import segments_to_trajectory
 from kpflow.tasks.base import Trajectory
 
-from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, _rz, cube_half, reduced_yaw, yaw_of
+from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw, yaw_of, yaw_rotation
 from .specs import TaskSpec
 
 APPROACH = 0.10  # m above the grasp point before going down
@@ -38,7 +38,7 @@ RELEASE_HEIGHT = {"cubeB": 0.004, "bin": 0.09, "peg": 0.03}  # m above the goal 
 
 def jaws_down(yaw: float) -> np.ndarray:
     """The gripper pointing down with its jaws closing along the world direction ``yaw``."""
-    return _rz(yaw) @ np.diag([1.0, -1.0, -1.0])
+    return yaw_rotation(yaw) @ np.diag([1.0, -1.0, -1.0])
 
 
 def grasp_pose(env, spec: TaskSpec, home_yaw: float) -> tuple[np.ndarray, float]:
@@ -87,7 +87,7 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
         turns = [t for t in smallest + np.pi / 2 * np.arange(-2, 3) if abs(t) <= MAX_PLACE_TURN and abs(wrist - t) <= WRIST_LIMIT]
         grip = env.ee_pose()[0]
         base = env.base_position()
-        reach = [np.linalg.norm((goal + _rz(t) @ (grip - pos) - base)[:2]) for t in turns]
+        reach = [np.linalg.norm((goal + yaw_rotation(t) @ (grip - pos) - base)[:2]) for t in turns]
         return goal, float(turns[int(np.argmin(reach))])
     raise ValueError(f"no placement on a {kind!r}")
 
@@ -97,7 +97,7 @@ def plan_place(env, spec: TaskSpec) -> Trajectory:
     start_pos, start_rot = env.ee_pose()
     held, _ = env.object_pose(spec.grasp)
     goal, turn = place_goal(env, spec)
-    rz = _rz(turn)
+    rz = yaw_rotation(turn)
     rot = rz @ start_rot
     offset = rz @ (start_pos - held)  # the grip site seen from the held object, after the turn
     clearance, release = CARRY_CLEARANCE[spec.target], RELEASE_HEIGHT[spec.target]

@@ -46,14 +46,15 @@ def reduced_yaw(yaw: float, order: int, reference: float) -> float:
     return float(reference + (yaw - reference + period / 2) % period - period / 2)
 
 
-def _rz(yaw: float) -> np.ndarray:
+def yaw_rotation(yaw: float) -> np.ndarray:
+    """The rotation by ``yaw`` (rad) about the world's vertical."""
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _box(centre, yaw, half) -> np.ndarray:
     signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-    return np.asarray(centre) + (signs * np.asarray(half)) @ _rz(yaw).T
+    return np.asarray(centre) + (signs * np.asarray(half)) @ yaw_rotation(yaw).T
 
 
 def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw: float = 0.0, half: float | None = None) -> np.ndarray:
@@ -67,23 +68,23 @@ def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw:
     if kind == "cube":
         return _box(pos, yaw, (half, half, half))
     if kind == "can":
-        ring = [pos + _rz(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.arange(4) * np.pi / 2]
+        ring = [pos + yaw_rotation(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.arange(4) * np.pi / 2]
         return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
     if kind == "nut_handle":
-        centre = pos + _rz(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
+        centre = pos + yaw_rotation(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
         hx, hy, hz = NUT_HANDLE_HALF
-        corners = [centre + _rz(yaw) @ np.array([sx * hx, sy * hy, hz]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        corners = [centre + yaw_rotation(yaw) @ np.array([sx * hx, sy * hy, hz]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
         return np.stack([centre, *corners])
     if kind in ("nut", "nut_ring"):
-        r = _rz(yaw)
+        r = yaw_rotation(yaw)
         corners = [pos + r @ (NUT_RING_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
         handle = [pos + r @ np.array([x, 0.0, 0.0]) for x in NUT_HANDLE] if kind == "nut" else []
         return np.stack([pos, *corners, *handle])
     if kind == "peg":
         top = pos + [0, 0, PEG_HEIGHT]
-        corners = [top + _rz(yaw) @ (PEG_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+        corners = [top + yaw_rotation(yaw) @ (PEG_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
         return np.stack([pos - [0, 0, PEG_HEIGHT], top, *corners])
-    corners = [pos + _rz(yaw) @ np.array([sx * BIN_HALF[0], sy * BIN_HALF[1], 0.0]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    corners = [pos + yaw_rotation(yaw) @ np.array([sx * BIN_HALF[0], sy * BIN_HALF[1], 0.0]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
     return np.stack(corners)
 
 
