@@ -17,7 +17,7 @@ from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.stacking import StackingReport, grasp_errors
 from kpflow.eval.stats import wilson_interval
 from kpflow.maps import GPMap
-from kpflow.tasks.arm.motion import cup_down
+from kpflow.tasks.arm.motion import pointing_down
 from kpflow.tasks.base import Demonstration, Trajectory
 from kpflow.tasks.stacking.demonstrator import execute, nearest_half_turn
 from kpflow.tasks.stacking.keypoints import BACKGROUND, Matcher, labels_at, lift, true_targets
@@ -117,13 +117,13 @@ def test_half_turns_and_grasp_errors_in_closed_form():
         return Trajectory(np.array(positions, float), np.stack(rotations), np.array([False, True]), np.array(["approach", "seal"]))
 
     view = StackingView(image={}, poses={CHEESE: (np.array([0.1, -0.2, 0.82]), np.eye(3))}, boxes={}, start_box=np.zeros((8, 3)))
-    source = Demonstration(None, view, path([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]], [cup_down(0.0), cup_down(0.0)]), None)
+    source = Demonstration(None, view, path([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]], [pointing_down(0.0), pointing_down(0.0)]), None)
     now = {CHEESE: (np.array([-0.1, 0.1, 0.82]), turn)}
-    ideal = path([[0.0, 0.0, 1.0], [-0.1, 0.1, 0.84]], [np.eye(3), cup_down(0.5)])
+    ideal = path([[0.0, 0.0, 1.0], [-0.1, 0.1, 0.84]], [np.eye(3), pointing_down(0.5)])
     assert grasp_errors(source, ideal, now) == pytest.approx((0.0, 0.0), abs=1e-9)
-    flipped = dataclasses.replace(ideal, rotations=np.stack([np.eye(3), cup_down(0.5 + np.pi)]))  # a box grasped turned by pi
+    flipped = dataclasses.replace(ideal, rotations=np.stack([np.eye(3), pointing_down(0.5 + np.pi)]))  # a box grasped turned by pi
     assert grasp_errors(source, flipped, now)[0] == pytest.approx(0.0, abs=1e-6)
-    off = path(ideal.positions + [0.0, 0.003, 0.004], [np.eye(3), cup_down(0.6)])
+    off = path(ideal.positions + [0.0, 0.003, 0.004], [np.eye(3), pointing_down(0.6)])
     assert grasp_errors(source, off, now) == pytest.approx((np.rad2deg(0.1), 5.0))
 
 

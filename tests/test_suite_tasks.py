@@ -107,8 +107,7 @@ def test_transport_into_the_source_scene_reproduces_the_source(worlds, family):
     transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family], in_hand=family != "mimicgen")
     task, env, segments, *_ = worlds["square"]
     for segment in segments:
-        now = {"poses": segment.poses, "keypoints": segment.keypoints, "gripper": segment.gripper, "in_hand": segment.in_hand}
-        carried = transport.carry(segment, now)
+        carried = transport.carry(segment, segment.start)
         np.testing.assert_allclose(carried.positions, segment.trajectory.positions, atol=1e-7)
         np.testing.assert_allclose(carried.rotations, segment.trajectory.rotations, atol=1e-7)
         np.testing.assert_array_equal(carried.grasp, segment.trajectory.grasp)
@@ -214,7 +213,7 @@ def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
 
     from kpflow.maps import AffineMap
     from kpflow.policies.segment_transport import SegmentTransport, rigid_fit
-    from kpflow.tasks.base import Segment
+    from kpflow.tasks.base import Segment, SegmentStart
 
     rng = np.random.default_rng(0)
     held = rng.normal(size=(5, 3)) * 0.05  # the held object's keypoints in the source's hand frame
@@ -226,11 +225,11 @@ def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
     rotations = Rotation.random(n, random_state=1).as_matrix()
     trajectory = Trajectory(rng.normal(size=(n, 3)), rotations, np.ones(n, bool), np.full(n, "carry"))
     goal = rng.normal(size=(6, 3))
-    segment = Segment("place", trajectory, {}, {"peg": goal}, {}, np.zeros((1, 3)), held)
-    now = {"keypoints": {"peg": goal}, "gripper": np.zeros((1, 3)), "in_hand": (held @ turn.T + shift)[None]}
+    segment = Segment("place", trajectory, SegmentStart({}, {"peg": goal}, {}, np.zeros((1, 3)), held[None]))
+    now = SegmentStart({}, {"peg": goal}, {}, np.zeros((1, 3)), (held @ turn.T + shift)[None])
     carried = SegmentTransport(partial(AffineMap, kind="rigid")).carry(segment, now)
     in_world = lambda rot, pos, points: np.einsum("tij,mj->tmi", rot, points) + pos[:, None]  # noqa: E731
-    np.testing.assert_allclose(in_world(carried.rotations, carried.positions, now["in_hand"][0]), in_world(rotations, trajectory.positions, held), atol=1e-9)
+    np.testing.assert_allclose(in_world(carried.rotations, carried.positions, now.in_hand[0]), in_world(rotations, trajectory.positions, held), atol=1e-9)
     uncorrected = SegmentTransport(partial(AffineMap, kind="rigid"), in_hand=False).carry(segment, now)
     np.testing.assert_allclose(uncorrected.positions, trajectory.positions, atol=1e-9)  # the goal did not move
 

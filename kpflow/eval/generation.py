@@ -64,7 +64,7 @@ class Generator:
         env.reset_to(scene)
         runs, failure, trajectory = [], None, None
         for segment in self.sources[source_id]:
-            now = task.observe(env, segment.name, reference=segment)
+            now = task.observe(env, segment.name, reference=segment.start)
             try:
                 trajectory = transport.plan(segment, now, *env.ee_pose())
             except (ValueError, RuntimeError) as error:  # a map that cannot be fitted on these keypoints

@@ -17,8 +17,9 @@ compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch, scipy's ``R
 held object's keypoints in the source's hand frame to those in the hand frame now, is undone on the right of every
 pose, ``R'' = R' R_A^T`` and ``x'' = x' - R'' t_A``, so the held object (not the hand) follows the source's path.
 Of the orders the object's symmetry allows (a square nut's ring: four ways to sit on the peg), the one whose end
-pose the arm reaches best is taken: within the last joint's range, nearest the robot's base (the Panda's reach
-ends just past the peg; a nut grasped the other way round would otherwise be placed by reaching past it).
+pose the task's ``end_pose_cost`` rates best is taken (for the Panda: within the last joint's range, nearest the
+robot's base, as the scripted demonstrator chose; a nut grasped the other way round would otherwise be placed by
+reaching past the peg).
 
 Either way, the arm first moves from where it is to the carried segment's first pose in
 :func:`kpflow.tasks.arm.motion.interpolate`'s straight steps (MimicGen's interpolation between segments), with the
@@ -35,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
-from kpflow.tasks.base import Segment, Trajectory
+from kpflow.tasks.base import Segment, SegmentStart, Trajectory
 from kpflow.transport import transport_trajectory
 
 
@@ -47,22 +48,6 @@ def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.nd
     return r, mt - r @ ms
 
 
-def _yaw(rot: np.ndarray) -> float:
-    return float(np.arctan2(rot[1, 0], rot[0, 0]))
-
-
-def _arm_cost(position: np.ndarray, rotation: np.ndarray, now: dict) -> float:
-    """How hard an end pose is for the arm (:func:`SegmentTransport.carry`): infinite for a turn of the jaws past
-    ``now["max_turn"]`` or one taking the last joint past its limit (``now["wrist"]``: its angle, which turns by
-    about minus the jaws' yaw change, and ``now["wrist_limit"]``), else the distance from the robot's base
-    (``now["base"]``) in the plane."""
-    if "wrist" in now:
-        turn = (_yaw(rotation) - now["yaw"] + np.pi) % (2 * np.pi) - np.pi
-        if abs(turn) > now["max_turn"] or abs(now["wrist"] - turn) > now["wrist_limit"]:
-            return np.inf
-    return float(np.linalg.norm((position - now.get("base", np.zeros(3)))[:2]))
-
-
 class SegmentTransport:
     """Plan a source segment in the scene now (module docstring). ``make_map`` None is MimicGen's object-frame
     transform; otherwise a factory of the keypoint map, fitted on the reference object's keypoints (and the grip
@@ -71,21 +56,19 @@ class SegmentTransport:
     def __init__(self, make_map: Callable[[], TransportMap] | None = None, gripper_keypoint: bool = False, in_hand: bool = True):
         self.make_map, self.gripper_keypoint, self.in_hand = make_map, gripper_keypoint, in_hand
 
-    def keypoints(self, observed: Segment | dict) -> np.ndarray:
-        """The keypoints ``[N, 3]`` the map is fitted on, from a recorded segment or an observation."""
-        kp = observed.keypoints if isinstance(observed, Segment) else observed["keypoints"]
-        gripper = observed.gripper if isinstance(observed, Segment) else observed["gripper"]
-        return np.concatenate(list(kp.values()) + ([gripper] if self.gripper_keypoint else []))
+    def keypoints(self, start: SegmentStart) -> np.ndarray:
+        """The keypoints ``[N, 3]`` the map is fitted on, from a segment's start (recorded, or observed now)."""
+        return np.concatenate(list(start.keypoints.values()) + ([start.gripper] if self.gripper_keypoint else []))
 
-    def _moved(self, source: Segment, now: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _moved(self, source: Segment, now: SegmentStart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         traj = source.trajectory
         if self.make_map is None:
-            reference = next(iter(source.keypoints))
-            (p_s, r_s), (p_n, r_n) = source.poses[reference], now["poses"][reference]
+            reference = next(iter(source.start.keypoints))
+            (p_s, r_s), (p_n, r_n) = source.start.poses[reference], now.poses[reference]
             turn = r_n @ r_s.T
             positions = (traj.positions - p_s) @ turn.T + p_n
             return positions, np.einsum("ij,tjk->tik", turn, traj.rotations), np.zeros_like(positions)
-        kp_s = torch.as_tensor(self.keypoints(source), dtype=torch.float64)
+        kp_s = torch.as_tensor(self.keypoints(source.start), dtype=torch.float64)
         kp_n = torch.as_tensor(self.keypoints(now), dtype=torch.float64)
         phi = self.make_map().fit(kp_s, kp_n)
         with torch.no_grad():
@@ -94,19 +77,22 @@ class SegmentTransport:
             )
         return moved.positions.numpy(), moved.orientations.numpy(), moved.std.numpy()
 
-    def carry(self, source: Segment, now: dict) -> Trajectory:
+    def carry(self, source: Segment, now: SegmentStart) -> Trajectory:
         """The source segment's trajectory moved into the scene ``now`` (without the transit to its start)."""
         positions, rotations, std = self._moved(source, now)
-        if self.in_hand and source.in_hand is not None and now.get("in_hand") is not None:
+        if self.in_hand and source.start.in_hand is not None and now.in_hand is not None:
+            held = source.start.in_hand[0]
             candidates = []
-            for keypoints in np.reshape(now["in_hand"], (-1, *source.in_hand.shape)):
-                r_a, t_a = rigid_fit(source.in_hand, keypoints)
+            for keypoints in now.in_hand:
+                r_a, t_a = rigid_fit(held, keypoints)
                 rot = rotations @ r_a.T
                 candidates.append((positions - rot @ t_a, rot))
-            positions, rotations = min(candidates, key=lambda c: _arm_cost(c[0][-1], c[1][-1], now))
+            if now.end_pose_cost is not None:  # else the order nearest the source's
+                candidates.sort(key=lambda c: now.end_pose_cost(c[0][-1], c[1][-1]))
+            positions, rotations = candidates[0]
         return source.trajectory.moved(positions, rotations, std)
 
-    def plan(self, source: Segment, now: dict, start_pos: np.ndarray, start_rot: np.ndarray) -> Trajectory:
+    def plan(self, source: Segment, now: SegmentStart, start_pos: np.ndarray, start_rot: np.ndarray) -> Trajectory:
         """The transit from ``(start_pos, start_rot)`` to the carried segment, then the segment."""
         carried = self.carry(source, now)
         ps, rs = interpolate(start_pos, start_rot, carried.positions[0], carried.rotations[0])

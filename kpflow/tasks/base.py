@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -113,20 +113,30 @@ class Demonstration:
 
 
 @dataclass(frozen=True)
-class Segment:
-    """One object-centric segment of a recorded demonstration (``name``: ``"pick"``, ``"place"``): its commanded
-    ``trajectory`` and the scene when it began: ``poses`` (object or fixture -> (position [3], rotation [3, 3])),
-    the ``keypoints`` it depends on (object -> ``[N, 3]``), the objects' ``yaws``, the ``gripper`` keypoint
-    ``[1, 3]`` (the grip site) and, while an object is held, its keypoints ``in_hand [M, 3]`` in the grip site's
-    frame."""
+class SegmentStart:
+    """The scene when a segment of a demonstration begins, what carrying the segment depends on: ``poses`` (object or
+    fixture -> (position [3], rotation [3, 3])), ``keypoints`` (the reference object's ``[N, 3]``, under its name:
+    the object picked, or the goal of a place), the objects' ``yaws``, the ``gripper`` keypoint ``[1, 3]`` (the grip
+    site), while an object is held its keypoints ``in_hand [S, M, 3]`` in the grip site's frame (in each of the
+    ``S`` orders its symmetry allows, the one nearest the reference's first), and ``end_pose_cost(position,
+    rotation) -> float``, how hard an end pose of the segment is for the arm from here (None: all alike)."""
 
-    name: str
-    trajectory: Trajectory
     poses: dict[str, tuple[np.ndarray, np.ndarray]]
     keypoints: dict[str, np.ndarray]
     yaws: dict[str, float]
     gripper: np.ndarray
     in_hand: np.ndarray | None = None
+    end_pose_cost: Callable[[np.ndarray, np.ndarray], float] | None = None
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One object-centric segment of a recorded demonstration (``name``: ``"pick"``, ``"place"``): its commanded
+    ``trajectory`` and the scene when it began (``start``)."""
+
+    name: str
+    trajectory: Trajectory
+    start: SegmentStart
 
 
 @dataclass

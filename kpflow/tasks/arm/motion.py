@@ -17,8 +17,9 @@ DOWN = Rotation.from_euler("x", np.pi).as_matrix()  # the cup pointing down
 PRESS = 0.004  # m: a contact target lies this far below an object's top, so the cup touches it
 
 
-def cup_down(yaw: float) -> np.ndarray:
-    """The cup pointing down, turned by ``yaw`` about the world's z axis."""
+def pointing_down(yaw: float) -> np.ndarray:
+    """The tool (the cup, or the Panda's jaws, which then close along the world direction ``yaw``) pointing down,
+    turned by ``yaw`` about the world's z axis."""
     return Rotation.from_euler("z", yaw).as_matrix() @ DOWN
 
 

@@ -9,7 +9,7 @@ narrow objects: a diagonal approach, with the controller lagging, swept the cere
 from __future__ import annotations
 
 from kpflow.tasks.arm.execution import arm_failure, follow
-from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory
+from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory
 from kpflow.tasks.base import Execution, Trajectory
 
 from .keypoints import LIFT
@@ -24,7 +24,7 @@ def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: 
     ``container_pos`` (centre, m) with yaw ``container_yaw`` (module docstring)."""
     top, (cx, cy), yaw = box["top"], box["centre"], box["yaw"]
     height = top - table_height
-    grasp_rot, place_rot = cup_down(yaw), cup_down(container_yaw)
+    grasp_rot, place_rot = pointing_down(yaw), pointing_down(container_yaw)
     lifted = top + LIFT
     place = table_height + CONTAINER_WALL + PLACE_CLEARANCE + height
     segments = [  # (phase, target position, rotation, settle steps, suction during the segment)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from kpflow.tasks.arm.execution import arm_failure, follow
-from kpflow.tasks.arm.motion import PRESS, cup_down, segments_to_trajectory, yaw_of
+from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory, yaw_of
 from kpflow.tasks.base import Execution, Trajectory
 
 LIFT = 0.12  # m: the cheese's bottom clears the lettuce's top by this much while carried
@@ -31,7 +31,7 @@ def plan_stacking(start_pos, start_rot, cheese: tuple, lettuce: tuple) -> Trajec
     (c_centre, c_rot, c_half), (l_centre, l_rot, l_half) = cheese, lettuce
     grasp_yaw = yaw_of(c_rot)
     place_yaw = nearest_half_turn(yaw_of(l_rot), grasp_yaw)
-    grasp_rot, place_rot = cup_down(grasp_yaw), cup_down(place_yaw)
+    grasp_rot, place_rot = pointing_down(grasp_yaw), pointing_down(place_yaw)
     top, height = c_centre[2] + c_half[2], 2 * c_half[2]
     lettuce_top = l_centre[2] + l_half[2]
     carry = max(top, lettuce_top + height) + LIFT

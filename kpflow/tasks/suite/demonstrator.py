@@ -6,9 +6,9 @@ start, from the objects' geometry.
   the square nut's handle (``NUT_GRASP`` along its x axis; of the two ways round, the one nearer the home yaw).
 * ``place`` (stack, can, square): carry the held object over its goal at a safe height, lower it, open, retreat
   upwards. Its goal comes from where the object is in the hand now: cube A's centre on top of cube B; the can over
-  its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the turn (of those
-  within ``MAX_PLACE_TURN`` that keep the last joint inside ``WRIST_LIMIT``) that keeps the grip site nearest the robot's base: with the handle pointing away,
-  the peg is at the edge of the Panda's reach.
+  its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the
+  turn that :func:`end_pose_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
+  robot's base): with the handle pointing away, the peg is at the edge of the Panda's reach.
 
 Poses are the grip site's (between the finger pads), as :class:`~kpflow.tasks.base.Trajectory` rows in the
 interpolated straight segments of :func:`kpflow.tasks.arm.motion.segments_to_trajectory`; ``grasp`` is the jaws'
@@ -17,12 +17,14 @@ command (closed while True).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
-from kpflow.tasks.arm.motion import segments_to_trajectory
+from kpflow.tasks.arm.motion import segments_to_trajectory, yaw_of
 from kpflow.tasks.base import Trajectory
 
-from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw, yaw_of, yaw_rotation
+from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw, yaw_rotation
 from .specs import TaskSpec
 
 APPROACH = 0.10  # m above the grasp point before going down
@@ -37,7 +39,10 @@ RELEASE_HEIGHT = {"cubeB": 0.004, "bin": 0.09, "peg": 0.03}  # m above the goal 
 
 
 def jaws_down(yaw: float) -> np.ndarray:
-    """The gripper pointing down with its jaws closing along the world direction ``yaw``."""
+    """The gripper pointing down with its jaws closing along the world direction ``yaw``: the rotation of
+    :func:`kpflow.tasks.arm.motion.pointing_down`, computed as a product of exact matrices. The two differ by
+    1e-16, and Square's contacts amplify that: one attempt in 30 changed outcome with ``pointing_down``, so the
+    generated demonstrations of results/generation.md are reproduced with this one."""
     return yaw_rotation(yaw) @ np.diag([1.0, -1.0, -1.0])
 
 
@@ -83,13 +88,30 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
     if kind == "peg":
         goal = np.array([goal_pos[0], goal_pos[1], env.env.table_offset[2] + 0.01])
         smallest = reduced_yaw(yaw_of(goal_rot), 4, yaw_of(rot)) - yaw_of(rot)
-        wrist = env.arm_joints()[6]  # turning the jaws by +t turns the Panda's last joint by about -t
-        turns = [t for t in smallest + np.pi / 2 * np.arange(-2, 3) if abs(t) <= MAX_PLACE_TURN and abs(wrist - t) <= WRIST_LIMIT]
-        grip = env.ee_pose()[0]
-        base = env.base_position()
-        reach = [np.linalg.norm((goal + yaw_rotation(t) @ (grip - pos) - base)[:2]) for t in turns]
-        return goal, float(turns[int(np.argmin(reach))])
+        grip, grip_rot = env.ee_pose()
+        cost = end_pose_cost(env)
+        turns = smallest + np.pi / 2 * np.arange(-2, 3)
+        costs = [cost(goal + yaw_rotation(t) @ (grip - pos), yaw_rotation(t) @ grip_rot) for t in turns]
+        if not np.isfinite(min(costs)):
+            raise ValueError(f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range")
+        return goal, float(turns[int(np.argmin(costs))])
     raise ValueError(f"no placement on a {kind!r}")
+
+
+def end_pose_cost(env) -> Callable[[np.ndarray, np.ndarray], float]:
+    """How hard an end pose ``(position [3], rotation [3, 3])`` of the grip site is for the arm from where it is now:
+    infinite for a turn of the jaws past ``MAX_PLACE_TURN`` or one taking the Panda's last joint past
+    ``WRIST_LIMIT`` (turning the jaws by +t turns that joint by about -t), else the distance from the robot's base
+    in the plane (the Panda's reach ends just past the peg)."""
+    wrist, yaw, base = float(env.arm_joints()[6]), yaw_of(env.ee_pose()[1]), env.base_position()
+
+    def cost(position: np.ndarray, rotation: np.ndarray) -> float:
+        turn = (yaw_of(rotation) - yaw + np.pi) % (2 * np.pi) - np.pi
+        if abs(turn) > MAX_PLACE_TURN or abs(wrist - turn) > WRIST_LIMIT:
+            return np.inf
+        return float(np.linalg.norm((np.asarray(position) - base)[:2]))
+
+    return cost
 
 
 def plan_place(env, spec: TaskSpec) -> Trajectory:

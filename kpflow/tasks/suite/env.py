@@ -72,7 +72,7 @@ class SuiteEnv:
         self._home_qpos = np.array(self.sim.data.qpos[self._arm_qpos])
         model = self.sim.model
         self.object_body = {name: model.body_name2id(body) for name, body in spec.object_bodies.items()}
-        self.object_joint = {name: joint for name, joint in spec.object_joints.items()}
+        self.object_joint = dict(spec.object_joints)
         self.fixture_body = {name: model.body_name2id(body) for name, body in spec.fixture_bodies.items()}
         #: where robosuite puts each fixture (a scene's offsets are from here; the model's copy moves with the scene)
         self.fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
@@ -80,7 +80,6 @@ class SuiteEnv:
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
         self.home_pose = self.ee_pose()
-        self.scene = None
         self._gripper = OPEN
         self.last_action = np.zeros(7)  # the last action sent to robosuite
 
@@ -97,7 +96,6 @@ class SuiteEnv:
         data.qpos[self._arm_qpos] = self._home_qpos
         data.qvel[:] = 0.0
         self.sim.forward()
-        self.scene = scene
         self._gripper = OPEN
         home_pos, home_rot = self.home_pose
         for _ in range(SETTLE_STEPS):
@@ -114,14 +112,6 @@ class SuiteEnv:
         b = self.object_body[name] if name in self.object_body else self.fixture_body[name]
         d = self.sim.data
         return d.xpos[b].copy(), d.xmat[b].reshape(3, 3).copy()
-
-    def object_state(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Every object's free-joint pose now: name -> (position [3], quaternion (w, x, y, z) [4])."""
-        out = {}
-        for name, joint in self.object_joint.items():
-            q = self.sim.data.get_joint_qpos(joint)
-            out[name] = (np.array(q[:3]), np.array(q[3:7]))
-        return out
 
     def base_position(self) -> np.ndarray:
         """The robot base's position ``[3]`` in the world."""

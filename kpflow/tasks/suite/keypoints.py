@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpflow.tasks.arm.motion import yaw_of
+
 from .specs import TaskSpec
 
 # geometry (m), read from robosuite 1.5's models
@@ -29,15 +31,10 @@ CAN_RADIUS, CAN_HALF_HEIGHT = 0.025, 0.0407
 NUT_RING_HALF = 0.0543  # centre to the ring's outer edge
 NUT_HANDLE = (0.029, 0.079)  # the handle's extent along the nut's x axis
 NUT_GRASP = 0.054  # where the jaws close on the handle (its centre), along the nut's x axis
-NUT_HANDLE_HALF = (0.025, 0.0159, 0.01)  # half extents of the handle bar
+NUT_HANDLE_HALF = (0.025, 0.0159, 0.01)  # half extents of the handle bar (the last: its top above its centre)
 PEG_HALF, PEG_HEIGHT = 0.016, 0.1  # half side, and half length (its body origin is at its middle)
 BIN_HALF = (0.195, 0.245)
 SYMMETRY = {"cube": 4, "can": 0, "nut": 1, "nut_handle": 2, "nut_ring": 4, "peg": 4, "bin": 2}  # turns that leave it unchanged (0: any)
-
-
-def yaw_of(rot: np.ndarray) -> float:
-    """Yaw (rad) of a rotation's x axis in the world's XY plane."""
-    return float(np.arctan2(rot[1, 0], rot[0, 0]))
 
 
 def reduced_yaw(yaw: float, order: int, reference: float) -> float:
@@ -50,6 +47,13 @@ def yaw_rotation(yaw: float) -> np.ndarray:
     """The rotation by ``yaw`` (rad) about the world's vertical."""
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _square(centre, yaw: float, half_x: float, half_y: float, height: float = 0.0) -> list[np.ndarray]:
+    """The 4 corners ``(+,+), (-,+), (-,-), (+,-)`` of a horizontal rectangle turned by ``yaw``, ``height`` above
+    ``centre``."""
+    r = yaw_rotation(yaw)
+    return [np.asarray(centre) + r @ np.array([sx * half_x, sy * half_y, height]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
 
 
 def _box(centre, yaw, half) -> np.ndarray:
@@ -72,20 +76,14 @@ def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw:
         return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
     if kind == "nut_handle":
         centre = pos + yaw_rotation(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
-        hx, hy, hz = NUT_HANDLE_HALF
-        corners = [centre + yaw_rotation(yaw) @ np.array([sx * hx, sy * hy, hz]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-        return np.stack([centre, *corners])
+        return np.stack([centre, *_square(centre, yaw, *NUT_HANDLE_HALF)])
     if kind in ("nut", "nut_ring"):
-        r = yaw_rotation(yaw)
-        corners = [pos + r @ (NUT_RING_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-        handle = [pos + r @ np.array([x, 0.0, 0.0]) for x in NUT_HANDLE] if kind == "nut" else []
-        return np.stack([pos, *corners, *handle])
+        handle = [pos + yaw_rotation(yaw) @ np.array([x, 0.0, 0.0]) for x in NUT_HANDLE] if kind == "nut" else []
+        return np.stack([pos, *_square(pos, yaw, NUT_RING_HALF, NUT_RING_HALF), *handle])
     if kind == "peg":
         top = pos + [0, 0, PEG_HEIGHT]
-        corners = [top + yaw_rotation(yaw) @ (PEG_HALF * np.array([sx, sy, 0.0])) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-        return np.stack([pos - [0, 0, PEG_HEIGHT], top, *corners])
-    corners = [pos + yaw_rotation(yaw) @ np.array([sx * BIN_HALF[0], sy * BIN_HALF[1], 0.0]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-    return np.stack(corners)
+        return np.stack([pos - [0, 0, PEG_HEIGHT], top, *_square(top, yaw, PEG_HALF, PEG_HALF)])
+    return np.stack(_square(pos, yaw, *BIN_HALF))
 
 
 def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:

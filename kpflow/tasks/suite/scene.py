@@ -73,7 +73,7 @@ def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict]:
             placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
     if variant == "wide" and spec.wide_objects:
         objects = _mujoco_objects(env)
-        for name, wide in spec.wide_objects.items():
+        for name in spec.wide_objects:
             del placed[spec.object_joints[name]]
         fixtures = None
         for name, wide in spec.wide_objects.items():

@@ -14,11 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpflow.rotations import matrix_to_rot6d
-from kpflow.tasks.base import Segment, Trajectory
+from kpflow.tasks.arm.motion import yaw_of
+from kpflow.tasks.base import Segment, SegmentStart, Trajectory
 
-from .demonstrator import MAX_PLACE_TURN, WRIST_LIMIT, plan_segment
+from .demonstrator import end_pose_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, scene_keypoints, yaw_of
+from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, scene_keypoints
 from .scene import VARIANTS, Scene, sample_scene
 from .specs import task_spec
 
@@ -61,29 +62,24 @@ class SuiteTask:
         """The object a segment acts relative to: the one picked, or the goal of a place."""
         return self.spec.grasp if segment == "pick" else self.spec.target
 
-    def observe(self, env: SuiteEnv, segment: str, reference: Segment | None = None) -> dict:
-        """What a segment depends on, now: ``poses`` (every object and fixture: (position, rotation)), ``keypoints``
-        (the reference object's ``[N, 3]``: for a pick, its grasp keypoints), ``yaws`` (and ``"hand"``: the grasped
-        object's yaw relative to the jaws), the ``gripper`` keypoint ``[1, 3]`` and, for a place, the held object's
-        keypoints ``in_hand [S, M, 3]`` (:func:`~.keypoints.in_hand_keypoints`) in each of the ``S`` orders its
-        symmetry allows, the one nearest the reference's first; and where the arm is: its last joint's angle
-        ``wrist``, ``wrist_limit`` and ``max_turn``, the jaws' ``yaw``, the robot's ``base`` position. Symmetric keypoints are ordered by the turn
-        nearest the ``reference`` segment's yaws (the recorded source's)."""
+    def observe(self, env: SuiteEnv, segment: str, reference: SegmentStart | None = None) -> SegmentStart:
+        """What ``segment`` depends on, now (:class:`~kpflow.tasks.base.SegmentStart`): for a pick the grasp
+        keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
+        (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
+        :func:`~.demonstrator.end_pose_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
+        start's yaws (the recorded source's; its own without one)."""
         spec = self.spec
-        names = (*spec.object_bodies, *spec.fixture_bodies)
-        poses = {n: env.object_pose(n) for n in names}
+        poses = {n: env.object_pose(n) for n in (*spec.object_bodies, *spec.fixture_bodies)}
         yaws = {n: yaw_of(r) for n, (_, r) in poses.items()}
         yaws["hand"] = yaws[spec.grasp] - yaw_of(env.ee_pose()[1])
         ref = reference.yaws if reference is not None else yaws
         name = self.reference_object(segment)
-        kind = spec.grasp_kind if segment == "pick" else None
-        keypoints = {name: scene_keypoints(env, spec, name, ref[name], kind)}
+        keypoints = {name: scene_keypoints(env, spec, name, ref[name], spec.grasp_kind if segment == "pick" else None)}
         in_hand = None
-        if segment == "place":  # every order the held object's symmetry allows, the reference's first
+        if segment == "place":
             order = max(SYMMETRY[spec.hand_kind], 1)
             in_hand = np.stack([in_hand_keypoints(env, spec, ref["hand"] + 2 * np.pi * k / order) for k in range(order)])
-        arm = {"wrist": float(env.arm_joints()[6]), "wrist_limit": WRIST_LIMIT, "max_turn": MAX_PLACE_TURN, "yaw": yaw_of(env.ee_pose()[1]), "base": env.base_position()}
-        return {"poses": poses, "keypoints": keypoints, "yaws": yaws, "gripper": gripper_keypoints(env), "in_hand": in_hand, **arm}
+        return SegmentStart(poses, keypoints, yaws, gripper_keypoints(env), in_hand, end_pose_cost(env))
 
     # ------------------------------------------------------------------------------------------ acting
     def run_segment(self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2) -> SegmentRun:
@@ -128,11 +124,10 @@ class SuiteTask:
         home_yaw = yaw_of(env.home_pose[1])
         segments = []
         for name in self.spec.segments:
-            seen = self.observe(env, name)
+            start = self.observe(env, name)
             trajectory = plan_segment(env, self.spec, name, home_yaw)
             run = self.run_segment(env, trajectory)
-            in_hand = None if seen["in_hand"] is None else seen["in_hand"][0]
-            segments.append(Segment(name, trajectory, seen["poses"], seen["keypoints"], seen["yaws"], seen["gripper"], in_hand))
+            segments.append(Segment(name, trajectory, start))
             failure = run.failure or self.segment_failure(env, name)
             if failure:
                 return segments, False, failure
