@@ -16,8 +16,8 @@ LAYERS = [
     {"tasks"},
     {"data"},
     {"policies"},
-    {"eval"},
-    {"collect", "correct", "generate", "teleop", "release", "__init__"},  # command-line tools and the package's front door
+    {"eval", "serving"},
+    {"collect", "correct", "generate", "serve", "teleop", "release", "__init__"},  # command-line tools and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 

@@ -13,12 +13,15 @@ transportable to a block somewhere else: the map takes care of the rigid motion.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
 from ..maps.affine import fit_affine
 from ..tasks.pusht.geometry import N_T_KEYPOINTS
 from ..utils.config_checks import Key
+from ..utils.io import atomic_path
 from .chunks import ChunkDataset
 from .episode_store import EpisodeStore
 
@@ -82,6 +85,30 @@ class SourceIndex:
         episodes = range(store.n_episodes) if episodes is None else episodes
         keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key).arrays()
         return cls(keypoints, chunks, weights, reference)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the index to ``path`` (``.npz``: keypoints, chunks, weights and the reference, no pickled objects),
+        atomically; :meth:`load` reads it back."""
+        reference = np.asarray([] if self.reference is None else self.reference, np.int64)
+        with atomic_path(path) as tmp:
+            np.savez(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SourceIndex":
+        """The index :meth:`save` wrote to ``path`` (read with ``allow_pickle=False``: nothing in it can run code).
+
+        Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file for anything else."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no source index at {path}")
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                arrays = {k: f[k] for k in ("keypoints", "chunks", "weights", "reference")}
+        except Exception as e:
+            raise ValueError(f"{path} is not a source index written by SourceIndex.save ({type(e).__name__}: {e})") from None
+        reference = tuple(int(r) for r in arrays["reference"]) or None
+        return cls(arrays["keypoints"], arrays["chunks"], arrays["weights"], reference)
 
     def canonical(self, keypoints: np.ndarray) -> np.ndarray:
         """Keypoint sets ``[B, K, D]`` moved rigidly onto the template's reference pose (unchanged without one)."""

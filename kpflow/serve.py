@@ -1,0 +1,44 @@
+"""Serve a trained policy: ``python -m kpflow.serve checkpoint=PATH [transport=ilwr] [host=0.0.0.0 port=8000]``.
+
+Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (transported online through a map with
+``transport=...``, its source index read from ``source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
+Connect with :class:`~kpflow.serving.client.PolicyClient`.
+"""
+
+import logging
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from kpflow.serving.deployment import TRANSPORT_MAPS, load_deployment
+from kpflow.serving.server import PolicyServer
+from kpflow.utils.config_checks import Key, check_config
+
+log = logging.getLogger("kpflow.serve")
+KEYS = {
+    "checkpoint": Key(str),
+    "transport": Key(str, choices=tuple(TRANSPORT_MAPS), nullable=True),
+    "steps": Key(int, lo=1),
+    "execute": Key(int, lo=1),
+    "control_hz": Key(float, lo=0),
+    "host": Key(str),
+    "port": Key(int, lo=0),
+    "max_message_mb": Key(float, lo=0),
+    "threads": Key(int, lo=1),
+}
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="serve")
+def main(cfg: DictConfig) -> None:
+    check_config(cfg, KEYS)
+    torch.set_num_threads(cfg.threads)
+    groups = OmegaConf.to_container(cfg.keypoint_groups) if cfg.keypoint_groups is not None else None
+    deployment = load_deployment(cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups)
+    server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
+    log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])
+    server.run()
+
+
+if __name__ == "__main__":
+    main()

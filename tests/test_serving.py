@@ -1,0 +1,290 @@
+"""The websocket policy server, with a real client over loopback: the wire format refuses what could not be rebuilt
+safely; metadata arrives on connect; every connection has its own policy state; each kind of bad message gets an
+error reply and the connection goes on; several clients at once (a bounded load test that reports latency
+percentiles against in-process ``act``); graceful shutdown; the CLI; and a closed-loop Push-T episode driven through
+the server that equals the in-process one exactly. Real K-CFM checkpoints (the released Push-T one, and a tiny one
+trained here for the transported policy's source index); no mocks."""
+
+import hashlib
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import lightning
+import numpy as np
+import pytest
+
+from kpflow.data.chunks import ChunkDataModule
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.policies.kcfm import KCFM
+from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
+from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment
+from kpflow.serving.deployment import source_index_path
+from kpflow.serving.server import HARD_LIMIT
+from kpflow.serving.wire import WireError, pack, unpack
+from kpflow.tasks.pusht.env import PushTEnv
+from kpflow.tasks.pusht.rollout import run_episode
+from kpflow.tasks.pusht.scene import split_config
+from tests.helpers import walk_to_block_store
+
+ROOT = Path(__file__).resolve().parents[1]
+RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
+H = 8
+
+
+def observation(seed: int) -> dict:
+    return {"keypoints": np.random.default_rng(seed).uniform(100, 400, (25, 2))}
+
+
+@pytest.fixture(scope="module")
+def released():
+    return load_deployment(RELEASED, steps=4)
+
+
+@pytest.fixture(scope="module")
+def uri(released):
+    server = PolicyServer(released, port=0, max_message_bytes=64 * 1024)
+    with server.running() as address:
+        yield address
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny K-CFM trained for 20 steps on synthetic episodes, with its source index beside the checkpoint."""
+    root = tmp_path_factory.mktemp("served")
+    walk_to_block_store(root / "demos.zarr")
+    lightning.seed_everything(0, verbose=False)
+    trainer = lightning.Trainer(max_steps=20, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
+                                enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
+    trainer.fit(KCFM(horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
+    trainer.save_checkpoint(root / "kcfm.ckpt")
+    index = SourceIndex.from_store(EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
+    return root / "kcfm.ckpt", index
+
+
+# ------------------------------------------------------------------------------------------------ wire format
+
+
+def test_wire_round_trips_arrays_and_scalars():
+    message = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.array([True, False]), "c": np.int64(7),
+               "d": [1, "x", None, 2.5], "e": np.zeros((0, 4), np.uint8), "f": np.arange(4, dtype=">f8")}  # fmt: skip
+    back = unpack(pack(message))
+    for key in ("a", "b", "e", "f"):
+        assert back[key].dtype == message[key].dtype and np.array_equal(back[key], message[key])
+    assert back["c"] == 7 and isinstance(back["c"], np.int64) and back["d"] == [1, "x", None, 2.5]
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        (b"\xc1", "not a msgpack message"),
+        (pack({"__ndarray__": True, "data": b"\x00" * 8, "dtype": "|O", "shape": [1]}), "dtype"),
+        (pack({"__ndarray__": True, "data": b"\x00" * 7, "dtype": "<f8", "shape": [1]}), "needs 8 bytes"),
+        (pack({"__ndarray__": True, "data": b"", "dtype": "<f8", "shape": [-1]}), "non-negative"),
+        (pack({"__ndarray__": True, "data": "text", "dtype": "<f8", "shape": [0]}), "bytes"),
+        (pack([1]) + b"\x01", "not a msgpack message"),
+        ("text", "binary"),
+    ],
+)
+def test_wire_refuses_what_it_cannot_rebuild_safely(data, match):
+    with pytest.raises(WireError, match=match):
+        unpack(data)
+
+
+def test_wire_cannot_send_objects():
+    with pytest.raises(TypeError, match="dtype object"):
+        pack({"x": np.array([object()])})
+    with pytest.raises(TypeError, match="Path"):
+        pack({"x": Path(".")})
+
+
+# ------------------------------------------------------------------------------------------------ the server
+
+
+def test_metadata_arrives_on_connect(uri, released):
+    with PolicyClient(uri) as client:
+        meta = client.metadata
+        assert meta == released.metadata and client.max_message_bytes == 64 * 1024
+        assert meta.observation == {"keypoints": [25, 2]} and meta.keypoint_groups == {"block": 12, "goal": 12, "agent": 1}
+        assert meta.action_shape == [8, 2] and meta.horizon == 16 and meta.n_obs == 1 and meta.control_hz == 10.0
+        assert meta.checkpoint_sha256 == hashlib.sha256(RELEASED.read_bytes()).hexdigest()
+
+
+def test_served_actions_equal_in_process_ones_per_connection(uri, released):
+    local = released.make_policy()
+    with PolicyClient(uri) as a, PolicyClient(uri) as b:
+        a.reset(3), b.reset(5), local.reset(3)
+        first = a.act(observation(0))
+        np.testing.assert_array_equal(first, local.act(observation(0)))
+        b.act(observation(0))  # another connection's requests leave a's noise alone
+        np.testing.assert_array_equal(a.act(observation(1)), local.act(observation(1)))
+        a.reset(3)
+        np.testing.assert_array_equal(a.act(observation(0)), first)  # reset reseeds the connection's policy
+        assert first.shape == (8, 2) and first.dtype == np.float64 and a.server_ms > 0
+
+
+@pytest.mark.parametrize(
+    "message, match",
+    [
+        ({"obs": {"keypoints": np.zeros((24, 2))}}, r"shape \[25, 2\]"),
+        ({"obs": {"keypoints": np.full((25, 2), np.nan)}}, "50 NaN or inf"),
+        ({"obs": {"keypoints": np.zeros((25, 2)), "extra": np.zeros(2)}}, r"unknown \['extra'\]"),
+        ({"obs": {}}, r"missing \['keypoints'\]"),
+        ({"obs": {"keypoints": [[0.0, 0.0]] * 25}}, "numeric array"),
+        ({"act": 1}, "exactly one key"),
+        ({"obs": {"keypoints": np.zeros((25, 2))}, "reset": {}}, "exactly one key"),
+        ({"reset": {"seed": "zero"}}, "integer or None"),
+        ([1, 2], "must be a map"),
+    ],
+)
+def test_a_bad_request_gets_an_error_and_the_connection_goes_on(uri, message, match):
+    with PolicyClient(uri) as client:
+        with pytest.raises(PolicyServerError, match=match):
+            client.request(message)
+        client.reset(0)
+        assert client.act(observation(0)).shape == (8, 2)
+
+
+def test_garbage_text_and_oversized_frames_get_error_replies(uri):
+    with PolicyClient(uri) as client:
+        for frame, match in ((b"\xc1\xff\x00", "not a msgpack message"), ("hello", "must be binary"),
+                             (b"\x00" * (100 * 1024), "takes at most 65536")):  # fmt: skip
+            client._ws.send(frame)
+            assert match in unpack(client._ws.recv(timeout=10))["error"]
+        assert client.act(observation(0)).shape == (8, 2)  # still serving this connection
+        with pytest.raises(PolicyServerError, match="at most 65536"):  # the client refuses to send it at all
+            client.request({"obs": {"keypoints": np.zeros((5000, 2))}})
+
+
+def test_a_frame_past_the_hard_limit_closes_that_connection_only(uri):
+    with PolicyClient(uri) as big, PolicyClient(uri) as other:
+        big._ws.send(b"\x00" * (HARD_LIMIT * 64 * 1024 + 1))
+        with pytest.raises(PolicyServerError, match="1009"):
+            big._receive()
+        assert other.act(observation(0)).shape == (8, 2)
+    with PolicyClient(uri) as again:
+        assert again.act(observation(0)).shape == (8, 2)
+
+
+def test_load_several_clients_at_once(uri, released):
+    """4 clients x 25 requests at once; every reply equals its in-process twin. Prints latency percentiles against
+    in-process ``act`` (the benchmark, benchmarks/serving.py, measures them properly)."""
+    n_clients, n_requests = 4, 25
+    local = released.make_policy()
+    start = time.perf_counter()
+    local_ms = []
+    expected = {}
+    for c in range(n_clients):
+        local.reset(c)
+        for r in range(n_requests):
+            t = time.perf_counter()
+            expected[c, r] = local.act(observation(r))
+            local_ms.append(1e3 * (time.perf_counter() - t))
+    got, latency, failures = {}, [], []
+
+    def drive(c: int) -> None:
+        try:
+            with PolicyClient(uri) as client:
+                client.reset(c)
+                for r in range(n_requests):
+                    t = time.perf_counter()
+                    got[c, r] = client.act(observation(r))
+                    latency.append(1e3 * (time.perf_counter() - t))
+        except Exception as e:  # reported below: a thread's exception would otherwise vanish
+            failures.append(e)
+
+    threads = [threading.Thread(target=drive, args=(c,)) for c in range(n_clients)]
+    start = time.perf_counter()
+    [t.start() for t in threads]
+    [t.join(120) for t in threads]
+    wall = time.perf_counter() - start
+    assert not failures and len(got) == n_clients * n_requests
+    for key, actions in expected.items():
+        np.testing.assert_array_equal(got[key], actions)
+    q = lambda x: " / ".join(f"{v:.1f}" for v in np.percentile(x, [50, 90, 99]))  # noqa: E731
+    print(f"\nin-process act() p50/p90/p99 {q(local_ms)} ms; served, {n_clients} clients at once: {q(latency)} ms; "
+          f"{len(latency) / wall:.0f} requests/s")  # fmt: skip
+
+
+def test_graceful_shutdown_finishes_requests_then_says_going_away(released):
+    server = PolicyServer(released, port=0)
+    with server.running() as address:
+        client = PolicyClient(address)
+        done = {}
+        slow = threading.Thread(target=lambda: done.update(actions=client.act(observation(0))))
+        slow.start()
+        time.sleep(0.01)
+    slow.join(30)
+    assert done["actions"].shape == (8, 2)  # the request in flight was answered before the server went
+    with pytest.raises(PolicyServerError, match="1001"):
+        client.act(observation(1))
+    with pytest.raises(ConnectionError, match="no policy server"):
+        PolicyClient(address, timeout=2)
+
+
+def test_transported_policy_is_served_with_its_source_index(tiny_run):
+    checkpoint, index = tiny_run
+    with pytest.raises(FileNotFoundError, match="source_index.npz"):
+        load_deployment(checkpoint, transport="ilwr")
+    index.save(source_index_path(checkpoint))
+    loaded = SourceIndex.load(source_index_path(checkpoint))
+    for a, b in ((loaded.keypoints, index.keypoints), (loaded.chunks, index.chunks), (loaded.weights, index.weights)):
+        np.testing.assert_array_equal(a, b)
+    assert loaded.reference == index.reference
+    deployment = load_deployment(checkpoint, transport="ilwr", steps=4)
+    assert deployment.metadata.policy == "transported_kcfm/ilwr"
+    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4)
+    obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
+    with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
+        client.reset(1), local.reset(1)
+        np.testing.assert_array_equal(client.act(obs), local.act(obs))
+    with pytest.raises(ValueError, match="transport must be"):
+        load_deployment(checkpoint, transport="spline")
+
+
+def test_bad_source_index_file_is_a_clear_error(tmp_path):
+    bad = tmp_path / "source_index.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="is not a source index"):
+        SourceIndex.load(bad)
+
+
+@pytest.mark.slow
+def test_closed_loop_pusht_episode_through_the_server_equals_in_process(uri, released):
+    config = split_config("in_distribution", 3, seed=0)
+    local = run_episode(PushTEnv(), released.make_policy(), config, 120, seed=7, record=True)
+    with PolicyClient(uri) as client:
+        served = run_episode(PushTEnv(), client, config, 120, seed=7, record=True)
+    assert served.steps == local.steps and served.coverage == local.coverage and served.max_coverage > 0
+    for key, value in local.episode.items():
+        np.testing.assert_array_equal(served.episode[key], value)
+
+
+@pytest.mark.slow
+def test_serve_cli_answers_then_stops_on_sigterm():
+    proc = subprocess.Popen([sys.executable, "-m", "kpflow.serve", f"checkpoint={RELEASED}", "port=0", "steps=2"], cwd=ROOT,
+                            stderr=subprocess.STDOUT, stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        line = ""
+        deadline = time.time() + 120
+        while "serving kcfm on ws://" not in line and time.time() < deadline:
+            line = proc.stdout.readline()  # Hydra logs to stdout
+            assert line or proc.poll() is None, "the server exited before serving"
+        address = line.split("on ", 1)[1].split()[0]
+        with PolicyClient(address) as client:
+            assert client.metadata.checkpoint_sha256 == hashlib.sha256(RELEASED.read_bytes()).hexdigest()
+            assert client.act(observation(0)).shape == (8, 2)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    finally:
+        proc.kill()
+
+
+def test_serve_cli_refuses_a_bad_config():
+    done = subprocess.run([sys.executable, "-m", "kpflow.serve", f"checkpoint={RELEASED}", "transport=spline"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode != 0 and "transport must be one of" in done.stderr
