@@ -1,0 +1,231 @@
+"""Episode stores as LeRobot datasets (format v3.0, what ``lerobot.datasets.LeRobotDataset(repo_id, root=...)``
+reads), and back.
+
+::
+
+    meta/info.json                                  codebase_version "v3.0", fps, totals, splits, path templates,
+                                                    features {name: {dtype, shape, names}} (the five default ones last)
+    meta/stats.json                                 per feature: min, max, mean, std, count, q01, q10, q50, q90, q99
+    meta/tasks.parquet                              task_index, with the task string as the (pandas) index
+    meta/episodes/chunk-000/file-000.parquet        per episode: episode_index, tasks, length, data/chunk_index,
+                                                    data/file_index, dataset_from_index, dataset_to_index,
+                                                    meta/episodes/{chunk,file}_index, stats/<feature>/<stat>
+    data/chunk-XXX/file-XXX.parquet                 one row per frame: each feature a fixed-size float32 list, then
+                                                    timestamp, frame_index, episode_index, index, task_index
+
+Several episodes share a data file until it reaches ``data_files_size_in_mb``; a chunk holds ``chunks_size`` files
+(lerobot's ``update_chunk_file_indices``). A store field of any shape becomes a flat float32 vector feature: the
+``keypoints [T, K, D]`` as ``observation.state`` named ``k0.x, k0.y, ...`` (so :func:`import_lerobot` restores
+their shape), the ``action`` as ``action``, any other field ``f`` as ``observation.f``. Videos are not written.
+The dataset is built in a temporary folder and renamed into place: a reader never sees half of one.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from kpflow.utils.io import atomic_dir
+
+from .episode_store import EpisodeStore
+
+CODEBASE_VERSION = "v3.0"
+DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+DEFAULT_FEATURES = {name: {"dtype": dtype, "shape": [1], "names": None} for name, dtype in
+                    (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"), ("index", "int64"), ("task_index", "int64"))}  # fmt: skip
+QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
+AXES = "xyz"
+
+
+def feature_name(field: str) -> str:
+    return {"keypoints": "observation.state", "action": "action"}.get(field, f"observation.{field}")
+
+
+def _names(field: str, shape: tuple[int, ...]) -> list[str] | None:
+    if field == "keypoints" and len(shape) == 2 and shape[1] <= len(AXES):
+        return [f"k{k}.{AXES[d]}" for k in range(shape[0]) for d in range(shape[1])]
+    return None
+
+
+def _stats(values: np.ndarray) -> dict[str, list]:
+    """LeRobot's per-feature statistics of ``values [N, F]`` (quantiles exact here, not from histograms)."""
+    values = values.astype(np.float64)
+    out = {"min": values.min(0), "max": values.max(0), "mean": values.mean(0), "std": values.std(0)}
+    out |= {f"q{round(100 * q):02d}": np.quantile(values, q, axis=0) for q in QUANTILES}
+    return {k: v.tolist() for k, v in out.items()} | {"count": [len(values)]}
+
+
+def _tasks_table(tasks: list[str]) -> pa.Table:
+    """``meta/tasks.parquet`` as pandas writes it (lerobot reads it with pandas: the task string is the index)."""
+    table = pa.table({"task_index": pa.array(range(len(tasks)), pa.int64()), "__index_level_0__": pa.array(tasks, pa.string())})
+    pandas = {"index_columns": ["__index_level_0__"],
+              "column_indexes": [{"name": None, "field_name": None, "pandas_type": "unicode", "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
+              "columns": [{"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64", "metadata": None},
+                          {"name": None, "field_name": "__index_level_0__", "pandas_type": "unicode", "numpy_type": "object", "metadata": None}],
+              "creator": {"library": "pyarrow", "version": pa.__version__}, "pandas_version": "2.3.3"}  # fmt: skip
+    return table.replace_schema_metadata({b"pandas": json.dumps(pandas).encode()})
+
+
+def _vector_column(values: np.ndarray) -> pa.FixedSizeListArray:
+    flat = np.ascontiguousarray(values, dtype=np.float32).reshape(len(values), -1)
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
+
+
+def export_lerobot(
+    store: EpisodeStore,
+    root: str | Path,
+    fps: float = 10.0,
+    task: str = "",
+    robot_type: str | None = None,
+    fields: tuple[str, ...] | None = None,
+    data_files_size_in_mb: float = 100.0,
+    chunks_size: int = 1000,
+    overwrite: bool = False,
+) -> Path:
+    """Write ``store``'s episodes (``fields``: all of them by default) as a LeRobot v3.0 dataset at ``root``.
+
+    ``task`` is every episode's task description. Raises ``FileExistsError`` if ``root`` exists (unless
+    ``overwrite``), ``ValueError`` for an empty store or an unknown field.
+    """
+    fields = tuple(store.fields) if fields is None else tuple(fields)
+    if store.n_episodes == 0:
+        raise ValueError(f"{store.path} holds no episodes to export")
+    if unknown := sorted(set(fields) - set(store.fields)):
+        raise ValueError(f"fields {unknown} are not in the store (it has {list(store.fields)})")
+    if not fps > 0 or chunks_size < 1 or not data_files_size_in_mb > 0:
+        raise ValueError(f"fps, chunks_size and data_files_size_in_mb must be positive; got {fps}, {chunks_size}, {data_files_size_in_mb}")
+    arrays = {f: store.field(f) for f in fields}
+    shapes = {f: tuple(a.shape[1:]) for f, a in arrays.items()}
+    features = {feature_name(f): {"dtype": "float32", "shape": [int(np.prod(s))], "names": _names(f, s)} for f, s in shapes.items()}
+    ends = store.episode_ends
+    starts = np.concatenate([[0], ends[:-1]])
+    row_bytes = 4 * sum(v["shape"][0] for v in features.values()) + 4 + 8 * 4
+    episodes, files, current, (chunk, file) = [], [], [], (0, 0)
+    for e, (a, b) in enumerate(zip(starts, ends)):
+        if current and sum(y - x for x, y in current) * row_bytes + (b - a) * row_bytes >= data_files_size_in_mb * 2**20:
+            files.append(((chunk, file), current))
+            current = []
+            chunk, file = (chunk + 1, 0) if file == chunks_size - 1 else (chunk, file + 1)
+        current.append((a, b))
+        episodes.append((e, a, b, chunk, file))
+    files.append(((chunk, file), current))
+    with atomic_dir(root, overwrite=overwrite) as tmp:
+        for (c, f), spans in files:
+            rows = np.concatenate([np.arange(a, b) for a, b in spans])
+            episode_of = np.concatenate([np.full(b - a, int(np.searchsorted(ends, a, side="right"))) for a, b in spans])
+            frame = np.concatenate([np.arange(b - a) for a, b in spans])
+            columns = {feature_name(name): _vector_column(arrays[name][rows]) for name in fields}
+            columns |= {"timestamp": pa.array((frame / fps).astype(np.float32)), "frame_index": pa.array(frame.astype(np.int64)),
+                        "episode_index": pa.array(episode_of.astype(np.int64)), "index": pa.array(rows.astype(np.int64)),
+                        "task_index": pa.array(np.zeros(len(rows), np.int64))}  # fmt: skip
+            path = tmp / DATA_PATH.format(chunk_index=c, file_index=f)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            pq.write_table(pa.table(columns), path)
+        default = {"timestamp": lambda a, b: np.arange(b - a) / fps, "frame_index": lambda a, b: np.arange(b - a),
+                   "episode_index": None, "index": lambda a, b: np.arange(a, b), "task_index": lambda a, b: np.zeros(b - a)}  # fmt: skip
+        rows_meta = {k: [] for k in ("episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
+                                     "dataset_to_index", "meta/episodes/chunk_index", "meta/episodes/file_index")}  # fmt: skip
+        stats_rows: dict[str, list] = {}
+        for e, a, b, c, f in episodes:
+            for key, value in zip(rows_meta, (e, [task], b - a, c, f, a, b, 0, 0)):
+                rows_meta[key].append(int(value) if not isinstance(value, list) else value)
+            per = {feature_name(n): arrays[n][a:b].reshape(b - a, -1) for n in fields}
+            per |= {k: (np.full(b - a, e) if fn is None else fn(a, b))[:, None] for k, fn in default.items()}
+            for name, values in per.items():
+                for stat, value in _stats(values).items():
+                    stats_rows.setdefault(f"stats/{name}/{stat}", []).append(value)
+        table = pa.table({**rows_meta, **stats_rows})
+        path = tmp / EPISODES_PATH.format(chunk_index=0, file_index=0)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(table, path)
+        pq.write_table(_tasks_table([task]), tmp / "meta" / "tasks.parquet")
+        every = {feature_name(n): arrays[n].reshape(len(arrays[n]), -1) for n in fields}
+        all_rows = np.arange(int(ends[-1]))
+        episode_all = np.searchsorted(ends, all_rows, side="right")
+        frame_all = all_rows - starts[episode_all]
+        every |= {"timestamp": frame_all / fps, "frame_index": frame_all, "episode_index": episode_all, "index": all_rows,
+                  "task_index": np.zeros(len(all_rows))}  # fmt: skip
+        stats = {name: _stats(np.asarray(v).reshape(len(all_rows), -1)) for name, v in every.items()}
+        (tmp / "meta" / "stats.json").write_text(json.dumps(stats, indent=2))
+        info = {
+            "codebase_version": CODEBASE_VERSION, "robot_type": robot_type, "total_episodes": int(store.n_episodes),
+            "total_frames": int(ends[-1]), "total_tasks": 1, "chunks_size": int(chunks_size),
+            "data_files_size_in_mb": data_files_size_in_mb, "video_files_size_in_mb": 200, "fps": fps,
+            "splits": {"train": f"0:{store.n_episodes}"}, "data_path": DATA_PATH, "video_path": None,
+            "features": {**features, **DEFAULT_FEATURES},
+        }  # fmt: skip
+        (tmp / "meta" / "info.json").write_text(json.dumps(info, indent=4))
+    return Path(root)
+
+
+def read_info(root: str | Path) -> dict:
+    """``meta/info.json`` of the LeRobot dataset at ``root``; ``FileNotFoundError`` or ``ValueError`` naming the
+    problem when it is missing, not v3.0 or lacks what a reader needs."""
+    path = Path(root) / "meta" / "info.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobot dataset: no meta/info.json")
+    try:
+        info = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not JSON ({e})") from None
+    if not str(info.get("codebase_version", "")).startswith("v3."):
+        raise ValueError(f"{root} is a LeRobot dataset of format {info.get('codebase_version')!r}; kpflow reads v3.x")
+    if missing := sorted({"features", "data_path", "total_episodes", "total_frames", "fps"} - set(info)):
+        raise ValueError(f"{path} lacks {missing}")
+    return info
+
+
+def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[str, str] | None = None) -> EpisodeStore:
+    """The state/action columns of the LeRobot v3 dataset at ``root`` as a new :class:`EpisodeStore` at
+    ``store_path``, one episode per ``episode_index`` in order.
+
+    ``columns`` maps a feature to a store field (default: ``observation.state -> keypoints`` when its names are
+    kpflow's ``k<i>.<axis>``, else ``-> state``; ``action -> action``). A keypoint feature is reshaped to
+    ``[T, K, D]``. Raises ``FileExistsError`` if ``store_path`` exists and ``ValueError`` naming the problem for a
+    dataset that does not hold what it says.
+    """
+    root, store_path = Path(root), Path(store_path)
+    if store_path.exists():
+        raise FileExistsError(f"{store_path} exists already: import into a new store")
+    info = read_info(root)
+    features = info["features"]
+    if columns is None:
+        names = features.get("observation.state", {}).get("names") or []
+        keypoints = bool(names) and all(re.fullmatch(r"k\d+\.[xyz]", n) for n in names)
+        columns = {"observation.state": "keypoints" if keypoints else "state", "action": "action"}
+    if unknown := sorted(set(columns) - set(features)):
+        raise ValueError(f"{root} has no features {unknown} (it has {sorted(features)})")
+    files = sorted((root / "data").glob("*/*.parquet"))
+    if not files:
+        raise ValueError(f"{root} has no data files (data/*/*.parquet)")
+    table = pa.concat_tables([pq.read_table(f, columns=[*columns, "episode_index", "frame_index"]) for f in files])
+    if table.num_rows != info["total_frames"]:
+        raise ValueError(f"{root}: info.json says {info['total_frames']} frames, the data files hold {table.num_rows}")
+    episode = table["episode_index"].to_numpy()
+    order = np.lexsort((table["frame_index"].to_numpy(), episode))
+    values = {}
+    for feature, name in columns.items():
+        flat = np.asarray(table[feature].combine_chunks().flatten().to_numpy(), np.float32).reshape(table.num_rows, -1)[order]
+        shape = features[feature]["shape"]
+        if flat.shape[1] != int(np.prod(shape)):
+            raise ValueError(f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame")
+        names = features[feature].get("names") or []
+        if name == "keypoints" and names and all(re.fullmatch(r"k\d+\.[xyz]", n) for n in names):
+            d = len({n.split(".")[1] for n in names})
+            flat = flat.reshape(len(flat), -1, d)
+        values[name] = flat
+    episode = episode[order]
+    bounds = np.flatnonzero(np.diff(episode)) + 1
+    if len(bounds) + 1 != info["total_episodes"]:
+        raise ValueError(f"{root}: info.json says {info['total_episodes']} episodes, the data holds {len(bounds) + 1}")
+    with atomic_dir(store_path) as tmp, EpisodeStore(tmp, mode="a") as store:  # all of it or nothing at store_path
+        for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(episode)]])):
+            store.add_episode({name: v[a:b] for name, v in values.items()})
+    return EpisodeStore(store_path)
