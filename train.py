@@ -12,6 +12,7 @@ from pathlib import Path
 import hydra
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
@@ -52,7 +53,8 @@ def main(cfg: DictConfig) -> dict:
     last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
     if cfg.resume and not last.exists():
         raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")
-    if not cfg.resume and (used := run_folder_contents(out)):
+    # DDP's other processes re-run this script into the same folder (rank 0 has checked it): only rank 0 checks
+    if not cfg.resume and rank_zero_only.rank == 0 and (used := run_folder_contents(out)):
         raise FileExistsError(
             f"{out} already holds a run ({', '.join(used)}): pass resume=true to continue it, or choose another run_name"
         )

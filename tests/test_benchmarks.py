@@ -80,3 +80,13 @@ def test_learned_map_benchmark_writes_its_tables(tmp_path):
     text = out.read_text()
     assert "| object-OOD resets (1024 px) |" in text and "| LearnedMap + 3 ILWR steps |" in text
     assert "det J > 0 at 100.00 %" in text  # by construction
+
+
+@pytest.mark.slow
+def test_serving_benchmark_writes_its_table(tmp_path):
+    out = tmp_path / "serving.md"
+    cmd = [sys.executable, "benchmarks/serving.py", "--requests", "5", "--steps", "2", "--clients", "1", "2", "--out", str(out)]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert len(rows) == 3 and rows[0].startswith("| in-process") and all(float(r.split(" | ")[2]) > 0 for r in rows)

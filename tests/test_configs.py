@@ -24,7 +24,8 @@ RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 ENTRIES = {
     "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_matern", "flow", "mlp", "ensemble", "learned"], "evaluate"),
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
-    "trainer": dict.fromkeys(["cpu", "gpu", "ddp"], "train"),
+    "trainer": dict.fromkeys(["cpu", "gpu", "ddp", "ddp_cpu"], "train"),
+    "hydra/launcher": dict.fromkeys(["local", "slurm"], "train"),
     "callbacks": {"default": "train"},
     "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
@@ -57,8 +58,18 @@ def store(tmp_path_factory):
 
 
 def test_every_config_file_is_covered():
-    on_disk = {group.name: {f.stem for f in group.glob("*.yaml")} for group in CONF.iterdir() if group.is_dir()}
+    on_disk: dict[str, set] = {}
+    for f in CONF.glob("*/**/*.yaml"):
+        on_disk.setdefault(str(f.parent.relative_to(CONF)), set()).add(f.stem)
     assert on_disk == {group: set(options) for group, options in ENTRIES.items()}
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["hydra/launcher"]))
+def test_submitit_launchers_compose(name, tmp_path):
+    cfg = _compose("train", [f"hydra/launcher={name}"], tmp_path)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.startswith("hydra_plugins.hydra_submitit_launcher") and launcher.timeout_min > 0
+    assert launcher.submitit_folder.endswith(".submitit/%j")
 
 
 @pytest.fixture(scope="module")
