@@ -1,13 +1,64 @@
-"""A Hydra callback that joins the tables of a multirun sweep into one: ``<sweep dir>/table.md``."""
+"""A Hydra callback that joins the tables of a multirun sweep into one: ``<sweep dir>/table.md``.
+
+Every job's rows come first. Jobs that split one evaluation by trial ranges (a sweep over
+``experiment.first_index.<condition>``, with ``experiment.n_trials`` the shard size: configs equal but for those,
+and no trial run twice) are then pooled: their trials are summarised again together by the evaluation's own report,
+so the pooled row's success rate and interval are those of one run over all the trials.
+"""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
 
+from kpflow.eval.trials import trial_from_record
 from kpflow.utils.io import write_text
+
+#: The config keys in which the shards of one evaluation differ.
+SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "output_dir")
+
+
+def _identity(job: Path) -> str | None:
+    """What a job evaluated, less its trial range (None for a job that is not a trial-loop evaluation)."""
+    if not (job / "config.yaml").is_file():
+        return None
+    cfg = OmegaConf.load(job / "config.yaml")
+    if OmegaConf.select(cfg, "experiment.trial.report") is None:
+        return None
+    for key in SHARD_KEYS:
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        if node is not None and leaf in node:
+            node.pop(leaf)
+    return json.dumps(OmegaConf.to_container(cfg), sort_keys=True)
+
+
+def pool_shards(jobs: list[Path]) -> str | None:
+    """The pooled tables of the jobs that split one evaluation by trial ranges (module docstring); None if none did."""
+    groups: dict[str, list[Path]] = {}
+    for job in jobs:
+        if (identity := _identity(job)) is not None:
+            groups.setdefault(identity, []).append(job)
+    parts = []
+    for shards in (g for g in groups.values() if len(g) > 1):
+        results = [json.loads((job / "results.json").read_text()) for job in shards]
+        if any("axes" not in r for r in results):
+            continue
+        axes = results[0]["axes"]
+        trials = [trial_from_record(record, axes) for r in results for record in r["trials"]]
+        keys = [(t.condition, t.index, *t.variant.values()) for t in trials]
+        if len(set(keys)) < len(keys):  # a trial ran twice: repeats, not shards of one evaluation
+            continue
+        cells = list(dict.fromkeys((t.condition, *t.variant.values()) for t in trials))
+        report = instantiate(OmegaConf.load(shards[0] / "config.yaml").experiment.trial.report)
+        summaries = {cell: report.summarise([t for t in trials if (t.condition, *t.variant.values()) == cell]) for cell in cells}
+        names = ", ".join(job.name for job in shards)
+        parts.append(f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n" + report.table(summaries, axes))
+    return "\n".join(parts) if parts else None
 
 
 def combine_tables(sweep_dir: str | Path) -> Path | None:
@@ -23,7 +74,9 @@ def combine_tables(sweep_dir: str | Path) -> Path | None:
         rows += lines[2:] if lines[:2] == header else lines
     if not rows:
         return None
-    return write_text(sweep_dir / "table.md", "# Combined results\n\n" + "\n".join(header + rows) + "\n")
+    pooled = pool_shards([p.parent for p in jobs])
+    text = "# Combined results\n\n" + "\n".join(header + rows) + "\n" + (f"\n{pooled}" if pooled else "")
+    return write_text(sweep_dir / "table.md", text)
 
 
 class CombineTables(Callback):

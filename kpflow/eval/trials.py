@@ -70,7 +70,8 @@ def _per_condition(value: int | Mapping[str, int], condition: str, what: str) ->
     return int(value)
 
 
-def _from_record(record: dict, axes: list[str]) -> TrialResult:
+def trial_from_record(record: dict, axes: list[str]) -> TrialResult:
+    """The :class:`TrialResult` of one of ``results.json``'s ``trials`` records (``axes``: the variant's keys)."""
     fixed = {"condition", "index", "scene", "success", "failure", *axes}
     scores = {k: v for k, v in record.items() if k not in fixed}
     variant = {a: record[a] for a in axes}
@@ -129,7 +130,7 @@ def run_trials(
 
     jobs = [(c, first + i, v, seed) for c in conditions for v in variants for first, n in [counts[c]] for i in range(n)]
     records = map_jobs(_run, jobs, workers, _setup, (trial,), desc=f"{trial.name} trials", unit="trial", progress=progress)
-    trials = [_from_record(r, axes) for r in records]
+    trials = [trial_from_record(r, axes) for r in records]
     report = trial.report
     summaries = {(c, *v.values()): report.summarise([t for t in trials if t.condition == c and t.variant == v]) for c in conditions for v in variants}
 
@@ -147,6 +148,7 @@ def run_trials(
     results = {
         "task": trial.name,
         **trial.describe(),
+        "axes": axes,
         "summary": [{"condition": cell[0], **dict(zip(axes, cell[1:])), **s} for cell, s in summaries.items()],
         "trials": records,
         "figures": figures,
