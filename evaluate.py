@@ -10,7 +10,7 @@ from kpflow.utils.config_checks import Key
 from kpflow.utils.run import log_metrics, make_loggers, start_run
 
 SPLITS = ("in_distribution", "robot_ood", "object_ood", "standard", "all")
-KEYS = {"seed": Key(int, lo=0), "n_configs": Key(int, lo=1), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
+KEYS = {"seed": Key(int, lo=0), "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")

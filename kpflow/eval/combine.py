@@ -1,7 +1,8 @@
 """A Hydra callback that joins the tables of a multirun sweep into one: ``<sweep dir>/table.md``.
 
 Every job's rows come first. Jobs that split one evaluation by trial ranges (a sweep over
-``experiment.first_index.<condition>``, with ``experiment.n_trials`` the shard size: configs equal but for those,
+``first_config`` or ``experiment.first_index.<condition>``, with ``n_configs`` or ``experiment.n_trials`` the shard
+size: configs equal but for those,
 and no trial run twice) are then pooled: their trials are summarised again together by the evaluation's own report,
 so the pooled row's success rate and interval are those of one run over all the trials.
 """
@@ -19,7 +20,7 @@ from kpflow.eval.trials import trial_from_record
 from kpflow.utils.io import write_text
 
 #: The config keys in which the shards of one evaluation differ.
-SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "output_dir")
+SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "first_config", "output_dir")
 
 
 def _identity(job: Path) -> str | None:

@@ -17,7 +17,6 @@ import signal
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import replace
 from typing import Iterator
 
 import numpy as np
@@ -46,7 +45,7 @@ class PolicyServer:
             raise ValueError(f"max_message_bytes must be at least 1024, got {max_message_bytes}")
         self.deployment, self.host, self.port = deployment, host, int(port)
         self.max_message_bytes = int(max_message_bytes)
-        self.metadata = replace(deployment.metadata)
+        self.metadata = deployment.metadata
         self.requests = self.errors = 0
         self._in_flight = 0
         self._idle: asyncio.Condition | None = None
