@@ -17,7 +17,7 @@ import signal
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
@@ -99,15 +99,16 @@ class PolicyServer:
         except ConnectionClosed as e:
             log.info("connection from %s closed: %s", peer, e)
 
-    async def serve(self, started: threading.Event | None = None) -> None:
-        """Serve until :meth:`stop` (or SIGINT/SIGTERM when run by :meth:`run`), then shut down gracefully."""
+    async def serve(self, on_start: Callable[[], None] | None = None) -> None:
+        """Serve until :meth:`stop` (or SIGINT/SIGTERM when run by :meth:`run`), then shut down gracefully;
+        ``on_start`` is called once the port is bound."""
         self._loop = asyncio.get_running_loop()
         self._idle, self._stop = asyncio.Condition(), asyncio.Event()
         async with serve(self._handle, self.host, self.port, max_size=HARD_LIMIT * self.max_message_bytes, compression=None) as server:
             self.port = server.sockets[0].getsockname()[1]
             log.info("serving %s on ws://%s:%d", self.metadata.policy, self.host, self.port)
-            if started is not None:
-                started.set()
+            if on_start is not None:
+                on_start()
             await self._stop.wait()
             async with self._idle:  # new connections are turned away meanwhile (_handle)
                 await self._idle.wait_for(lambda: self._in_flight == 0)  # the requests in flight finish
@@ -123,13 +124,13 @@ class PolicyServer:
         """Serve in this thread until SIGINT or SIGTERM."""
 
         async def main() -> None:
-            task = asyncio.ensure_future(self.serve())
-            while self._stop is None:
-                await asyncio.sleep(0)
             loop = asyncio.get_running_loop()
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(sig, self._stop.set)
-            await task
+
+            def on_start() -> None:
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    loop.add_signal_handler(sig, self._stop.set)
+
+            await self.serve(on_start)
 
         asyncio.run(main())
 
@@ -141,7 +142,7 @@ class PolicyServer:
 
         def target() -> None:
             try:
-                asyncio.run(self.serve(started))
+                asyncio.run(self.serve(started.set))
             except BaseException as e:  # e.g. the port is taken: re-raised in the caller's thread
                 failure.append(e)
                 started.set()
