@@ -280,6 +280,7 @@ def test_serve_cli_answers_then_stops_on_sigterm():
             assert client.act(observation(0)).shape == (8, 2)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0
+        assert not (ROOT / "serve.log").exists()  # the server logs to the console, not into the working folder
     finally:
         proc.kill()
 
