@@ -175,7 +175,6 @@ def test_load_several_clients_at_once(uri, released):
     in-process ``act`` (the benchmark, benchmarks/serving.py, measures them properly)."""
     n_clients, n_requests = 4, 25
     local = released.make_policy()
-    start = time.perf_counter()
     local_ms = []
     expected = {}
     for c in range(n_clients):

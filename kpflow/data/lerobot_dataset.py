@@ -102,57 +102,44 @@ def export_lerobot(
     if not fps > 0 or chunks_size < 1 or not data_files_size_in_mb > 0:
         raise ValueError(f"fps, chunks_size and data_files_size_in_mb must be positive; got {fps}, {chunks_size}, {data_files_size_in_mb}")
     arrays = {f: store.field(f) for f in fields}
-    shapes = {f: tuple(a.shape[1:]) for f, a in arrays.items()}
-    features = {feature_name(f): {"dtype": "float32", "shape": [int(np.prod(s))], "names": _names(f, s)} for f, s in shapes.items()}
+    features = {feature_name(f): {"dtype": "float32", "shape": [int(np.prod(a.shape[1:]))], "names": _names(f, a.shape[1:])} for f, a in arrays.items()}
     ends = store.episode_ends
     starts = np.concatenate([[0], ends[:-1]])
-    row_bytes = 4 * sum(v["shape"][0] for v in features.values()) + 4 + 8 * 4
-    episodes, files, current, (chunk, file) = [], [], [], (0, 0)
-    for e, (a, b) in enumerate(zip(starts, ends)):
-        if current and sum(y - x for x, y in current) * row_bytes + (b - a) * row_bytes >= data_files_size_in_mb * 2**20:
-            files.append(((chunk, file), current))
-            current = []
-            chunk, file = (chunk + 1, 0) if file == chunks_size - 1 else (chunk, file + 1)
-        current.append((a, b))
-        episodes.append((e, a, b, chunk, file))
-    files.append(((chunk, file), current))
+    index = np.arange(int(ends[-1]))
+    episode_index = np.searchsorted(ends, index, side="right")
+    frame_index = index - starts[episode_index]
+    # every column once, over all frames, as stored: each file and each episode's statistics are slices of these
+    columns = {feature_name(f): a.reshape(len(a), -1).astype(np.float32) for f, a in arrays.items()}
+    columns |= {"timestamp": (frame_index / fps).astype(np.float32), "frame_index": frame_index, "episode_index": episode_index,
+                "index": index, "task_index": np.zeros(len(index), np.int64)}  # fmt: skip
+    row_bytes = sum(c.dtype.itemsize * (c.shape[1] if c.ndim == 2 else 1) for c in columns.values())
+    # consecutive episodes share a file until it would reach data_files_size_in_mb (lerobot's rule)
+    files, episode_file, (chunk, file), first = [], [], (0, 0), 0
+    for a, b in zip(starts, ends):
+        if a > first and (b - first) * row_bytes >= data_files_size_in_mb * 2**20:
+            files.append((chunk, file, first, a))
+            chunk, file, first = (chunk + 1, 0, a) if file == chunks_size - 1 else (chunk, file + 1, a)
+        episode_file.append((chunk, file))
+    files.append((chunk, file, first, int(ends[-1])))
     with atomic_dir(root, overwrite=overwrite) as tmp:
-        for (c, f), spans in files:
-            rows = np.concatenate([np.arange(a, b) for a, b in spans])
-            episode_of = np.concatenate([np.full(b - a, int(np.searchsorted(ends, a, side="right"))) for a, b in spans])
-            frame = np.concatenate([np.arange(b - a) for a, b in spans])
-            columns = {feature_name(name): _vector_column(arrays[name][rows]) for name in fields}
-            columns |= {"timestamp": pa.array((frame / fps).astype(np.float32)), "frame_index": pa.array(frame.astype(np.int64)),
-                        "episode_index": pa.array(episode_of.astype(np.int64)), "index": pa.array(rows.astype(np.int64)),
-                        "task_index": pa.array(np.zeros(len(rows), np.int64))}  # fmt: skip
+        for c, f, a, b in files:
+            table = pa.table({name: _vector_column(v[a:b]) if v.ndim == 2 else pa.array(v[a:b]) for name, v in columns.items()})
             path = tmp / DATA_PATH.format(chunk_index=c, file_index=f)
             path.parent.mkdir(parents=True, exist_ok=True)
-            pq.write_table(pa.table(columns), path)
-        default = {"timestamp": lambda a, b: np.arange(b - a) / fps, "frame_index": lambda a, b: np.arange(b - a),
-                   "episode_index": None, "index": lambda a, b: np.arange(a, b), "task_index": lambda a, b: np.zeros(b - a)}  # fmt: skip
-        rows_meta = {k: [] for k in ("episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
-                                     "dataset_to_index", "meta/episodes/chunk_index", "meta/episodes/file_index")}  # fmt: skip
-        stats_rows: dict[str, list] = {}
-        for e, a, b, c, f in episodes:
-            for key, value in zip(rows_meta, (e, [task], b - a, c, f, a, b, 0, 0)):
-                rows_meta[key].append(int(value) if not isinstance(value, list) else value)
-            per = {feature_name(n): arrays[n][a:b].reshape(b - a, -1) for n in fields}
-            per |= {k: (np.full(b - a, e) if fn is None else fn(a, b))[:, None] for k, fn in default.items()}
-            for name, values in per.items():
-                for stat, value in _stats(values).items():
-                    stats_rows.setdefault(f"stats/{name}/{stat}", []).append(value)
-        table = pa.table({**rows_meta, **stats_rows})
+            pq.write_table(table, path)
+        episodes: dict[str, list] = {"episode_index": list(range(len(ends))), "tasks": [[task]] * len(ends), "length": (ends - starts).tolist(),
+                                     "data/chunk_index": [c for c, _ in episode_file], "data/file_index": [f for _, f in episode_file],
+                                     "dataset_from_index": starts.tolist(), "dataset_to_index": ends.tolist(),
+                                     "meta/episodes/chunk_index": [0] * len(ends), "meta/episodes/file_index": [0] * len(ends)}  # fmt: skip
+        for name, values in columns.items():
+            per_episode = [_stats(values[a:b].reshape(b - a, -1)) for a, b in zip(starts, ends)]
+            for stat in per_episode[0]:
+                episodes[f"stats/{name}/{stat}"] = [s[stat] for s in per_episode]
         path = tmp / EPISODES_PATH.format(chunk_index=0, file_index=0)
         path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(table, path)
+        pq.write_table(pa.table(episodes), path)
         pq.write_table(_tasks_table([task]), tmp / "meta" / "tasks.parquet")
-        every = {feature_name(n): arrays[n].reshape(len(arrays[n]), -1) for n in fields}
-        all_rows = np.arange(int(ends[-1]))
-        episode_all = np.searchsorted(ends, all_rows, side="right")
-        frame_all = all_rows - starts[episode_all]
-        every |= {"timestamp": frame_all / fps, "frame_index": frame_all, "episode_index": episode_all, "index": all_rows,
-                  "task_index": np.zeros(len(all_rows))}  # fmt: skip
-        stats = {name: _stats(np.asarray(v).reshape(len(all_rows), -1)) for name, v in every.items()}
+        stats = {name: _stats(values.reshape(len(index), -1)) for name, values in columns.items()}
         (tmp / "meta" / "stats.json").write_text(json.dumps(stats, indent=2))
         info = {
             "codebase_version": CODEBASE_VERSION, "robot_type": robot_type, "total_episodes": int(store.n_episodes),

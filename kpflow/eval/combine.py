@@ -23,13 +23,9 @@ from kpflow.utils.io import write_text
 SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "first_config", "output_dir")
 
 
-def _identity(job: Path) -> str | None:
-    """What a job evaluated, less its trial range (None for a job that is not a trial-loop evaluation)."""
-    if not (job / "config.yaml").is_file():
-        return None
-    cfg = OmegaConf.load(job / "config.yaml")
-    if OmegaConf.select(cfg, "experiment.trial.report") is None:
-        return None
+def _identity(cfg: DictConfig) -> str:
+    """What a job's config evaluated, less its trial range."""
+    cfg = cfg.copy()
     for key in SHARD_KEYS:
         parent, _, leaf = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else cfg
@@ -40,24 +36,26 @@ def _identity(job: Path) -> str | None:
 
 def pool_shards(jobs: list[Path]) -> str | None:
     """The pooled tables of the jobs that split one evaluation by trial ranges (module docstring); None if none did."""
-    groups: dict[str, list[Path]] = {}
+    groups: dict[str, list[tuple[Path, DictConfig]]] = {}
     for job in jobs:
-        if (identity := _identity(job)) is not None:
-            groups.setdefault(identity, []).append(job)
+        cfg = OmegaConf.load(job / "config.yaml") if (job / "config.yaml").is_file() else None
+        if cfg is not None and OmegaConf.select(cfg, "experiment.trial.report") is not None:  # a trial-loop evaluation
+            groups.setdefault(_identity(cfg), []).append((job, cfg))
     parts = []
     for shards in (g for g in groups.values() if len(g) > 1):
-        results = [json.loads((job / "results.json").read_text()) for job in shards]
+        results = [json.loads((job / "results.json").read_text()) for job, _ in shards]
         if any("axes" not in r for r in results):
             continue
         axes = results[0]["axes"]
         trials = [trial_from_record(record, axes) for r in results for record in r["trials"]]
-        keys = [(t.condition, t.index, *t.variant.values()) for t in trials]
-        if len(set(keys)) < len(keys):  # a trial ran twice: repeats, not shards of one evaluation
-            continue
-        cells = list(dict.fromkeys((t.condition, *t.variant.values()) for t in trials))
-        report = instantiate(OmegaConf.load(shards[0] / "config.yaml").experiment.trial.report)
-        summaries = {cell: report.summarise([t for t in trials if (t.condition, *t.variant.values()) == cell]) for cell in cells}
-        names = ", ".join(job.name for job in shards)
+        if len({(t.condition, t.index, *t.variant.values()) for t in trials}) < len(trials):
+            continue  # a trial ran twice: repeats, not shards of one evaluation
+        cells: dict[tuple, list] = {}
+        for t in trials:
+            cells.setdefault((t.condition, *t.variant.values()), []).append(t)
+        report = instantiate(shards[0][1].experiment.trial.report)
+        summaries = {cell: report.summarise(members) for cell, members in cells.items()}
+        names = ", ".join(job.name for job, _ in shards)
         parts.append(f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n" + report.table(summaries, axes))
     return "\n".join(parts) if parts else None
 

@@ -32,11 +32,8 @@ class Deployment:
 
 
 def sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def source_index_path(checkpoint: str | Path) -> Path:
@@ -62,12 +59,15 @@ def load_deployment(
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), an unknown map or groups that do not
     add up to the model's keypoints.
     """
-    from ..policies.kcfm_policy import KCFMPolicy
+    from ..policies.kcfm import KCFM
+    from ..policies.kcfm_policy import KCFMPolicy, check_steps_and_execute
     from ..policies.transported_kcfm import TransportedKCFMPolicy
+    from ..utils.checkpoint import load_checkpoint
 
     if transport is not None and transport not in TRANSPORT_MAPS:
         raise ValueError(f"transport must be None or one of {sorted(TRANSPORT_MAPS)}, got {transport!r}")
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model  # validates steps and execute
+    model = load_checkpoint(KCFM, checkpoint, map_location="cpu")
+    check_steps_and_execute(model, steps, execute)
     hp = model.hparams
     k, d, n_obs = int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.n_obs)
     if keypoint_groups is None:

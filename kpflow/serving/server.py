@@ -35,7 +35,7 @@ HARD_LIMIT = 8  # frames up to this many times max_message_bytes are read and an
 class PolicyServer:
     """Serve ``deployment`` on ``ws://host:port`` (``port=0``: any free port; :attr:`port` tells which).
 
-    Attributes after start: ``port``; ``requests`` and ``errors`` (counts over all connections).
+    After start, ``port`` is the port it listens on.
     """
 
     def __init__(self, deployment: Deployment, host: str = "127.0.0.1", port: int = 8000, max_message_bytes: int = MAX_MESSAGE_BYTES) -> None:
@@ -46,7 +46,6 @@ class PolicyServer:
         self.deployment, self.host, self.port = deployment, host, int(port)
         self.max_message_bytes = int(max_message_bytes)
         self.metadata = deployment.metadata
-        self.requests = self.errors = 0
         self._in_flight = 0
         self._idle: asyncio.Condition | None = None
         self._stop: asyncio.Event | None = None
@@ -66,11 +65,9 @@ class PolicyServer:
             actions = await asyncio.to_thread(policy.act, obs)
             return {"actions": np.asarray(actions, dtype=np.float64), "server_ms": 1e3 * (time.perf_counter() - start)}
         except (WireError, ValueError) as e:
-            self.errors += 1
             return {"error": str(e)}
         except Exception as e:  # the policy failed on a well-formed request: say so, keep serving
             log.exception("the policy failed")
-            self.errors += 1
             return {"error": f"the policy failed ({type(e).__name__}: {e})"}
 
     async def _handle(self, ws: ServerConnection) -> None:
@@ -89,9 +86,7 @@ class PolicyServer:
                 async with self._idle:
                     self._in_flight += 1
                 try:
-                    reply = await self._answer(policy, message)
-                    self.requests += 1
-                    await ws.send(pack(reply))
+                    await ws.send(pack(await self._answer(policy, message)))
                 finally:
                     async with self._idle:
                         self._in_flight -= 1
