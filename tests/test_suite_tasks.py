@@ -242,3 +242,45 @@ def test_the_six_dimensional_rotation_round_trips():
     noisy = rot6d_to_matrix(matrix_to_rot6d(rotations) + 0.05)  # Gram-Schmidt gives a rotation for any input
     np.testing.assert_allclose(np.einsum("tji,tjk->tik", noisy, noisy), np.broadcast_to(np.eye(3), (20, 3, 3)), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(noisy), 1.0, atol=1e-12)
+
+
+def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_its_centre():
+    from kpflow.policies.segment_transport import in_hand_path, rigid_fit, turn_ramp
+
+    phases = np.array(["carry"] * 5 + ["lower"] * 3)
+    np.testing.assert_allclose(turn_ramp(phases), [0, 0.25, 0.5, 0.75, 1, 1, 1, 1])
+    np.testing.assert_allclose(turn_ramp(np.array(["carry"] * 3)), [0, 0.5, 1])
+    ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])
+    held = ring + [0.0, 0.01, 0.02]  # in the source's hand frame
+    now = ring @ Rotation.from_rotvec([0, 0, 0.3]).as_matrix().T + [0.01, 0.0, 0.02]
+    nearest = rigid_fit(held, now)
+    chosen = rigid_fit(held, now[[0, 2, 3, 4, 1]])  # the same ring in the next order: a quarter turn more
+    ramp = np.linspace(0, 1, 7)
+    rots, shifts = in_hand_path(nearest, chosen, held.mean(0), ramp)
+    np.testing.assert_allclose(rots[0], nearest[0], atol=1e-12)
+    np.testing.assert_allclose(rots[-1], chosen[0], atol=1e-12)
+    np.testing.assert_allclose(shifts[0], nearest[1], atol=1e-12)
+    np.testing.assert_allclose(shifts[-1], chosen[1], atol=1e-12)
+    centres = np.einsum("tij,j->ti", rots, held.mean(0)) + shifts
+    np.testing.assert_allclose(centres, np.broadcast_to(now.mean(0), centres.shape), atol=1e-12)  # the centre stays
+    angles = [Rotation.from_matrix(r @ nearest[0].T).magnitude() for r in rots]
+    np.testing.assert_allclose(np.diff(angles), angles[-1] / 6, atol=1e-9)  # at a constant rate
+    np.testing.assert_allclose(angles[-1], np.pi / 2, atol=1e-9)
+
+
+def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
+    from kpflow.tasks.suite.demonstrator import MAX_PLACE_TURN, jaws_down, path_cost
+    from kpflow.tasks.arm.motion import yaw_of
+
+    task, env = worlds["square"][:2]
+    env.reset_to(task.sample_scene(env, "d0", 0))
+    pos, rot = env.ee_pose()
+    yaw = yaw_of(rot)
+    cost = path_cost(env)
+    short = [jaws_down(yaw + a) for a in np.linspace(0, 0.5, 6)]
+    assert np.isfinite(cost(np.tile(pos, (6, 1)), np.stack(short)))
+    # the same end, reached by turning 2 pi - 0.5 the other way: past MAX_PLACE_TURN
+    long = [jaws_down(yaw - a) for a in np.linspace(0, 2 * np.pi - 0.5, 40)]
+    assert 2 * np.pi - 0.5 > MAX_PLACE_TURN
+    assert cost(np.tile(pos, (40, 1)), np.stack(long)) == np.inf
+    assert cost(pos[None], short[-1][None]) == cost(np.tile(pos, (6, 1)), np.stack(short))  # one end pose: the short way

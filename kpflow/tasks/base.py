@@ -118,15 +118,15 @@ class SegmentStart:
     fixture -> (position [3], rotation [3, 3])), ``keypoints`` (the reference object's ``[N, 3]``, under its name:
     the object picked, or the goal of a place), the objects' ``yaws``, the ``gripper`` keypoint ``[1, 3]`` (the grip
     site), while an object is held its keypoints ``in_hand [S, M, 3]`` in the grip site's frame (in each of the
-    ``S`` orders its symmetry allows, the one nearest the reference's first), and ``end_pose_cost(position,
-    rotation) -> float``, how hard an end pose of the segment is for the arm from here (None: all alike)."""
+    ``S`` orders its symmetry allows, the one nearest the reference's first), and ``path_cost(positions [T, 3],
+    rotations [T, 3, 3]) -> float``, how hard a path of the segment is for the arm from here (None: all alike)."""
 
     poses: dict[str, tuple[np.ndarray, np.ndarray]]
     keypoints: dict[str, np.ndarray]
     yaws: dict[str, float]
     gripper: np.ndarray
     in_hand: np.ndarray | None = None
-    end_pose_cost: Callable[[np.ndarray, np.ndarray], float] | None = None
+    path_cost: Callable[[np.ndarray, np.ndarray], float] | None = None
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ start, from the objects' geometry.
 * ``place`` (stack, can, square): carry the held object over its goal at a safe height, lower it, open, retreat
   upwards. Its goal comes from where the object is in the hand now: cube A's centre on top of cube B; the can over
   its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the
-  turn that :func:`end_pose_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
+  turn that :func:`path_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
   robot's base): with the handle pointing away, the peg is at the edge of the Panda's reach.
 
 Poses are the grip site's (between the finger pads), as :class:`~kpflow.tasks.base.Trajectory` rows in the
@@ -92,27 +92,29 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
         goal = np.array([goal_pos[0], goal_pos[1], env.env.table_offset[2] + 0.01])
         smallest = reduced_yaw(yaw_of(goal_rot), 4, yaw_of(rot)) - yaw_of(rot)
         grip, grip_rot = env.ee_pose()
-        cost = end_pose_cost(env)
+        cost = path_cost(env)
         turns = smallest + np.pi / 2 * np.arange(-2, 3)
-        costs = [cost(goal + yaw_rotation(t) @ (grip - pos), yaw_rotation(t) @ grip_rot) for t in turns]
+        costs = [cost((goal + yaw_rotation(t) @ (grip - pos))[None], (yaw_rotation(t) @ grip_rot)[None]) for t in turns]
         if not np.isfinite(min(costs)):
             raise ValueError(f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range")
         return goal, float(turns[int(np.argmin(costs))])
     raise ValueError(f"no placement on a {kind!r}")
 
 
-def end_pose_cost(env) -> Callable[[np.ndarray, np.ndarray], float]:
-    """How hard an end pose ``(position [3], rotation [3, 3])`` of the grip site is for the arm from where it is now:
-    infinite for a turn of the jaws past ``MAX_PLACE_TURN`` or one taking the Panda's last joint past
-    ``WRIST_LIMIT`` (turning the jaws by +t turns that joint by about -t), else the distance from the robot's base
-    in the plane (the Panda's reach ends just past the peg)."""
+def path_cost(env) -> Callable[[np.ndarray, np.ndarray], float]:
+    """How hard a path of grip-site poses (``positions [T, 3]``, ``rotations [T, 3, 3]``) is for the arm from where
+    it is now: infinite when the jaws turn past ``MAX_PLACE_TURN`` on the way or the turn takes the Panda's last
+    joint past ``WRIST_LIMIT`` (turning the jaws by +t turns that joint by about -t), else its end's distance from
+    the robot's base in the plane (the Panda's reach ends just past the peg). The turn is summed step by step (the
+    first step, from the jaws now, by the shorter way), so a path that turns the long way round is seen to."""
     wrist, yaw, base = float(env.arm_joints()[6]), yaw_of(env.ee_pose()[1]), env.base_position()
 
-    def cost(position: np.ndarray, rotation: np.ndarray) -> float:
-        turn = (yaw_of(rotation) - yaw + np.pi) % (2 * np.pi) - np.pi
+    def cost(positions: np.ndarray, rotations: np.ndarray) -> float:
+        yaws = np.array([yaw, *(yaw_of(r) for r in rotations)])
+        turn = float(np.sum((np.diff(yaws) + np.pi) % (2 * np.pi) - np.pi))
         if abs(turn) > MAX_PLACE_TURN or abs(wrist - turn) > WRIST_LIMIT:
             return np.inf
-        return float(np.linalg.norm((np.asarray(position) - base)[:2]))
+        return float(np.linalg.norm((np.asarray(positions[-1]) - base)[:2]))
 
     return cost
 

@@ -17,7 +17,7 @@ from kpflow.rotations import matrix_to_rot6d
 from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.base import Segment, SegmentStart, Trajectory
 
-from .demonstrator import end_pose_cost, plan_segment
+from .demonstrator import path_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
 from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, scene_keypoints
 from .scene import VARIANTS, Scene, sample_scene
@@ -66,7 +66,7 @@ class SuiteTask:
         """What ``segment`` depends on, now (:class:`~kpflow.tasks.base.SegmentStart`): for a pick the grasp
         keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
         (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
-        :func:`~.demonstrator.end_pose_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
+        :func:`~.demonstrator.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
         start's yaws (the recorded source's; its own without one)."""
         spec = self.spec
         poses = {n: env.object_pose(n) for n in (*spec.object_bodies, *spec.fixture_bodies)}
@@ -79,7 +79,7 @@ class SuiteTask:
         if segment == "place":
             order = max(SYMMETRY[spec.hand_kind], 1)
             in_hand = np.stack([in_hand_keypoints(env, spec, ref["hand"] + 2 * np.pi * k / order) for k in range(order)])
-        return SegmentStart(poses, keypoints, yaws, gripper_keypoints(env), in_hand, end_pose_cost(env))
+        return SegmentStart(poses, keypoints, yaws, gripper_keypoints(env), in_hand, path_cost(env))
 
     # ------------------------------------------------------------------------------------------ acting
     def run_segment(self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2) -> SegmentRun:
