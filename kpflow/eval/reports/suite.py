@@ -22,7 +22,8 @@ class SuiteReport:
         rows = [f"| variant | {' | '.join(axes)} | episodes | success [95% CI] | failure reasons | steps to success, median |",
                 "|---|" + "---|" * len(axes) + "---|---|---|---|"]  # fmt: skip
         for cell, s in summaries.items():
-            rows.append(f"| {' | '.join(cell)} | {s['trials']} | {success_cells(s)} | {s['steps_median']:.0f} |")
+            steps = "-" if np.isnan(s["steps_median"]) else f"{s['steps_median']:.0f}"  # no success, no median
+            rows.append(f"| {' | '.join(cell)} | {s['trials']} | {success_cells(s)} | {steps} |")
         return "\n".join(rows) + "\n"
 
     def header(self, trial, n_trials: dict[str, int]) -> str:
