@@ -284,3 +284,29 @@ def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
     assert 2 * np.pi - 0.5 > MAX_PLACE_TURN
     assert cost(np.tile(pos, (40, 1)), np.stack(long)) == np.inf
     assert cost(pos[None], short[-1][None]) == cost(np.tile(pos, (6, 1)), np.stack(short))  # one end pose: the short way
+
+
+def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_centre_on_the_source_path():
+    from functools import partial
+
+    from kpflow.maps import AffineMap
+    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.base import Segment, SegmentStart
+
+    ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])
+    held = ring + [0.0, 0.0, 0.03]  # the ring's centre 3 cm along the hand's axis
+    n = 8
+    rotations = Rotation.from_rotvec(np.linspace([0, 0, 0], [0, 0, 0.4], n)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    positions = np.linspace([0.0, 0.0, 1.0], [0.2, 0.1, 0.9], n)
+    trajectory = Trajectory(positions, rotations, np.ones(n, bool), np.array(["carry"] * 5 + ["lower"] * 3))
+    goal = np.random.default_rng(4).normal(size=(6, 3))
+    segment = Segment("place", trajectory, SegmentStart({}, {"peg": goal}, {}, np.zeros((1, 3)), held[None]))
+    turned = lambda p, r: -Rotation.from_matrix(r[-1] @ rotations[-1].T).magnitude()  # noqa: E731  prefers a turned end
+    now = SegmentStart({}, {"peg": goal}, {}, np.zeros((1, 3)), np.stack([held, held[[0, 2, 3, 4, 1]]]), turned)
+    carried = SegmentTransport(partial(AffineMap, kind="rigid")).carry(segment, now)
+    np.testing.assert_allclose(carried.rotations[0], rotations[0], atol=1e-9)  # the nearest order at the start
+    np.testing.assert_allclose(carried.positions[0], positions[0], atol=1e-9)
+    ends = [Rotation.from_matrix(carried.rotations[t] @ rotations[t].T).magnitude() for t in range(n)]
+    np.testing.assert_allclose(ends, [0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2, np.pi / 2, np.pi / 2, np.pi / 2], atol=1e-9)
+    centre = lambda rot, pos: np.einsum("tij,j->ti", rot, held.mean(0)) + pos  # noqa: E731
+    np.testing.assert_allclose(centre(carried.rotations, carried.positions), centre(rotations, positions), atol=1e-9)
