@@ -269,8 +269,8 @@ def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_it
 
 
 def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
-    from kpflow.tasks.suite.demonstrator import MAX_PLACE_TURN, jaws_down, path_cost
     from kpflow.tasks.arm.motion import yaw_of
+    from kpflow.tasks.suite.demonstrator import MAX_PLACE_TURN, jaws_down, path_cost
 
     task, env = worlds["square"][:2]
     env.reset_to(task.sample_scene(env, "d0", 0))
