@@ -109,7 +109,8 @@ class SegmentTransport:
             ramp = turn_ramp(source.trajectory.phases)
             candidates = []
             for k, (r_a, t_a) in enumerate(fits):
-                if k == 0:  # the order nearest the source's: the same correction all along
+                if k == 0:  # the order nearest the source's: the same correction all along (no slerp, so bit for bit
+                    # the correction without a reorder: robosuite's contacts amplify 1e-16)
                     rot = rotations @ r_a.T
                     candidates.append((positions - rot @ t_a, rot))
                     continue
