@@ -34,7 +34,9 @@ def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)
     torch.set_num_threads(cfg.threads)
     groups = OmegaConf.to_container(cfg.keypoint_groups) if cfg.keypoint_groups is not None else None
-    deployment = load_deployment(cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups)
+    fit_on = OmegaConf.to_container(cfg.fit_on) if cfg.fit_on is not None else None
+    choice = OmegaConf.to_container(cfg.source)
+    deployment = load_deployment(cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice)
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])
     server.run()

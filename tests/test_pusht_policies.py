@@ -224,13 +224,13 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     ranked, _ = index.query_k(q, 5)
     policy = TransportPolicy(index, candidates=5, temperature=1.2)
     policy.reset(11)
-    draws = [policy.choose(q) for _ in range(20_000)]
+    draws = [policy.source.choose(q) for _ in range(20_000)]
     freq = np.array([np.mean(np.array(draws) == i) for i in ranked])
     p = np.exp(-np.arange(5) / 1.2)
     np.testing.assert_allclose(freq, p / p.sum(), atol=0.012)  # ~4 standard errors
     policy.reset(11)
-    assert [policy.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
-    assert TransportPolicy(index).choose(q) == ranked[0]  # candidates=1: the nearest
+    assert [policy.source.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
+    assert TransportPolicy(index).source.choose(q) == ranked[0]  # candidates=1: the nearest
     for bad, match in (({"candidates": 0}, "candidates"), ({"temperature": 0.0}, "temperature"), ({"max_step_px": -1.0}, "max_step_px")):
         with pytest.raises(ValueError, match=match):
             TransportPolicy(index, **bad)
@@ -253,24 +253,52 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     policy.reset(0)
     nearest = index.query(q)[0]
     # the same scene four times: the first three decisions are not yet a window, the fourth is stuck
-    choices = [policy.choose(q) for _ in range(4)]
-    assert choices[:3] == [nearest] * 3 and policy.stuck_count == 1
+    choices = [policy.source.choose(q) for _ in range(4)]
+    assert choices[:3] == [nearest] * 3 and policy.source.stuck_count == 1
     assert choices[3] in index.query_k(q, 40)[0]
     # the record starts again at the escape: stuck again 3 decisions after it, not before
-    assert [policy.choose(q) for _ in range(2)] == [nearest] * 2 and policy.stuck_count == 1
-    escapes = [policy.choose(q) for _ in range(3 * 60)][::3]
-    assert policy.stuck_count == 61 and len(set(escapes)) > 10  # a uniform draw among 40: many different sources
+    assert [policy.source.choose(q) for _ in range(2)] == [nearest] * 2 and policy.source.stuck_count == 1
+    escapes = [policy.source.choose(q) for _ in range(3 * 60)][::3]
+    assert policy.source.stuck_count == 61 and len(set(escapes)) > 10  # a uniform draw among 40: many different sources
     # the agent moving does not count; the object (block keypoints) moving does
     policy.reset(0)
     for step in range(12):
         moved = q.copy()
         moved[-1] += 30.0 * step  # only the agent
-        policy.choose(moved)
-    assert policy.stuck_count == 3
+        policy.source.choose(moved)
+    assert policy.source.stuck_count == 3
     policy.reset(0)
     for step in range(12):
-        policy.choose(q + np.r_[np.full((12, 2), 3.0 * step), np.zeros((13, 2))])  # the block slides 3 px a decision
-    assert policy.stuck_count == 0
+        policy.source.choose(q + np.r_[np.full((12, 2), 3.0 * step), np.zeros((13, 2))])  # the block slides 3 px a decision
+    assert policy.source.stuck_count == 0
     for bad, match in (({"stuck_decisions": 0}, "stuck_decisions"), ({"stuck_px": -1.0}, "stuck_px"), ({"stuck_candidates": 0}, "stuck_candidates")):
         with pytest.raises(ValueError, match=match):
             TransportPolicy(index, **bad)
+
+
+def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos):
+    """fit_on=block_agent: the goal does not bend the map. A source whose goal coincides with its block (the end of a
+    demonstration read in hindsight) cannot be fitted with the goal at all; without the goal the chunk moves rigidly
+    with the block when the agent moves with it, and wherever the goal is."""
+    from kpflow.data.pusht_demos import PUSHT_HINDSIGHT
+    from kpflow.policies.pusht_build import FIT_ON, fit_on_indices
+
+    index = SourceIndex.from_store(demos, horizon=20, reference=PUSHT_BLOCK, hindsight=PUSHT_HINDSIGHT)
+    end = demos.episode_ends[0] - 1  # the first demonstration's last step: goal keypoints == block keypoints
+    source, chunk = index.keypoints[end].astype(np.float64), index.chunks[end].astype(np.float64)
+    np.testing.assert_array_equal(source[12:24], source[:12])
+    one = SourceIndex(source[None], chunk[None], reference=PUSHT_BLOCK)
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot, shift = np.array([[c, -s], [s, c]]), np.array([25.0, 40.0])
+    target = source @ rot.T + shift
+    target[12:24] = source[12:24] + (4.0, -3.0)  # the goal somewhere else: not where the block went
+    fitted = TransportPolicy(one, execute=20, fit_on=fit_on_indices("block_agent"))
+    np.testing.assert_allclose(fitted.act({"keypoints": target}), chunk @ rot.T + shift, atol=1e-6)
+    with pytest.raises(ValueError, match="duplicate source keypoints"):
+        TransportPolicy(one, execute=20, fit_on=fit_on_indices("all")).act({"keypoints": target})
+    assert FIT_ON["all"] is None and FIT_ON["block_agent"] == (*range(12), 24)
+    for bad in ([], [0, 0], [25]):
+        with pytest.raises(ValueError, match="fit_on"):
+            TransportPolicy(one, fit_on=bad)
+    with pytest.raises(ValueError, match="unknown fit_on"):
+        fit_on_indices("goal")

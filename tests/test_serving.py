@@ -241,6 +241,17 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(1), local.reset(1)
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
+    # the evaluated configuration (conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
+    fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
+    deployment = load_deployment(checkpoint, transport="ilwr", steps=4, fit_on=fit_on, choice=choice)
+    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice)
+    with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
+        client.reset(2), local.reset(2)
+        for _ in range(4):  # the same scene four times: the fourth decision is taken as stuck, on both sides
+            np.testing.assert_array_equal(client.act(obs), local.act(obs))
+        assert local.source.stuck_count == 1
+    with pytest.raises(ValueError, match="fit_on"):
+        load_deployment(checkpoint, transport="ilwr", fit_on=[99])
     with pytest.raises(ValueError, match="transport must be"):
         load_deployment(checkpoint, transport="spline")
 

@@ -117,7 +117,8 @@ def test_learned_map_trains_resumes_and_transports_from_the_cli(tmp_path):
     last = train_then_resume(train, root, tmp_path / "run")
     assert (tmp_path / "run" / "config.yaml").exists()
 
-    evaluate = [sys.executable, "evaluate.py", "policy=transport", "map=learned", f"map.checkpoint={last}", "data.n_episodes=2",
+    evaluate = [sys.executable, "evaluate.py", "policy=transport", "map=learned", f"map.checkpoint={last}", "policy.fit_on=all",
+                "data.goals=recorded", "data.n_episodes=2",
                 f"data.path={tmp_path / 'demos.zarr'}", "split=in_distribution", "n_configs=1", "workers=1",
                 "experiment.trial.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
     done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)

@@ -12,6 +12,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.hindsight import HindsightGoals
 
 
 class ChunkDataset(Dataset):
@@ -29,6 +30,8 @@ class ChunkDataset(Dataset):
         horizon: chunk length ``H >= 1``.
         n_obs: observation frames per item ``>= 1`` (``history``).
         obs_key, action_key: the store fields holding observations and actions.
+        hindsight: relabel each episode's goal keypoints with its object's last ones
+            (:class:`~kpflow.data.hindsight.HindsightGoals`; None: the goals as recorded).
     """
 
     def __init__(
@@ -39,6 +42,7 @@ class ChunkDataset(Dataset):
         obs_key: str = "keypoints",
         action_key: str = "action",
         n_obs: int = 1,
+        hindsight: HindsightGoals | None = None,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1; got {horizon}")
@@ -53,6 +57,8 @@ class ChunkDataset(Dataset):
             raise ValueError(f"episode indices {bad} out of range 0..{store.n_episodes - 1} of {store.path}")
         self.horizon, self.n_obs = horizon, n_obs
         self.obs = np.ascontiguousarray(store.field(obs_key), dtype=np.float32)
+        if hindsight is not None:
+            self.obs = hindsight.relabel(self.obs, store.episode_ends)
         self.actions = np.ascontiguousarray(store.field(action_key), dtype=np.float32)
         # Per item: its episode, local step t, and the episode's start/end rows in the concatenated arrays.
         slices = [store.episode_slice(i) for i in episodes]
@@ -119,6 +125,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         horizon, n_obs, obs_key, action_key: see :class:`ChunkDataset`.
         val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
         max_episodes: use only the first ``max_episodes`` episodes (all if None).
+        hindsight: see :class:`ChunkDataset`.
     """
 
     def __init__(
@@ -133,13 +140,14 @@ class ChunkDataModule(lightning.LightningDataModule):
         seed: int = 0,
         max_episodes: int | None = None,
         n_obs: int = 1,
+        hindsight: HindsightGoals | None = None,
     ) -> None:
         super().__init__()
         if max_episodes is not None and max_episodes < 1:
             raise ValueError(f"max_episodes must be >= 1 or None; got {max_episodes}")
         self.path, self.horizon, self.obs_key, self.action_key = Path(path), horizon, obs_key, action_key
         self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
-        self.seed, self.max_episodes, self.n_obs = seed, max_episodes, n_obs
+        self.seed, self.max_episodes, self.n_obs, self.hindsight = seed, max_episodes, n_obs, hindsight
         self.train_episodes: list[int] | None = None
         self.val_episodes: list[int] | None = None
         self.train_set: ChunkDataset | None = None
@@ -153,7 +161,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
         self.train_episodes, self.val_episodes = split_episodes(n, self.val_fraction, self.seed)
-        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs)
+        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs, hindsight=self.hindsight)
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
 

@@ -1,5 +1,6 @@
 """Push-T demonstrations on disk: expert ones collected on first use (``data=pusht_expert``), or any existing store
-(``data=pusht_human``, a store grown by corrections)."""
+(``data=pusht_human``, a store grown by corrections), read with their goals as recorded or in hindsight
+(:mod:`kpflow.data.hindsight`: the block's last keypoints as the goal's)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,18 @@ from pathlib import Path
 from .chunks import ChunkDataModule
 from .collection import check_collection, collect_pusht, collection_attrs
 from .episode_store import EpisodeStore
+from .hindsight import GOALS, HindsightGoals
+from .source_index import PUSHT_BLOCK
+
+#: Push-T's goal keypoints (12..23) are where the block's (0..11) belong, in the same order.
+PUSHT_HINDSIGHT = HindsightGoals(object=PUSHT_BLOCK, goal=tuple(k + len(PUSHT_BLOCK) for k in PUSHT_BLOCK))
+
+
+def pusht_hindsight(goals: str) -> HindsightGoals | None:
+    """How Push-T demonstrations' goals are read: ``"recorded"`` (None) or ``"hindsight"`` (:data:`PUSHT_HINDSIGHT`)."""
+    if goals not in GOALS:
+        raise ValueError(f"goals must be one of {GOALS}; got {goals!r}")
+    return PUSHT_HINDSIGHT if goals == "hindsight" else None
 
 
 def ensure_pusht_demos(
@@ -53,8 +66,13 @@ def pusht_datamodule(
     batch_size: int = 256,
     val_fraction: float = 0.1,
     n_obs: int = 1,
+    goals: str = "recorded",
 ) -> ChunkDataModule:
     """Chunks (keypoints -> next ``horizon`` actions) of the Push-T store at ``path`` (see :func:`ensure_pusht_demos`:
-    expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there)."""
+    expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there), the goals read
+    as ``goals`` says (:func:`pusht_hindsight`)."""
+    hindsight = pusht_hindsight(goals)  # a bad name is refused before anything is collected
     ensure_pusht_demos(path, n_episodes, seed, workers)
-    return ChunkDataModule(path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs)
+    return ChunkDataModule(
+        path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs, hindsight=hindsight
+    )

@@ -24,6 +24,7 @@ from ..utils.config_checks import Key
 from ..utils.io import atomic_path
 from .chunks import ChunkDataset
 from .episode_store import EpisodeStore
+from .hindsight import HindsightGoals
 
 PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
 
@@ -80,10 +81,12 @@ class SourceIndex:
         episodes=None,
         obs_key: str = "keypoints",
         action_key: str = "action",
+        hindsight: HindsightGoals | None = None,
     ) -> "SourceIndex":
-        """Every step of the store's episodes (all by default) with its next ``horizon`` actions (padded at the end)."""
+        """Every step of the store's episodes (all by default) with its next ``horizon`` actions (padded at the end);
+        with ``hindsight``, each episode's goal keypoints are the ones it reached (:mod:`kpflow.data.hindsight`)."""
         episodes = range(store.n_episodes) if episodes is None else episodes
-        keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key).arrays()
+        keypoints, chunks, _ = ChunkDataset(store, episodes, horizon, obs_key, action_key, hindsight=hindsight).arrays()
         return cls(keypoints, chunks, weights, reference)
 
     def save(self, path: str | Path) -> Path:

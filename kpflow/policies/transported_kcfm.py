@@ -2,8 +2,10 @@
 
 At every decision, with ``T`` the observed keypoints and ``x`` the robot's state (the agent, T's last keypoint):
 
-1. ``S``: the nearest configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data);
-2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default);
+1. ``S``: a configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data), the nearest or
+   drawn among the nearest, with stuck detection (:class:`~.source_choice.SourceChoice`);
+2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default), on the keypoints ``fit_on`` (all by
+   default; Push-T: the block and the agent, see :mod:`.chunk_transport`);
 3. ``phi^-1(x)``: the robot pulled back into the source scene. The K-CFM's input is ``S`` with its agent replaced
    by ``phi^-1(x)`` (``pull_back="agent"``): a scene it was trained on, exactly, with the robot where the map puts
    it. ``pull_back="all"`` pulls all 25 observed keypoints back instead;
@@ -32,7 +34,7 @@ agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then ch
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -40,8 +42,10 @@ import torch
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from .chunk_transport import fitted_keypoints
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
+from .source_choice import SourceChoice
 
 PULL_BACK = ("agent", "all")
 
@@ -58,6 +62,8 @@ class TransportedKCFMPolicy:
         execute: how many actions of the chunk :meth:`act` returns.
         pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
+        fit_on: indices of the keypoints the map is fitted on (None: all).
+        choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
 
     After :meth:`act`, ``last_source`` (index of ``S``), ``last_map`` (``phi``) and ``last_pullback``
     (the K-CFM's input) describe the decision.
@@ -71,6 +77,8 @@ class TransportedKCFMPolicy:
         steps: int = 10,
         execute: int = 8,
         pull_back: str = "agent",
+        fit_on: Sequence[int] | None = None,
+        **choice,
     ) -> None:
         self.policy = KCFMPolicy(model, steps, execute)  # validates steps and execute
         if self.policy.n_obs != 1:
@@ -81,6 +89,7 @@ class TransportedKCFMPolicy:
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
+        self.source, self.fit_on = SourceChoice(index, **choice), fitted_keypoints(fit_on, k)
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
         self.last_pullback: np.ndarray | None = None
@@ -94,10 +103,12 @@ class TransportedKCFMPolicy:
         steps: int = 10,
         execute: int = 8,
         pull_back: str = "agent",
+        fit_on: Sequence[int] | None = None,
+        **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         base = KCFMPolicy.from_checkpoint(path, steps, execute)
-        return cls(base.model, index, make_map, steps, execute, pull_back)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, **choice)
 
     @property
     def model(self) -> KCFM:
@@ -112,17 +123,18 @@ class TransportedKCFMPolicy:
         return self.policy.execute
 
     def reset(self, seed: int | None = None) -> None:
-        """Reseed the K-CFM's sampling noise with ``seed`` (0 when None) and forget the last decision."""
+        """Reseed the K-CFM's sampling noise and the source draw with ``seed`` (0 when None) and forget the last decision."""
         self.policy.reset(seed)
+        self.source.reset(seed)
         self.last_source, self.last_map, self.last_pullback = None, None, None
 
     def act(self, obs: dict) -> np.ndarray:
         """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``."""
         target = np.asarray(obs["keypoints"], dtype=np.float64)
-        i, _ = self.index.query(target)  # validates the shape and finiteness of the observation
+        i = self.source.choose(target)  # the index validates the shape and finiteness of the observation
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
-        phi = self.make_map().fit(source_t, target_t)
+        phi = self.make_map().fit(source_t[self.fit_on], target_t[self.fit_on])
         with torch.no_grad():
             if self.pull_back == "all":
                 pullback = phi.inverse(target_t).to(torch.float64)

@@ -49,9 +49,13 @@ def load_deployment(
     pull_back: str = "agent",
     control_hz: float = 10.0,
     keypoint_groups: dict[str, int] | None = None,
+    fit_on: list[int] | None = None,
+    choice: dict | None = None,
 ) -> Deployment:
     """The K-CFM of ``checkpoint`` ready to serve, transported online through a ``transport`` map (``"ilwr"``,
-    ``"gp"``, ``"rigid"``; the source index is read from beside the checkpoint) or as it is (None).
+    ``"gp"``, ``"rigid"``; the source index is read from beside the checkpoint) or as it is (None). A transported one
+    fits its map on the keypoints ``fit_on`` (all when None) and chooses its source with the
+    :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the nearest, no stuck detection, when None).
 
     ``keypoint_groups`` names the observation's keypoints in order (Push-T's by default when the count fits).
 
@@ -82,10 +86,11 @@ def load_deployment(
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map = TRANSPORT_MAPS[transport]
-        TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back)  # checks the index against the model now
+        options = dict(choice or {})
+        TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)  # checks it all now
 
         def make_policy() -> Policy:
-            return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back)
+            return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)
         name = f"transported_kcfm/{transport}"
     observation = {"keypoints": [k, d]} if n_obs == 1 else {"keypoints_history": [n_obs, k, d]}
     metadata = PolicyMetadata(
