@@ -1,4 +1,10 @@
-"""Running an experiment's independent jobs in forked worker processes, in order, with a progress bar."""
+"""Running an experiment's independent jobs in forked worker processes, in order, with a progress bar.
+
+Forked workers use one torch thread each. A process that has already run a parallel torch operation (a K-CFM or map
+built from a checkpoint, with ``OMP_NUM_THREADS`` unset) holds an OpenMP thread pool that does not survive ``fork``:
+a worker's first multi-threaded operation then waits for threads that do not exist, for ever. With one thread per
+worker OpenMP never uses that pool (and the workers do not oversubscribe the cores either).
+"""
 
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ def map_jobs(
     """``[work(job) for job in jobs]``, computed by ``workers`` forked processes (each runs ``initializer(*initargs)``
     once first) or, for ``workers == 1``, in this process after ``initializer(*initargs)``."""
     if workers > 1:
-        pool = mp.get_context("fork").Pool(workers, initializer=initializer, initargs=initargs)
+        pool = mp.get_context("fork").Pool(workers, initializer=_one_thread_then, initargs=(initializer, initargs))
         results = pool.imap(work, jobs)
     else:
         pool = None
@@ -34,3 +40,12 @@ def map_jobs(
         if pool is not None:
             pool.close()
             pool.join()
+
+
+def _one_thread_then(initializer: Callable | None, initargs: tuple) -> None:
+    """A forked worker's start: one torch thread (module docstring), then ``initializer(*initargs)``."""
+    import torch
+
+    torch.set_num_threads(1)
+    if initializer is not None:
+        initializer(*initargs)
