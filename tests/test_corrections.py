@@ -1,5 +1,7 @@
 """Interactive corrections on Push-T: expert takeovers, recorded segments, and rounds that grow the store."""
 
+import gc
+
 import numpy as np
 import pytest
 
@@ -90,10 +92,16 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
         index = SourceIndex.from_store(store, 20, pusht_weights(agent=4.0), PUSHT_BLOCK)
         return NearestNeighbourPolicy(index, execute=8)
 
-    reports = collect_corrections(
-        path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
-        progress=False,
-    )
+    gc.disable()  # the store must be closed on return, not whenever a reference cycle is collected
+    try:
+        reports = collect_corrections(
+            path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
+            progress=False,
+        )
+        with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `python -m kpflow.correct` reopens it
+            pass
+    finally:
+        gc.enable()
     assert [r["round"] for r in reports] == [0, 1]
     assert sum(r["takeovers"] for r in reports) > 0
     steps = demo_steps

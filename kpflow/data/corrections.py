@@ -204,4 +204,5 @@ def collect_corrections(
             reports.append(report)
     finally:
         bar.close()
+        store.close()  # the next round (or caller) opens the store for writing again
     return reports
