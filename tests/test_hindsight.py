@@ -7,7 +7,7 @@ import pytest
 
 from kpflow.data.chunks import ChunkDataset
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.hindsight import HindsightGoals
+from kpflow.data.hindsight import HindsightGoals, fragment_episodes
 from kpflow.data.pusht_demos import PUSHT_HINDSIGHT, pusht_hindsight
 from kpflow.data.source_index import SourceIndex
 from kpflow.tasks.pusht.geometry import coverage
@@ -48,6 +48,28 @@ def test_chunks_and_index_read_hindsight_goals(store):
     np.testing.assert_array_equal(ds.history(np.arange(len(ds)))[:, 0, 12:24], ds.arrays()[0][:, 12:24])
     index = SourceIndex.from_store(store, 3, hindsight=PUSHT_HINDSIGHT)
     np.testing.assert_array_equal(index.keypoints, PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends))
+
+
+def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
+    """A takeover stored by corrections is part of a longer episode: it stops wherever the block then is, so its
+    goal stays as recorded; whole demonstrations around it are relabelled."""
+    store = EpisodeStore(tmp_path / "corrected.zarr", mode="a")
+    rng = np.random.default_rng(1)
+    for t, attrs in zip(LENGTHS, [{}, {"source": "correction", "round": 0}, {"source": "demo"}]):
+        store.add_episode({"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))},
+                          attrs=attrs)
+    store = EpisodeStore(store.path)
+    np.testing.assert_array_equal(fragment_episodes(store), [False, True, False])
+    obs = store.field("keypoints")
+    out = PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, fragment_episodes(store))
+    np.testing.assert_array_equal(out[store.episode_slice(1)], obs[store.episode_slice(1)])  # the takeover: as recorded
+    for e in (0, 2):
+        rows = store.episode_slice(e)
+        np.testing.assert_array_equal(out[rows][:, 12:24], np.broadcast_to(obs[rows][-1, :12], (LENGTHS[e], 12, 2)))
+    ds = ChunkDataset(store, range(3), horizon=2, hindsight=PUSHT_HINDSIGHT)
+    np.testing.assert_array_equal(ds.obs, out)  # the datasets (and so the source index) read it that way
+    with pytest.raises(ValueError, match="fragments must be one bool per episode"):
+        PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
 
 
 def test_bad_hindsight_input_is_refused():

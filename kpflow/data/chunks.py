@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.hindsight import HindsightGoals
+from kpflow.data.hindsight import HindsightGoals, fragment_episodes
 
 
 class ChunkDataset(Dataset):
@@ -30,8 +30,8 @@ class ChunkDataset(Dataset):
         horizon: chunk length ``H >= 1``.
         n_obs: observation frames per item ``>= 1`` (``history``).
         obs_key, action_key: the store fields holding observations and actions.
-        hindsight: relabel each episode's goal keypoints with its object's last ones
-            (:class:`~kpflow.data.hindsight.HindsightGoals`; None: the goals as recorded).
+        hindsight: relabel each episode's goal keypoints with its object's last ones, except in fragments such as
+            correction takeovers (:class:`~kpflow.data.hindsight.HindsightGoals`; None: the goals as recorded).
     """
 
     def __init__(
@@ -58,7 +58,7 @@ class ChunkDataset(Dataset):
         self.horizon, self.n_obs = horizon, n_obs
         self.obs = np.ascontiguousarray(store.field(obs_key), dtype=np.float32)
         if hindsight is not None:
-            self.obs = hindsight.relabel(self.obs, store.episode_ends)
+            self.obs = hindsight.relabel(self.obs, store.episode_ends, fragment_episodes(store))
         self.actions = np.ascontiguousarray(store.field(action_key), dtype=np.float32)
         # Per item: its episode, local step t, and the episode's start/end rows in the concatenated arrays.
         slices = [store.episode_slice(i) for i in episodes]

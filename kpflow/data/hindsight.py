@@ -13,6 +13,11 @@ For an episode of ``T`` steps with object keypoints ``o_t [M, D]`` and goal keyp
 
 which is hindsight experience replay's "final" strategy (Andrychowicz et al. 2017, Sec. 4.5) applied to the
 goal keypoints of the observation. Actions are unchanged: they are what was done, and it led exactly there.
+
+A fragment of a longer episode keeps its recorded goal: an expert takeover stored by interactive corrections
+(:mod:`kpflow.data.corrections`, attrs ``source="correction"``) stops after a few dozen steps wherever the block then
+is, and the rest of its episode, done by the policy, carried on towards the recorded goal. Relabelled, it would say
+"stop here".
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 GOALS = ("recorded", "hindsight")  # how a demonstration's goal keypoints are read
+FRAGMENT_SOURCES = ("correction",)  # episode attrs["source"] of parts of longer episodes: their goals stay as recorded
 
 
 @dataclass(frozen=True)
@@ -42,10 +48,11 @@ class HindsightGoals:
         if set(self.object) & set(self.goal):
             raise ValueError(f"a keypoint cannot be both the object's and the goal's: {sorted(set(self.object) & set(self.goal))}")
 
-    def relabel(self, obs: np.ndarray, episode_ends: np.ndarray) -> np.ndarray:
+    def relabel(self, obs: np.ndarray, episode_ends: np.ndarray, fragments: np.ndarray | None = None) -> np.ndarray:
         """A copy of the concatenated observations ``obs [N, K, D]`` of episodes ending (exclusive) at the rows
         ``episode_ends`` (an :class:`~kpflow.data.episode_store.EpisodeStore`'s), each episode's goal keypoints set
-        to its object's keypoints at its last row (module docstring)."""
+        to its object's keypoints at its last row (module docstring), except the episodes marked True in
+        ``fragments`` (bool, one per episode; None: none), which keep their goals as recorded."""
         obs = np.asarray(obs)
         used = (*self.object, *self.goal)
         if obs.ndim != 3 or min(used) < 0 or max(used) >= obs.shape[1]:
@@ -53,7 +60,18 @@ class HindsightGoals:
         ends = np.asarray(episode_ends, np.int64)
         if ends.ndim != 1 or len(ends) == 0 or ends[-1] != len(obs) or (np.diff(ends, prepend=0) < 1).any():
             raise ValueError(f"episode_ends must rise strictly from >= 1 to the number of rows ({len(obs)}); got {ends[:5]}...")
-        last = np.repeat(ends - 1, np.diff(ends, prepend=0))  # each row's episode's last row
+        lengths = np.diff(ends, prepend=0)
+        fragments = np.zeros(len(ends), bool) if fragments is None else np.asarray(fragments)
+        if fragments.shape != ends.shape or fragments.dtype != bool:
+            raise ValueError(f"fragments must be one bool per episode ({len(ends)}); got {fragments.dtype} {fragments.shape}")
+        rows = ~np.repeat(fragments, lengths)  # the rows to relabel
+        last = np.repeat(ends - 1, lengths)[rows]  # each such row's episode's last row
         out = obs.copy()
-        out[:, list(self.goal)] = obs[last][:, list(self.object)]
+        out[np.ix_(rows, list(self.goal))] = obs[last][:, list(self.object)]
         return out
+
+
+def fragment_episodes(store) -> np.ndarray:
+    """One bool per episode of an :class:`~kpflow.data.episode_store.EpisodeStore`: True where the episode is a
+    fragment of a longer one (its attrs ``source`` in :data:`FRAGMENT_SOURCES`), whose goal stays as recorded."""
+    return np.array([store.episode_attrs(i).get("source") in FRAGMENT_SOURCES for i in range(store.n_episodes)], bool)
