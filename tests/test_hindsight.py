@@ -51,8 +51,8 @@ def test_chunks_and_index_read_hindsight_goals(store):
 
 
 def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
-    """A takeover stored by corrections is part of a longer episode: it stops wherever the block then is, so its
-    goal stays as recorded; whole demonstrations around it are relabelled."""
+    """A takeover stored by corrections is part of a longer episode: it stops wherever the block then is, so for
+    learning its goal stays as recorded; whole demonstrations around it are relabelled."""
     store = EpisodeStore(tmp_path / "corrected.zarr", mode="a")
     rng = np.random.default_rng(1)
     for t, attrs in zip(LENGTHS, [{}, {"source": "correction", "round": 0}, {"source": "demo"}]):
@@ -67,7 +67,12 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
         rows = store.episode_slice(e)
         np.testing.assert_array_equal(out[rows][:, 12:24], np.broadcast_to(obs[rows][-1, :12], (LENGTHS[e], 12, 2)))
     ds = ChunkDataset(store, range(3), horizon=2, hindsight=PUSHT_HINDSIGHT)
-    np.testing.assert_array_equal(ds.obs, out)  # the datasets (and so the source index) read it that way
+    np.testing.assert_array_equal(ds.obs, out)  # learning reads it that way
+    # A source index relabels the takeover too: it is then a source that ends exactly on its goal.
+    everything = PUSHT_HINDSIGHT.relabel(obs, store.episode_ends)
+    np.testing.assert_array_equal(SourceIndex.from_store(store, 2, hindsight=PUSHT_HINDSIGHT).keypoints, everything)
+    np.testing.assert_array_equal(ChunkDataset(store, range(3), 2, hindsight=PUSHT_HINDSIGHT, relabel_fragments=True).obs, everything)
+    assert not np.array_equal(everything, out)
     with pytest.raises(ValueError, match="fragments must be one bool per episode"):
         PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
 

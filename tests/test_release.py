@@ -73,4 +73,8 @@ def test_released_table1_store_gives_transported_kcfm_its_sources():
     policy.reset(0)
     chunk = policy.act(obs)
     assert chunk.shape == (8, 2) and np.isfinite(chunk).all()
-    assert (chunk >= 0).all() and (chunk <= 1024).all() and np.abs(np.diff(chunk, axis=0)).max() < 20  # a smooth path in the arena
+    assert (chunk >= 0).all() and (chunk <= 1024).all()  # in the arena
+    # A smooth path: the demonstrations step at most 15 px per axis; the map may stretch that (x2 at most here),
+    # and consecutive steps change little.
+    steps = np.diff(chunk, axis=0)
+    assert np.abs(steps).max() < 2 * 15 and np.abs(np.diff(steps, axis=0)).max() < 15

@@ -30,8 +30,10 @@ class ChunkDataset(Dataset):
         horizon: chunk length ``H >= 1``.
         n_obs: observation frames per item ``>= 1`` (``history``).
         obs_key, action_key: the store fields holding observations and actions.
-        hindsight: relabel each episode's goal keypoints with its object's last ones, except in fragments such as
-            correction takeovers (:class:`~kpflow.data.hindsight.HindsightGoals`; None: the goals as recorded).
+        hindsight: relabel each episode's goal keypoints with its object's last ones
+            (:class:`~kpflow.data.hindsight.HindsightGoals`; None: the goals as recorded).
+        relabel_fragments: with ``hindsight``, relabel fragments of longer episodes (correction takeovers) too;
+            False (the default, for learning): they keep their recorded goal (:mod:`kpflow.data.hindsight`).
     """
 
     def __init__(
@@ -43,6 +45,7 @@ class ChunkDataset(Dataset):
         action_key: str = "action",
         n_obs: int = 1,
         hindsight: HindsightGoals | None = None,
+        relabel_fragments: bool = False,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1; got {horizon}")
@@ -58,7 +61,8 @@ class ChunkDataset(Dataset):
         self.horizon, self.n_obs = horizon, n_obs
         self.obs = np.ascontiguousarray(store.field(obs_key), dtype=np.float32)
         if hindsight is not None:
-            self.obs = hindsight.relabel(self.obs, store.episode_ends, fragment_episodes(store))
+            keep = None if relabel_fragments else fragment_episodes(store)
+            self.obs = hindsight.relabel(self.obs, store.episode_ends, keep)
         self.actions = np.ascontiguousarray(store.field(action_key), dtype=np.float32)
         # Per item: its episode, local step t, and the episode's start/end rows in the concatenated arrays.
         slices = [store.episode_slice(i) for i in episodes]
