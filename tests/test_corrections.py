@@ -1,7 +1,5 @@
 """Interactive corrections on Push-T: expert takeovers, recorded segments, and rounds that grow the store."""
 
-import gc
-
 import numpy as np
 import pytest
 
@@ -85,23 +83,20 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
     collect_pusht(path, 3, workers=1, progress=False)
     store = EpisodeStore(path)
     n_demos, demo_steps = len(store), store.n_steps
-    seen = []
+    seen, held = [], []
 
     def make_policy(store):
         seen.append(store.n_steps)
+        held.append(store)  # a policy may keep the store it was built from: the lock must not live on with it
         index = SourceIndex.from_store(store, 20, pusht_weights(agent=4.0), PUSHT_BLOCK)
         return NearestNeighbourPolicy(index, execute=8)
 
-    gc.disable()  # the store must be closed on return, not whenever a reference cycle is collected
-    try:
-        reports = collect_corrections(
-            path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
-            progress=False,
-        )
-        with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `python -m kpflow.correct` reopens it
-            pass
-    finally:
-        gc.enable()
+    reports = collect_corrections(
+        path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
+        progress=False,
+    )
+    with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `python -m kpflow.correct` reopens it
+        pass
     assert [r["round"] for r in reports] == [0, 1]
     assert sum(r["takeovers"] for r in reports) > 0
     steps = demo_steps

@@ -17,7 +17,7 @@ goal keypoints of the observation. Actions are unchanged: they are what was done
 A fragment of a longer episode is a choice: an expert takeover stored by interactive corrections
 (:mod:`kpflow.data.corrections`, attrs ``source="correction"``) stops after a few dozen steps wherever the block then
 is, and the rest of its episode, done by the policy, carried on towards the recorded goal. For learning it keeps
-its recorded goal (``fragments``): relabelled, the takeovers that make up most of a corrected store say "stop
+its recorded goal (:meth:`HindsightGoals.relabel`'s ``fragments``): relabelled, the takeovers that make up most of a corrected store say "stop
 here", and K-CFM trained on the 35-demonstration Table 1 store fell from 60 / 58 / 6% to 22 / 14 / 0%. A source
 index relabels them (:meth:`~kpflow.data.source_index.SourceIndex.from_store`), which is where that reading measured
 better.
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 GOALS = ("recorded", "hindsight")  # how a demonstration's goal keypoints are read
-FRAGMENT_SOURCES = ("correction",)  # episode attrs["source"] of parts of longer episodes: their goals stay as recorded
+FRAGMENT_SOURCES = ("correction",)  # episode attrs["source"] of parts of longer episodes (module docstring)
 
 
 @dataclass(frozen=True)
