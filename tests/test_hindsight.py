@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import hydra
 import numpy as np
 import pytest
 
@@ -75,6 +76,22 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
     assert not np.array_equal(everything, out)
     with pytest.raises(ValueError, match="fragments must be one bool per episode"):
         PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
+    # The data node says which reading a learned policy trains on: data.relabel_fragments (default: as recorded).
+    for relabel, want in ((False, out), (True, everything)):
+        node = compose_data(store.path, relabel)
+        dm = hydra.utils.instantiate(node)
+        dm.setup()
+        rows = np.concatenate([np.arange(store.episode_slice(e).start, store.episode_slice(e).stop) for e in dm.train_episodes])
+        np.testing.assert_array_equal(dm.train_set.obs[rows], want[rows])
+
+
+def compose_data(path, relabel_fragments: bool):
+    """The ``data=pusht_store`` node of train.py's config for the store at ``path``."""
+    config_dir = str(Path(__file__).resolve().parents[1] / "conf")
+    with hydra.initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+        cfg = hydra.compose("train", overrides=["data=pusht_store", f"data.path={path}", "data.val_fraction=0",
+                                                f"data.relabel_fragments={str(relabel_fragments).lower()}"])
+    return cfg.data
 
 
 def test_bad_hindsight_input_is_refused():

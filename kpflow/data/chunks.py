@@ -129,7 +129,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         horizon, n_obs, obs_key, action_key: see :class:`ChunkDataset`.
         val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
         max_episodes: use only the first ``max_episodes`` episodes (all if None).
-        hindsight: see :class:`ChunkDataset`.
+        hindsight, relabel_fragments: see :class:`ChunkDataset`.
     """
 
     def __init__(
@@ -145,6 +145,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         max_episodes: int | None = None,
         n_obs: int = 1,
         hindsight: HindsightGoals | None = None,
+        relabel_fragments: bool = False,
     ) -> None:
         super().__init__()
         if max_episodes is not None and max_episodes < 1:
@@ -152,6 +153,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         self.path, self.horizon, self.obs_key, self.action_key = Path(path), horizon, obs_key, action_key
         self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
         self.seed, self.max_episodes, self.n_obs, self.hindsight = seed, max_episodes, n_obs, hindsight
+        self.relabel_fragments = relabel_fragments
         self.train_episodes: list[int] | None = None
         self.val_episodes: list[int] | None = None
         self.train_set: ChunkDataset | None = None
@@ -165,7 +167,8 @@ class ChunkDataModule(lightning.LightningDataModule):
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
         self.train_episodes, self.val_episodes = split_episodes(n, self.val_fraction, self.seed)
-        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs, hindsight=self.hindsight)
+        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs, hindsight=self.hindsight,
+                      relabel_fragments=self.relabel_fragments)
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
 

@@ -20,7 +20,7 @@ is, and the rest of its episode, done by the policy, carried on towards the reco
 its recorded goal (:meth:`HindsightGoals.relabel`'s ``fragments``): relabelled, the takeovers that make up most of a corrected store say "stop
 here", and K-CFM trained on the 35-demonstration Table 1 store fell from 60 / 58 / 6% to 22 / 14 / 0%. A source
 index relabels them (:meth:`~kpflow.data.source_index.SourceIndex.from_store`), which is where that reading measured
-better.
+better; a learned policy reads them that way with ``data.relabel_fragments=true`` (the datamodule's key).
 """
 
 from __future__ import annotations

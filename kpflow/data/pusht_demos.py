@@ -67,12 +67,15 @@ def pusht_datamodule(
     val_fraction: float = 0.1,
     n_obs: int = 1,
     goals: str = "recorded",
+    relabel_fragments: bool = False,
 ) -> ChunkDataModule:
     """Chunks (keypoints -> next ``horizon`` actions) of the Push-T store at ``path`` (see :func:`ensure_pusht_demos`:
     expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there), the goals read
-    as ``goals`` says (:func:`pusht_hindsight`)."""
+    as ``goals`` says (:func:`pusht_hindsight`); with ``goals="hindsight"``, ``relabel_fragments`` relabels the
+    correction takeovers too (:mod:`kpflow.data.hindsight`; a source index always does)."""
     hindsight = pusht_hindsight(goals)  # a bad name is refused before anything is collected
     ensure_pusht_demos(path, n_episodes, seed, workers)
     return ChunkDataModule(
-        path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs, hindsight=hindsight
+        path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs, hindsight=hindsight,
+        relabel_fragments=relabel_fragments,
     )
