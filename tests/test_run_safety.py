@@ -166,7 +166,9 @@ def test_a_killed_first_use_collection_is_resumed_by_the_next_run(tmp_path):
     path, whole = tmp_path / "demos.zarr", tmp_path / "whole.zarr"
     proc = subprocess.Popen([sys.executable, "-c", COLLECT, str(path)], cwd=ROOT, stderr=subprocess.DEVNULL)
     t0 = time.monotonic()
-    while not ((path / "meta" / "episode_ends").exists() and len(EpisodeStore(path)) >= 1):
+    # Wait for the array's metadata, not its folder: zarr makes the folder first, and a store read in between has
+    # data but no episode_ends yet (which EpisodeStore refuses, as it should).
+    while not ((path / "meta" / "episode_ends" / ".zarray").exists() and len(EpisodeStore(path)) >= 1):
         assert proc.poll() is None and time.monotonic() - t0 < 120
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
