@@ -1,9 +1,15 @@
-"""Keypoint sets shared by the tests."""
+"""Keypoint sets, stores and configs shared by the tests."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf, open_dict
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 def rotation(d: int, angle: float, dtype=torch.float64) -> torch.Tensor:
@@ -91,3 +97,15 @@ def train_learned_map(tmp_path, sampler, n_keypoints: int, steps: int, dim: int 
     )
     trainer.fit(model, datamodule=data)
     return str(tmp_path / "checkpoints" / "last.ckpt")
+
+
+def compose_config(entry: str, overrides: list[str], tmp_path):
+    """The config ``entry`` (train, evaluate, ...) of ``conf/`` with ``overrides``, as its entry point would see it:
+    Hydra's runtime output dir set to ``tmp_path`` and its choices filled in."""
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose(entry, overrides=overrides, return_hydra_config=True)
+    with open_dict(cfg):  # what Hydra's runtime would fill in
+        cfg.hydra.runtime.output_dir = str(tmp_path)
+        cfg.hydra.runtime.choices = OmegaConf.create({k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None})
+    HydraConfig.instance().set_config(cfg)
+    return cfg

@@ -8,13 +8,11 @@ from pathlib import Path
 import lightning
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
-from omegaconf import OmegaConf, open_dict
 
 from kpflow.maps.base import TransportMap
-from tests.helpers import keypoint_pair, train_learned_map, walk_to_block_store
+from tests.helpers import compose_config, keypoint_pair, train_learned_map, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -38,18 +36,6 @@ ENTRIES = {
 }
 
 
-def _compose(entry: str, overrides: list[str], tmp_path):
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose(entry, overrides=overrides, return_hydra_config=True)
-    with open_dict(cfg):  # what Hydra's runtime would fill in
-        cfg.hydra.runtime.output_dir = str(tmp_path)
-        cfg.hydra.runtime.choices = OmegaConf.create({k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None})
-    from hydra.core.hydra_config import HydraConfig
-
-    HydraConfig.instance().set_config(cfg)
-    return cfg
-
-
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     path = tmp_path_factory.mktemp("configs") / "demos.zarr"
@@ -65,8 +51,8 @@ def test_every_config_file_is_covered():
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["hydra/launcher"]))
-def test_submitit_launchers_compose(name, tmp_path):
-    cfg = _compose("train", [f"hydra/launcher={name}"], tmp_path)
+def test_submitit_launcherscompose_config(name, tmp_path):
+    cfg = compose_config("train", [f"hydra/launcher={name}"], tmp_path)
     launcher = cfg.hydra.launcher
     assert launcher._target_.startswith("hydra_plugins.hydra_submitit_launcher") and launcher.timeout_min > 0
     assert launcher.submitit_folder.endswith(".submitit/%j")
@@ -88,14 +74,14 @@ def test_map_options_build_a_fitted_map(name, tmp_path, request):
     options = {"flow": ["map.steps=5"], "mlp": ["map.steps=5"]}.get(name, [])
     if name == "learned":
         options = [f"map.checkpoint={request.getfixturevalue('learned_checkpoint')}"]
-    cfg = _compose("evaluate", [f"map={name}", "logger=none", *options], tmp_path)
+    cfg = compose_config("evaluate", [f"map={name}", "logger=none", *options], tmp_path)
     phi = instantiate(cfg.map)().fit(src, tgt)
     assert isinstance(phi, TransportMap) and phi(src).shape == src.shape
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["logger"]))
 def test_logger_options_build_lightning_loggers(name, tmp_path):
-    cfg = _compose("train", [f"logger={name}"], tmp_path)
+    cfg = compose_config("train", [f"logger={name}"], tmp_path)
     loggers = [instantiate(node) for node in (cfg.logger or {}).values()]
     assert all(isinstance(lg, lightning.pytorch.loggers.Logger) for lg in loggers)
     assert len(loggers) == {"none": 0, "csv": 1, "default": 2}[name]
@@ -103,7 +89,7 @@ def test_logger_options_build_lightning_loggers(name, tmp_path):
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["trainer"]))
 def test_trainer_options_name_a_lightning_trainer(name, tmp_path):
-    cfg = _compose("train", [f"trainer={name}", "logger=none"], tmp_path)
+    cfg = compose_config("train", [f"trainer={name}", "logger=none"], tmp_path)
     assert get_class(cfg.trainer._target_) is lightning.Trainer
     if cfg.trainer.accelerator == "cpu" or torch.cuda.is_available():
         trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
@@ -111,7 +97,7 @@ def test_trainer_options_name_a_lightning_trainer(name, tmp_path):
 
 
 def test_callbacks_checkpoint_into_the_run_folder(tmp_path):
-    cfg = _compose("train", ["logger=none"], tmp_path)
+    cfg = compose_config("train", ["logger=none"], tmp_path)
     callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
     assert isinstance(callbacks["model_checkpoint"], ModelCheckpoint)
     assert Path(callbacks["model_checkpoint"].dirpath) == tmp_path / "checkpoints"
@@ -126,7 +112,7 @@ def test_data_options_build_datamodules(name, store, tmp_path):
         path = ["data.n_pairs=20"]
     if name == "suite_store":  # any store with keypoints and an action field (a generated one has ee_target)
         path = [f"data.path={store}", "data.action_key=action"]
-    cfg = _compose("train", [f"data={name}", "logger=none", *path], tmp_path)
+    cfg = compose_config("train", [f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)
     datamodule.setup("fit")
@@ -138,7 +124,7 @@ def test_data_options_build_datamodules(name, store, tmp_path):
 @pytest.mark.parametrize("name", sorted(ENTRIES["model"]))
 def test_model_options_build_lightning_modules(name, tmp_path):
     data = ["data=pusht_expert"] if name == "kcfm" else []  # K-CFM's horizon and history come from the Push-T data
-    cfg = _compose("train", [f"model={name}", "logger=none", *data], tmp_path)
+    cfg = compose_config("train", [f"model={name}", "logger=none", *data], tmp_path)
     model = instantiate(cfg.model, _convert_="all")
     assert isinstance(model, lightning.LightningModule) and sum(p.numel() for p in model.parameters()) > 0
 
@@ -148,7 +134,7 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
     from kpflow.tasks.pusht import PushTEnv, split_config
 
     checkpoint = [f"policy.checkpoint={RELEASED}"] if "kcfm" in name else []
-    cfg = _compose("evaluate", [f"policy={name}", "data=pusht_store", f"data.path={store}", "logger=none", *checkpoint], tmp_path)
+    cfg = compose_config("evaluate", [f"policy={name}", "data=pusht_store", f"data.path={store}", "logger=none", *checkpoint], tmp_path)
     policy = instantiate(cfg.policy)
     env = PushTEnv()
     obs, _ = env.reset(options={"config": split_config("in_distribution", 0)})
@@ -159,7 +145,7 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
 
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "evaluate"))
 def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
-    cfg = _compose("evaluate", [f"task={name}", "logger=none"], tmp_path)
+    cfg = compose_config("evaluate", [f"task={name}", "logger=none"], tmp_path)
     task = instantiate(cfg.task, _convert_="all")
     assert task.name == name
     scenes = [task.sample_scene(task.conditions[-1], i).as_dict() for i in range(3)]
@@ -171,7 +157,7 @@ def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
 def test_generation_tasks_and_transports_build_from_the_generate_config(name, tmp_path):
     from kpflow.policies.segment_transport import SegmentTransport
 
-    cfg = _compose("generate", [f"task={name}"], tmp_path)
+    cfg = compose_config("generate", [f"task={name}"], tmp_path)
     task = instantiate(cfg.task)
     assert task.name == name and set(cfg.families) <= set(cfg.transports)
     assert all(isinstance(instantiate(t), SegmentTransport) for t in cfg.transports.values())
@@ -184,7 +170,7 @@ def test_generation_tasks_and_transports_build_from_the_generate_config(name, tm
 def test_experiment_options_compose_and_instantiate(name, entry, tmp_path):
     # suite_policy evaluates a trained checkpoint: any K-CFM builds it (the released Push-T one here)
     extra = [f"policy.checkpoint={RELEASED}"] if name == "suite_policy" else []
-    cfg = _compose(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
+    cfg = compose_config(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
     if entry == "evaluate":
         run = instantiate(cfg.experiment)
         assert isinstance(run, partial) and callable(run)

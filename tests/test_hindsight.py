@@ -12,6 +12,7 @@ from kpflow.data.hindsight import HindsightGoals, fragment_episodes
 from kpflow.data.pusht_demos import PUSHT_HINDSIGHT, pusht_hindsight
 from kpflow.data.source_index import SourceIndex
 from kpflow.tasks.pusht.geometry import coverage
+from tests.helpers import compose_config
 
 LENGTHS = [4, 1, 7]
 PUSHT = Path(__file__).resolve().parents[2] / "shared/data/pusht_cchi_v7_replay.zarr"
@@ -78,20 +79,10 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
         PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
     # The data node says which reading a learned policy trains on: data.relabel_fragments (default: as recorded).
     for relabel, want in ((False, out), (True, everything)):
-        node = compose_data(store.path, relabel)
-        dm = hydra.utils.instantiate(node)
+        overrides = ["data=pusht_store", f"data.path={store.path}", f"data.relabel_fragments={str(relabel).lower()}"]
+        dm = hydra.utils.instantiate(compose_config("train", overrides, tmp_path).data)
         dm.setup()
-        rows = np.concatenate([np.arange(store.episode_slice(e).start, store.episode_slice(e).stop) for e in dm.train_episodes])
-        np.testing.assert_array_equal(dm.train_set.obs[rows], want[rows])
-
-
-def compose_data(path, relabel_fragments: bool):
-    """The ``data=pusht_store`` node of train.py's config for the store at ``path``."""
-    config_dir = str(Path(__file__).resolve().parents[1] / "conf")
-    with hydra.initialize_config_dir(config_dir=config_dir, version_base="1.3"):
-        cfg = hydra.compose("train", overrides=["data=pusht_store", f"data.path={path}", "data.val_fraction=0",
-                                                f"data.relabel_fragments={str(relabel_fragments).lower()}"])
-    return cfg.data
+        np.testing.assert_array_equal(dm.train_set.obs, want)  # the store's rows, whichever episodes train
 
 
 def test_bad_hindsight_input_is_refused():
