@@ -32,8 +32,11 @@ SETTLE_STEPS = 5  # control steps after a reset, holding the home pose, for the 
 
 
 def controller_config() -> dict:
-    """robosuite's BASIC composite controller for the Panda with its arm's OSC_POSE on absolute world poses."""
+    """robosuite's BASIC composite controller for the Panda with its arm's OSC_POSE on absolute world poses; only
+    the arm's part is kept (robosuite skips the others, the Panda has no base, torso, head, legs or left arm, with a
+    warning at every reset)."""
     controller = load_composite_controller_config(controller="BASIC", robot="Panda")
+    controller["body_parts"] = {"right": controller["body_parts"]["right"]}
     controller["body_parts"]["right"].update(input_type="absolute", input_ref_frame="world")
     return controller
 
