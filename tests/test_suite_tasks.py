@@ -127,6 +127,54 @@ def test_failure_reasons(worlds):
     assert task.finish(env, unreachable) == (False, "not lifted")
 
 
+def test_the_source_distance_is_mimicgens_pose_measure_and_the_keypoints_see_symmetry():
+    from functools import partial
+
+    from kpflow.maps import AffineMap
+    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.base import SegmentStart
+
+    def start(pos, yaw):
+        rot = Rotation.from_euler("z", yaw).as_matrix()
+        return SegmentStart({"cube": (pos, rot)}, {"cube": object_keypoints("cube", pos, rot, 0.3, half=0.02)}, {"cube": yaw}, pos[None])
+
+    pos = np.array([0.1, 0.0, 0.82])
+    source, now = start(pos, 0.3), start(pos + [0.03, 0.04, 0.0], 0.3 + np.pi / 2 + 0.2)  # 5 cm, a quarter turn and 0.2 rad
+    mimicgen, rigid = SegmentTransport(None, in_hand=False), SegmentTransport(partial(AffineMap, kind="rigid"))
+    assert mimicgen.distance(source, now) == pytest.approx(0.05 + np.pi / 2 + 0.2)  # MimicGen's |dp| + angle, pos/rot weights 1
+    assert rigid.distance(source, now) == pytest.approx(0.05 + 0.2, abs=1e-9)  # a cube looks the same after a quarter turn
+    assert mimicgen.distance(source, source) == pytest.approx(0.0) and rigid.distance(source, source) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seeded(worlds):
+    from dataclasses import replace
+    from functools import partial
+
+    from kpflow.eval.generation import Generator
+    from kpflow.maps import AffineMap
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    task, env, segments, *_ = worlds["square"]
+
+    def shifted(segment, dx):  # the same segment recorded with every object 20 cm away
+        start = segment.start
+        poses = {k: (p + dx, r) for k, (p, r) in start.poses.items()}
+        return replace(segment, start=replace(start, poses=poses, keypoints={k: v + dx for k, v in start.keypoints.items()}))
+
+    far = [shifted(s, np.array([0.2, 0.0, 0.0])) for s in segments]
+    for family in (SegmentTransport(None, in_hand=False), SegmentTransport(partial(AffineMap, kind="rigid"))):
+        nearest = Generator(task, {"f": family}, n_sources=2, candidates=1)
+        nearest.env, nearest.sources = env, [far, segments]
+        env.reset_to(task.sample_scene(env, "d0", 0))  # the scene the real source was recorded in
+        assert [nearest.choose_source(family, i) for i in range(5)] == [1] * 5
+    anyone = Generator(task, {"f": family}, n_sources=2)
+    anyone.env, anyone.sources = env, [far, segments]
+    drawn = [anyone.choose_source(family, i) for i in range(40)]
+    assert drawn == [anyone.choose_source(family, i) for i in range(40)] and set(drawn) == {0, 1}
+    with pytest.raises(ValueError, match="candidates"):
+        Generator(task, {"f": family}, candidates=0)
+
+
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
     """Two generation attempts per family on lift's d0 scenes, written like a CLI run."""

@@ -34,10 +34,14 @@ CONTROL_FREQ = 20  # Hz: robosuite's control rate, for the real-time ratio
 class Generator:
     """One worker's simulator and source demonstrations, and one generation attempt (module docstring)."""
 
-    def __init__(self, task: SuiteTask, families: dict[str, SegmentTransport], n_sources: int = 1, seed: int = 0, render: bool = False):
+    def __init__(self, task: SuiteTask, families: dict[str, SegmentTransport], n_sources: int = 1, seed: int = 0, render: bool = False,
+                 candidates: int | None = None):  # fmt: skip
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
+        if candidates is not None and (isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1):
+            raise ValueError(f"candidates must be None (a source at random) or an integer >= 1; got {candidates!r}")
         self.task, self.families, self.n_sources, self.seed, self.render = task, dict(families), n_sources, seed, render
+        self.candidates = candidates
         self.env = self.sources = None
 
     def setup(self) -> None:
@@ -54,14 +58,28 @@ class Generator:
         if not self.sources:
             raise RuntimeError(f"{self.task.name}: none of the {self.n_sources} scripted source demonstrations succeeded")
 
+    def choose_source(self, transport: SegmentTransport, index: int) -> int:
+        """The source an attempt follows, from the scene just reset: with ``candidates`` None any source (drawn
+        with ``seed`` and ``index``: MimicGen's ``random``), else one drawn uniformly among the ``candidates``
+        sources whose first segment's reference object lies nearest, by ``transport``'s
+        :meth:`~kpflow.policies.segment_transport.SegmentTransport.distance` (MimicGen's
+        ``nearest_neighbor_object``, its ``nn_k`` being 3)."""
+        rng = np.random.default_rng([self.seed, index])
+        if self.candidates is None:
+            return int(rng.integers(len(self.sources)))
+        first = [segments[0] for segments in self.sources]
+        distances = [transport.distance(s.start, self.task.observe(self.env, s.name, reference=s.start)) for s in first]
+        nearest = np.argsort(distances, kind="stable")[: self.candidates]
+        return int(nearest[rng.integers(len(nearest))])
+
     def attempt(self, variant: str, index: int, family: str, frames: list | None = None) -> tuple[dict, dict | None]:
         """One attempt: its record and, if it succeeded, the episode (``action [T, 7]``, robosuite's; ``ee_target
         [T, 10]``, the same as position, 6-D rotation and gripper; ``keypoints [T, K, 3]``; ``state [T, S]``;
         ``ee_pos [T, 3]``)."""
         task, env, transport = self.task, self.env, self.families[family]
         scene = task.sample_scene(env, variant, index, self.seed)
-        source_id = int(np.random.default_rng([self.seed, index]).integers(len(self.sources)))
         env.reset_to(scene)
+        source_id = self.choose_source(transport, index)
         runs, failure, trajectory = [], None, None
         for segment in self.sources[source_id]:
             now = task.observe(env, segment.name, reference=segment.start)
@@ -125,6 +143,7 @@ def generate(
     n: int = 200,
     n_sources: int = 1,
     seed: int = 0,
+    candidates: int | None = None,
     workers: int = 2,
     videos: int = 1,
     export: bool = True,
@@ -146,7 +165,7 @@ def generate(
     if taken:
         raise FileExistsError(f"{taken[0]} exists: generation writes a fresh store per variant and family (choose another output_dir)")
     out.mkdir(parents=True, exist_ok=True)
-    generator = Generator(task, families, n_sources, seed)
+    generator = Generator(task, families, n_sources, seed, candidates=candidates)
     summaries, throughput, records = {}, {}, []
     for variant in variants:
         for family in families:
@@ -172,13 +191,15 @@ def generate(
     results = {
         "task": task.name,
         "n_sources": n_sources,
+        "candidates": candidates,
         "seed": seed,
         "summary": [{"variant": v, "family": f, **s, **throughput[(v, f)]} for (v, f), s in summaries.items()],
         "attempts": records,
         "videos": video_paths,
     }
     write_json(out / "results.json", results)
-    header = f"# Generation: {task.name}\n\n{n} attempts per variant and family, {n_sources} scripted source(s), seed {seed}.\n\n"
+    header = f"# Generation: {task.name}\n\n{n} attempts per variant and family, {n_sources} scripted source(s), seed {seed}"
+    header += f", each attempt's source among the {candidates} nearest.\n\n" if candidates else ".\n\n"
     write_text(out / "results.md", header + rate_table(summaries, throughput))
     return results
 
@@ -191,7 +212,7 @@ def generator_env_kwargs(task: SuiteTask) -> dict:
 def _film(out: Path, generator: Generator, variant: str, family: str, videos: int) -> list[str]:
     if not videos:
         return []
-    filming = Generator(generator.task, generator.families, generator.n_sources, generator.seed, render=True)
+    filming = Generator(generator.task, generator.families, generator.n_sources, generator.seed, render=True, candidates=generator.candidates)
     filming.setup()
     paths = []
     for index in range(videos):

@@ -83,6 +83,22 @@ class SegmentTransport:
         """The keypoints ``[N, 3]`` the map is fitted on, from a segment's start (recorded, or observed now)."""
         return np.concatenate(list(start.keypoints.values()) + ([start.gripper] if self.gripper_keypoint else []))
 
+    def distance(self, source: SegmentStart, now: SegmentStart) -> float:
+        """How far the reference object moved between a source segment's start and ``now``, in MimicGen's
+        ``nearest_neighbor_object`` measure ``|p_n - p_s| + theta`` (m + rad, its unit weights), theta the angle of
+        the turn. MimicGen's family turns by the object's pose, ``R_n R_s^T``, and ``p`` is its position; a keypoint
+        map's by the rigid fit of the keypoints (the least turn that looks the same, for a symmetric object), ``p``
+        their centroid."""
+        if self.make_map is None:
+            reference = next(iter(source.keypoints))
+            (p_s, r_s), (p_n, r_n) = source.poses[reference], now.poses[reference]
+            turn = r_n @ r_s.T
+        else:
+            kp_s, kp_n = (np.concatenate(list(start.keypoints.values())) for start in (source, now))
+            turn, _ = rigid_fit(kp_s, kp_n)
+            p_s, p_n = kp_s.mean(0), kp_n.mean(0)
+        return float(np.linalg.norm(p_n - p_s) + Rotation.from_matrix(turn).magnitude())
+
     def _moved(self, source: Segment, now: SegmentStart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         traj = source.trajectory
         if self.make_map is None:
