@@ -12,10 +12,9 @@ from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from kpflow.maps.base import TransportMap
-from tests.helpers import compose_config, keypoint_pair, train_learned_map, walk_to_block_store
+from tests.helpers import CONF, compose_config, keypoint_pair, train_learned_map, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
 RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 
 # group -> {option: entry point that composes it}
@@ -51,7 +50,7 @@ def test_every_config_file_is_covered():
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["hydra/launcher"]))
-def test_submitit_launcherscompose_config(name, tmp_path):
+def test_submitit_launchers_compose(name, tmp_path):
     cfg = compose_config("train", [f"hydra/launcher={name}"], tmp_path)
     launcher = cfg.hydra.launcher
     assert launcher._target_.startswith("hydra_plugins.hydra_submitit_launcher") and launcher.timeout_min > 0
