@@ -21,6 +21,7 @@ KEYS = {
     "n": Key(int, lo=1),
     "n_sources": Key(int, lo=1),
     "candidates": Key(int, lo=1, nullable=True),
+    "stop_early": Key(bool),
     "seed": Key(int, lo=0),
     "workers": Key(int, lo=1),
     "videos": Key(int, lo=0),
@@ -40,7 +41,8 @@ def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS)
     families = {name: instantiate(cfg.transports[name]) for name in cfg.families}
     results = generate(out, task, families, list(cfg.variants), n=cfg.n, n_sources=cfg.n_sources, seed=cfg.seed,
-                       candidates=cfg.candidates, workers=cfg.workers, videos=cfg.videos, export=cfg.export)  # fmt: skip
+                       candidates=cfg.candidates, stop_early=cfg.stop_early, workers=cfg.workers, videos=cfg.videos,
+                       export=cfg.export)  # fmt: skip
     for row in results["summary"]:
         print(f"{task.name} {row['variant']} {row['family']}: {row['successes']}/{row['trials']} generated")
     return results

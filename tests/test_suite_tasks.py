@@ -175,6 +175,27 @@ def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seed
         Generator(task, {"f": family}, candidates=0)
 
 
+def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
+    from dataclasses import replace
+
+    from kpflow.eval.generation import Generator
+    from kpflow.policies.segment_transport import SegmentTransport
+
+    task, env, segments, *_ = worlds["square"]
+    pick, place = segments
+    open_jaws = replace(pick, trajectory=replace(pick.trajectory, grasp=np.zeros_like(pick.trajectory.grasp)))
+    family = SegmentTransport(None, in_hand=False)
+    records = {}
+    for stop_early in (True, False):
+        generator = Generator(task, {"f": family}, stop_early=stop_early)
+        generator.env, generator.sources = env, [[open_jaws, place]]
+        records[stop_early] = generator.attempt("d0", 0, "f")[0]  # the source's own scene, the jaws never closing
+    assert records[True]["failure"] == records[False]["failure"] == "not grasped"
+    assert not records[True]["success"] and not records[False]["success"]
+    # stopped after the pick, or ran the place too
+    assert len(pick.trajectory) <= records[True]["steps"] < len(pick.trajectory) + len(place.trajectory) <= records[False]["steps"]
+
+
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
     """Two generation attempts per family on lift's d0 scenes, written like a CLI run."""

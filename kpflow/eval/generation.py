@@ -6,7 +6,8 @@ variant resets to that variant's scene ``i``, takes a source (seeded by ``seed``
 the same source in the same scene), and for each segment observes its start, plans it with the family's
 :class:`~kpflow.policies.segment_transport.SegmentTransport`, and runs it; a segment that fails (the arm stuck or at
 a joint limit, the object not in the jaws) ends the attempt with its reason, otherwise robosuite's success test
-decides. Successes are kept: :func:`generate` writes them into one
+decides; with ``stop_early`` False every segment runs and the success test decides anyway (MimicGen's way: it checks
+only the task's success), the first failed check kept as the reason of an attempt that fails. Successes are kept: :func:`generate` writes them into one
 :class:`~kpflow.data.episode_store.EpisodeStore` per family and exports them in robomimic's hdf5 layout.
 """
 
@@ -35,13 +36,13 @@ class Generator:
     """One worker's simulator and source demonstrations, and one generation attempt (module docstring)."""
 
     def __init__(self, task: SuiteTask, families: dict[str, SegmentTransport], n_sources: int = 1, seed: int = 0, render: bool = False,
-                 candidates: int | None = None):  # fmt: skip
+                 candidates: int | None = None, stop_early: bool = True):  # fmt: skip
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
         if candidates is not None and (isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1):
             raise ValueError(f"candidates must be None (a source at random) or an integer >= 1; got {candidates!r}")
         self.task, self.families, self.n_sources, self.seed, self.render = task, dict(families), n_sources, seed, render
-        self.candidates = candidates
+        self.candidates, self.stop_early = candidates, stop_early
         self.env = self.sources = None
 
     def setup(self) -> None:
@@ -80,22 +81,23 @@ class Generator:
         scene = task.sample_scene(env, variant, index, self.seed)
         env.reset_to(scene)
         source_id = self.choose_source(transport, index)
-        runs, failure, trajectory = [], None, None
+        runs, failure, trajectory, planned = [], None, None, True
         for segment in self.sources[source_id]:
             now = task.observe(env, segment.name, reference=segment.start)
             try:
                 trajectory = transport.plan(segment, now, *env.ee_pose())
             except (ValueError, RuntimeError) as error:  # a map that cannot be fitted on these keypoints
-                failure = f"map failed: {type(error).__name__}"
+                failure, planned = f"map failed: {type(error).__name__}", False
                 break
             run = task.run_segment(env, trajectory, frames)
             runs.append(run)
-            failure = run.failure or task.segment_failure(env, segment.name)
-            if failure:
+            failure = failure or run.failure or task.segment_failure(env, segment.name)
+            if failure and self.stop_early:
                 break
         success = False
-        if failure is None:
-            success, failure = task.finish(env, trajectory)
+        if planned and (failure is None or not self.stop_early):
+            success, end_failure = task.finish(env, trajectory)
+            failure = None if success else failure or end_failure
         steps = int(sum(len(r.actions) for r in runs))
         record = {"variant": variant, "index": index, "family": family, "source": source_id, "success": bool(success),
                   "failure": failure, "steps": steps, "scene": scene.as_dict()}  # fmt: skip
@@ -144,6 +146,7 @@ def generate(
     n_sources: int = 1,
     seed: int = 0,
     candidates: int | None = None,
+    stop_early: bool = True,
     workers: int = 2,
     videos: int = 1,
     export: bool = True,
@@ -165,7 +168,7 @@ def generate(
     if taken:
         raise FileExistsError(f"{taken[0]} exists: generation writes a fresh store per variant and family (choose another output_dir)")
     out.mkdir(parents=True, exist_ok=True)
-    generator = Generator(task, families, n_sources, seed, candidates=candidates)
+    generator = Generator(task, families, n_sources, seed, candidates=candidates, stop_early=stop_early)
     summaries, throughput, records = {}, {}, []
     for variant in variants:
         for family in families:
@@ -192,6 +195,7 @@ def generate(
         "task": task.name,
         "n_sources": n_sources,
         "candidates": candidates,
+        "stop_early": stop_early,
         "seed": seed,
         "summary": [{"variant": v, "family": f, **s, **throughput[(v, f)]} for (v, f), s in summaries.items()],
         "attempts": records,
@@ -199,7 +203,8 @@ def generate(
     }
     write_json(out / "results.json", results)
     header = f"# Generation: {task.name}\n\n{n} attempts per variant and family, {n_sources} scripted source(s), seed {seed}"
-    header += f", each attempt's source among the {candidates} nearest.\n\n" if candidates else ".\n\n"
+    header += f", each attempt's source among the {candidates} nearest" if candidates else ""
+    header += ".\n\n" if stop_early else ", every segment run to the success test.\n\n"
     write_text(out / "results.md", header + rate_table(summaries, throughput))
     return results
 
@@ -212,7 +217,8 @@ def generator_env_kwargs(task: SuiteTask) -> dict:
 def _film(out: Path, generator: Generator, variant: str, family: str, videos: int) -> list[str]:
     if not videos:
         return []
-    filming = Generator(generator.task, generator.families, generator.n_sources, generator.seed, render=True, candidates=generator.candidates)
+    filming = Generator(generator.task, generator.families, generator.n_sources, generator.seed, render=True,
+                        candidates=generator.candidates, stop_early=generator.stop_early)  # fmt: skip
     filming.setup()
     paths = []
     for index in range(videos):
