@@ -7,8 +7,9 @@ the same source in the same scene), and for each segment observes its start, pla
 :class:`~kpflow.policies.segment_transport.SegmentTransport`, and runs it; a segment that fails (the arm stuck or at
 a joint limit, the object not in the jaws) ends the attempt with its reason, otherwise robosuite's success test
 decides; with ``stop_early`` False every segment runs and the success test decides anyway (MimicGen's way: it checks
-only the task's success), the first failed check kept as the reason of an attempt that fails. Successes are kept: :func:`generate` writes them into one
-:class:`~kpflow.data.episode_store.EpisodeStore` per family and exports them in robomimic's hdf5 layout.
+only the task's success), the first failed check kept as the reason of an attempt that fails. Successes are kept:
+:func:`generate` writes them into one :class:`~kpflow.data.episode_store.EpisodeStore` per family and exports them
+in robomimic's hdf5 layout.
 """
 
 from __future__ import annotations
