@@ -82,13 +82,14 @@ class Generator:
         scene = task.sample_scene(env, variant, index, self.seed)
         env.reset_to(scene)
         source_id = self.choose_source(transport, index)
-        runs, failure, trajectory, planned = [], None, None, True
-        for segment in self.sources[source_id]:
+        segments = self.sources[source_id]
+        runs, failure, trajectory = [], None, None
+        for segment in segments:
             now = task.observe(env, segment.name, reference=segment.start)
             try:
                 trajectory = transport.plan(segment, now, *env.ee_pose())
             except (ValueError, RuntimeError) as error:  # a map that cannot be fitted on these keypoints
-                failure, planned = f"map failed: {type(error).__name__}", False
+                failure = failure or f"map failed: {type(error).__name__}"
                 break
             run = task.run_segment(env, trajectory, frames)
             runs.append(run)
@@ -96,7 +97,7 @@ class Generator:
             if failure and self.stop_early:
                 break
         success = False
-        if planned and (failure is None or not self.stop_early):
+        if len(runs) == len(segments) and (failure is None or not self.stop_early):
             success, end_failure = task.finish(env, trajectory)
             failure = None if success else failure or end_failure
         steps = int(sum(len(r.actions) for r in runs))
