@@ -99,10 +99,6 @@ class PackingEnv(SuctionArmEnv):
         rim = CONTAINER_SIZE[2] / 2
         return bool(np.all(np.abs(local[:2]) < inner) and local[2] - half[2] < rim and not self.holding())
 
-    def arm_touches_container(self) -> bool:
-        """Whether any geom of the arm or its cup is in contact with the container."""
-        return self.arm_touches(self.container_geoms)
-
     def render_topdown(self) -> dict:
         """:meth:`SuctionArmEnv.render_topdown` plus ``mask [H, W]``: the scene's object's pixels."""
         image = super().render_topdown()

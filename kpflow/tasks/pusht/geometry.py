@@ -97,14 +97,3 @@ def coverage(block_pose, goal_pose) -> float:
 def wrap_angle(theta):
     """Angle(s) wrapped to ``[-pi, pi)``."""
     return (np.asarray(theta) + np.pi) % (2 * np.pi) - np.pi
-
-
-def pose_error(pose_a, pose_b) -> tuple[float, float]:
-    """Position distance (px) and absolute wrapped angle difference (rad) between two poses."""
-    a, b = np.asarray(pose_a, float), np.asarray(pose_b, float)
-    return float(np.hypot(*(a[:2] - b[:2]))), float(abs(wrap_angle(a[2] - b[2])))
-
-
-def keypoint_error(pose_a, pose_b) -> float:
-    """Mean distance between the 12 keypoints of two T poses (px): one number for position and angle."""
-    return float(np.linalg.norm(t_keypoints(pose_a) - t_keypoints(pose_b), axis=-1).mean())
