@@ -55,6 +55,7 @@ VARIANTS = [
     ("I-CFM, U-Net (32, 64) (default)", {}),
     ("DDPM + DDIM, U-Net (32, 64)", {"objective": "ddpm"}),
     ("I-CFM, U-Net (32, 64), 2 observation frames", {"n_obs": 2}),
+    ("I-CFM, U-Net (64, 128)", {"down_dims": [64, 128]}),
     ("I-CFM, U-Net (64, 128, 256)", {"down_dims": [64, 128, 256]}),
     ("I-CFM, U-Net (128, 256, 512)", {"down_dims": [128, 256, 512]}),
     ("I-CFM, U-Net (256, 512, 1024) (Diffusion Policy's)", {"down_dims": [256, 512, 1024]}),
