@@ -55,7 +55,7 @@ def transport(
     weights: dict | None = None,
     frame: str = "block",
     execute: int = 8,
-    fit_on: str = "all",
+    fit_on: str = "block_agent",
     **options,
 ):
     """:class:`TransportPolicy` over the demonstrations' index, its map fitted on the keypoints ``fit_on`` names
@@ -80,7 +80,7 @@ def transported_kcfm(
     weights: dict | None = None,
     frame: str = "block",
     pull_back: str = "agent",
-    fit_on: str = "all",
+    fit_on: str = "block_agent",
     **options,
 ):
     """:class:`~.transported_kcfm.TransportedKCFMPolicy` of the K-CFM at ``checkpoint`` over the demonstrations' index,
