@@ -63,7 +63,7 @@ STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
 def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_path):
     """Transported K-CFM of Table 1 is the released K-CFM plus the store it was trained on (35 demos + corrections),
     built from the evaluation's own config: on the first object-OOD evaluation configuration its row's run covered
-    the goal to 0.85 at step 472 (``results/pusht_table1.md``), which a policy acting at random never does."""
+    the goal to 0.85 at step 472 (``results/pusht_table1.md``); here it must do so within 600 steps."""
     from hydra.utils import instantiate
 
     from kpflow.data.episode_store import EpisodeStore
@@ -80,4 +80,4 @@ def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_p
     )  # fmt: skip
     trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=600)
     result = trial.run("object_ood", 10_000, {"policy": "transported_kcfm"}, seed=cfg.seed)
-    assert result.scores["success_085"] and result.scores["steps_085"] <= 600, result.scores
+    assert result.scores["success_085"], result.scores
