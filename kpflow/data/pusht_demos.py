@@ -11,10 +11,10 @@ from .chunks import ChunkDataModule
 from .collection import check_collection, collect_pusht, collection_attrs
 from .episode_store import EpisodeStore
 from .hindsight import GOALS, HindsightGoals
-from .source_index import PUSHT_BLOCK
+from .source_index import PUSHT_BLOCK, PUSHT_GOAL
 
 #: Push-T's goal keypoints (12..23) are where the block's (0..11) belong, in the same order.
-PUSHT_HINDSIGHT = HindsightGoals(object=PUSHT_BLOCK, goal=tuple(k + len(PUSHT_BLOCK) for k in PUSHT_BLOCK))
+PUSHT_HINDSIGHT = HindsightGoals(object=PUSHT_BLOCK, goal=PUSHT_GOAL)
 
 
 def pusht_hindsight(goals: str) -> HindsightGoals | None:

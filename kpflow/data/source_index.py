@@ -27,6 +27,7 @@ from .episode_store import EpisodeStore
 from .hindsight import HindsightGoals
 
 PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
+PUSHT_GOAL = tuple(range(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS))  # the goal's, in the block's order
 
 
 def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:

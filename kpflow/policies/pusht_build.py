@@ -7,7 +7,7 @@ from typing import Callable
 
 from ..data.chunks import ChunkDataModule
 from ..data.episode_store import EpisodeStore
-from ..data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from ..data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex, pusht_weights
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .chunk_transport import TransportPolicy
@@ -65,10 +65,14 @@ def transport(
     return TransportPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute, fit_on=fit, **options)
 
 
-def kcfm(checkpoint: str, steps: int = 10, execute: int = 8):
+def kcfm(checkpoint: str, steps: int = 10, execute: int = 8, reach: float | None = None):
+    """The K-CFM at ``checkpoint``; with ``reach``, shown its goal at most ``reach`` px from the block
+    (:class:`~.subgoal.SubgoalPolicy`)."""
     from .kcfm_policy import KCFMPolicy
+    from .subgoal import SubgoalPolicy
 
-    return KCFMPolicy.from_checkpoint(checkpoint, steps, execute)
+    policy = KCFMPolicy.from_checkpoint(checkpoint, steps, execute)
+    return policy if reach is None else SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
 
 
 def transported_kcfm(

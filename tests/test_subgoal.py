@@ -1,0 +1,74 @@
+"""The goal within reach (kpflow/policies/subgoal.py): closed form of the shift, and a real K-CFM acting on what the
+wrapper shows it, with one frame and with a history."""
+
+import numpy as np
+import pytest
+import torch
+
+from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL
+from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift
+from kpflow.tasks.pusht.geometry import observation_keypoints
+
+
+def _centroids(kp):
+    return kp[list(PUSHT_BLOCK)].mean(0), kp[list(PUSHT_GOAL)].mean(0)
+
+
+def test_shift_brings_a_far_goal_to_reach_on_the_line_and_leaves_a_near_one():
+    far = observation_keypoints((800.0, 700.0, 0.4), (256.0, 256.0, np.pi / 4), (100.0, 100.0))
+    block, goal = _centroids(far)
+    shift = subgoal_shift(far, PUSHT_BLOCK, PUSHT_GOAL, 200.0)
+    moved = far.copy()
+    moved[list(PUSHT_GOAL)] += shift
+    new_goal = _centroids(moved)[1]
+    assert np.linalg.norm(new_goal - block) == pytest.approx(200.0, abs=1e-9)
+    np.testing.assert_allclose(new_goal, block + 200.0 * (goal - block) / np.linalg.norm(goal - block), atol=1e-9)
+    # a translation: the goal's shape and orientation are kept
+    np.testing.assert_allclose(moved[list(PUSHT_GOAL)] - new_goal, far[list(PUSHT_GOAL)] - goal, atol=1e-9)
+    distance = np.linalg.norm(goal - block)
+    np.testing.assert_array_equal(subgoal_shift(far, PUSHT_BLOCK, PUSHT_GOAL, distance + 1.0), np.zeros(2))
+
+
+def _model(n_obs: int) -> KCFM:
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    model = KCFM(horizon=8, n_obs=n_obs, goal_frame=True, down_dims=[16, 32]).eval()
+    train = np.stack([observation_keypoints((*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256.0, 256.0, 0.8),
+                                            rng.uniform(50, 450, 2)) for _ in range(32)])
+    model.set_normalisation(train, train[:, -1:] + rng.normal(0.0, 20.0, (32, 8, 2)))
+    return model
+
+
+@pytest.mark.parametrize("n_obs", [1, 2])
+def test_policy_acts_on_the_goal_within_reach(n_obs):
+    """The wrapped K-CFM returns what the plain one returns for the observation with the goal moved by hand (same
+    noise); within reach, exactly what the plain one returns for the observation itself."""
+    model = _model(n_obs)
+    plain, wrapped = KCFMPolicy(model, steps=3, execute=4), SubgoalPolicy(KCFMPolicy(model, steps=3, execute=4), PUSHT_BLOCK, PUSHT_GOAL, 150.0)
+    far = observation_keypoints((850.0, 600.0, 1.0), (256.0, 256.0, 0.8), (300.0, 300.0))
+    near = observation_keypoints((300.0, 220.0, 1.0), (256.0, 256.0, 0.8), (300.0, 400.0))
+    for kp, moves in ((far, True), (near, False)):
+        obs = {"keypoints": kp}
+        if n_obs > 1:
+            obs["keypoints_history"] = np.stack([kp + [5.0, 0.0], kp])
+        shown = {k: np.array(v) for k, v in obs.items()}
+        shift = subgoal_shift(kp, PUSHT_BLOCK, PUSHT_GOAL, 150.0)
+        assert np.linalg.norm(shift) > 100.0 if moves else not shift.any()
+        for v in shown.values():
+            v[..., list(PUSHT_GOAL), :] += shift  # every frame by the current frame's shift
+        plain.reset(5), wrapped.reset(5)
+        expected = plain.act(shown)
+        np.testing.assert_array_equal(wrapped.act(obs), expected)
+        plain.reset(5)
+        assert np.array_equal(plain.act(obs), expected) != moves  # the move changes the chunk: the check has teeth
+
+
+def test_bad_reach_and_keypoints_are_refused():
+    policy = KCFMPolicy(_model(1))
+    for reach in (0.0, -5.0, float("inf"), float("nan"), True, "200"):
+        with pytest.raises(ValueError, match="reach must be a positive finite distance"):
+            SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
+    with pytest.raises(ValueError, match="none in common"):
+        SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_BLOCK, 100.0)
