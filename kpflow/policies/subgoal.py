@@ -2,7 +2,7 @@
 
 A policy learned from demonstrations has seen the goal only so far from the object (in the Push-T Table 1 store,
 centroids 379 px apart at the 99th percentile of its chunks), while Push-T's object-OOD split starts the block up
-to 960 px from the goal (median 498 px). Before the wrapped policy acts, the observation's goal keypoints ``g_j``
+to 953 px from the goal (median 494 px). Before the wrapped policy acts, the observation's goal keypoints ``g_j``
 are translated towards the object, keeping the goal's orientation:
 
     g_j' = g_j + (min(1, r / |c_g - c_o|) - 1) (c_g - c_o),
