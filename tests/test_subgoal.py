@@ -9,7 +9,9 @@ from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift
+from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.geometry import observation_keypoints
+from kpflow.tasks.pusht.rollout import run_episode
 
 
 def _centroids(kp):
@@ -63,6 +65,14 @@ def test_policy_acts_on_the_goal_within_reach(n_obs):
         np.testing.assert_array_equal(wrapped.act(obs), expected)
         plain.reset(5)
         assert np.array_equal(plain.act(obs), expected) != moves  # the move changes the chunk: the check has teeth
+
+
+def test_rollout_hands_the_wrapped_policy_its_history():
+    """The wrapper says how many frames its policy conditions on, so a real episode hands them over."""
+    policy = SubgoalPolicy(KCFMPolicy(_model(2), steps=2, execute=4), PUSHT_BLOCK, PUSHT_GOAL, 100.0)
+    assert policy.n_obs == 2
+    result = run_episode(PushTEnv(), policy, split_config("in_distribution", 0, 0), max_steps=8, seed=0)
+    assert result.steps == 8
 
 
 def test_bad_reach_and_keypoints_are_refused():

@@ -46,6 +46,7 @@ class SubgoalPolicy:
         if not object or not goal or set(object) & set(goal):
             raise ValueError(f"object and goal need >= 1 keypoint each and none in common; got {object} and {goal}")
         self.policy, self.object, self.goal, self.reach = policy, tuple(object), tuple(goal), float(reach)
+        self.n_obs = int(getattr(policy, "n_obs", 1))  # the observation history the rollout must hand over
 
     def reset(self, seed: int | None = None) -> None:
         self.policy.reset(seed)
