@@ -22,6 +22,7 @@ KEYS = {
     "steps": Key(int, lo=1),
     "execute": Key(int, lo=1),
     "control_hz": Key(float, lo=0),
+    "reach": Key(float, lo=0, nullable=True),
     "host": Key(str),
     "port": Key(int, lo=0),
     "max_message_mb": Key(float, lo=0),
@@ -36,7 +37,9 @@ def main(cfg: DictConfig) -> None:
     groups = OmegaConf.to_container(cfg.keypoint_groups) if cfg.keypoint_groups is not None else None
     fit_on = OmegaConf.to_container(cfg.fit_on) if cfg.fit_on is not None else None
     choice = OmegaConf.to_container(cfg.source)
-    deployment = load_deployment(cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice)
+    deployment = load_deployment(
+        cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice, cfg.reach
+    )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])
     server.run()

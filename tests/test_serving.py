@@ -19,14 +19,17 @@ import pytest
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex, pusht_weights
 from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment
 from kpflow.serving.deployment import source_index_path
 from kpflow.serving.server import HARD_LIMIT
 from kpflow.serving.wire import WireError, pack, unpack
 from kpflow.tasks.pusht.env import PushTEnv
+from kpflow.tasks.pusht.geometry import observation_keypoints
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
 from tests.helpers import walk_to_block_store
@@ -254,6 +257,24 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         load_deployment(checkpoint, transport="ilwr", fit_on=[99])
     with pytest.raises(ValueError, match="transport must be"):
         load_deployment(checkpoint, transport="spline")
+
+
+def test_kcfm_within_reach_is_served_as_it_acts_in_process():
+    """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
+    deployment = load_deployment(RELEASED, steps=4, reach=60)
+    assert deployment.metadata.policy == "kcfm/reach=60"
+    local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
+    plain = KCFMPolicy.from_checkpoint(RELEASED, steps=4)
+    obs = {"keypoints": observation_keypoints((420.0, 120.0, 0.3), (256.0, 256.0, np.pi / 4), (100.0, 400.0))}
+    with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
+        client.reset(3), local.reset(3), plain.reset(3)
+        served = client.act(obs)
+        np.testing.assert_array_equal(served, local.act(obs))
+        assert not np.array_equal(served, plain.act(obs))  # the goal 200 px away was moved: the check has teeth
+    with pytest.raises(ValueError, match="reach applies to the K-CFM as it is"):
+        load_deployment(RELEASED, transport="ilwr", reach=60)
+    with pytest.raises(ValueError, match="reach must be a positive"):
+        load_deployment(RELEASED, reach=0)
 
 
 def test_bad_source_index_file_is_a_clear_error(tmp_path):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..data.source_index import SourceIndex
+from ..data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex
 from ..maps import AffineMap, GPMap, ILWRMap
 from ..tasks.base import Policy
 from .protocol import PolicyMetadata
@@ -51,6 +51,7 @@ def load_deployment(
     keypoint_groups: dict[str, int] | None = None,
     fit_on: list[int] | None = None,
     choice: dict | None = None,
+    reach: float | None = None,
 ) -> Deployment:
     """The K-CFM of ``checkpoint`` ready to serve, transported online through a ``transport`` map (``"ilwr"``,
     ``"gp"``, ``"rigid"``; the source index is read from beside the checkpoint) or as it is (None). A transported one
@@ -58,6 +59,8 @@ def load_deployment(
     :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the nearest, no stuck detection, when None).
 
     ``keypoint_groups`` names the observation's keypoints in order (Push-T's by default when the count fits).
+    ``reach`` (px, the K-CFM as it is on Push-T's keypoints only) shows it its goal within that distance of the block
+    (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), an unknown map or groups that do not
@@ -65,6 +68,7 @@ def load_deployment(
     """
     from ..policies.kcfm import KCFM
     from ..policies.kcfm_policy import KCFMPolicy, check_steps_and_execute
+    from ..policies.subgoal import SubgoalPolicy
     from ..policies.transported_kcfm import TransportedKCFMPolicy
     from ..utils.checkpoint import load_checkpoint
 
@@ -79,7 +83,16 @@ def load_deployment(
     keypoint_groups = {str(name): int(n) for name, n in keypoint_groups.items()}
     if sum(keypoint_groups.values()) != k or min(keypoint_groups.values()) < 1:
         raise ValueError(f"keypoint_groups {keypoint_groups} must count the model's {k} keypoints, each group at least 1")
-    if transport is None:
+    if reach is not None and (transport is not None or keypoint_groups != PUSHT_KEYPOINTS):
+        raise ValueError(f"reach applies to the K-CFM as it is (transport=None) on Push-T's keypoints {PUSHT_KEYPOINTS}; got "
+                         f"transport={transport!r}, keypoint_groups={keypoint_groups}")
+    if transport is None and reach is not None:
+        SubgoalPolicy(KCFMPolicy(model, steps, execute), PUSHT_BLOCK, PUSHT_GOAL, reach)  # checks the reach now
+
+        def make_policy() -> Policy:
+            return SubgoalPolicy(KCFMPolicy(model, steps, execute), PUSHT_BLOCK, PUSHT_GOAL, reach)
+        name = f"kcfm/reach={float(reach):g}"
+    elif transport is None:
         def make_policy() -> Policy:
             return KCFMPolicy(model, steps, execute)
         name = "kcfm"
