@@ -270,7 +270,7 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         client.reset(3), local.reset(3), plain.reset(3)
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
-        assert not np.array_equal(served, plain.act(obs))  # the goal 200 px away was moved: the check has teeth
+        assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
     with pytest.raises(ValueError, match="reach applies to the K-CFM as it is"):
         load_deployment(RELEASED, transport="ilwr", reach=60)
     with pytest.raises(ValueError, match="reach must be a positive"):
