@@ -65,14 +65,19 @@ def transport(
     return TransportPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute, fit_on=fit, **options)
 
 
-def kcfm(checkpoint: str, steps: int = 10, execute: int = 8, reach: float | None = None):
-    """The K-CFM at ``checkpoint``; with ``reach``, shown its goal at most ``reach`` px from the block
-    (:class:`~.subgoal.SubgoalPolicy`)."""
-    from .kcfm_policy import KCFMPolicy
+def within_reach(policy, reach: float | None):
+    """``policy`` shown its Push-T goal at most ``reach`` px from the block (:class:`~.subgoal.SubgoalPolicy`); as it
+    is when ``reach`` is None."""
     from .subgoal import SubgoalPolicy
 
-    policy = KCFMPolicy.from_checkpoint(checkpoint, steps, execute)
     return policy if reach is None else SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
+
+
+def kcfm(checkpoint: str, steps: int = 10, execute: int = 8, reach: float | None = None):
+    """The K-CFM at ``checkpoint``, shown its goal within ``reach`` px of the block when given (:func:`within_reach`)."""
+    from .kcfm_policy import KCFMPolicy
+
+    return within_reach(KCFMPolicy.from_checkpoint(checkpoint, steps, execute), reach)
 
 
 def transported_kcfm(

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex
+from ..data.source_index import SourceIndex
 from ..maps import AffineMap, GPMap, ILWRMap
 from ..tasks.base import Policy
 from .protocol import PolicyMetadata
@@ -68,7 +68,7 @@ def load_deployment(
     """
     from ..policies.kcfm import KCFM
     from ..policies.kcfm_policy import KCFMPolicy, check_steps_and_execute
-    from ..policies.subgoal import SubgoalPolicy
+    from ..policies.pusht_build import within_reach
     from ..policies.transported_kcfm import TransportedKCFMPolicy
     from ..utils.checkpoint import load_checkpoint
 
@@ -86,16 +86,11 @@ def load_deployment(
     if reach is not None and (transport is not None or keypoint_groups != PUSHT_KEYPOINTS):
         raise ValueError(f"reach applies to the K-CFM as it is (transport=None) on Push-T's keypoints {PUSHT_KEYPOINTS}; got "
                          f"transport={transport!r}, keypoint_groups={keypoint_groups}")
-    if transport is None and reach is not None:
-        SubgoalPolicy(KCFMPolicy(model, steps, execute), PUSHT_BLOCK, PUSHT_GOAL, reach)  # checks the reach now
-
+    if transport is None:
         def make_policy() -> Policy:
-            return SubgoalPolicy(KCFMPolicy(model, steps, execute), PUSHT_BLOCK, PUSHT_GOAL, reach)
-        name = f"kcfm/reach={float(reach):g}"
-    elif transport is None:
-        def make_policy() -> Policy:
-            return KCFMPolicy(model, steps, execute)
-        name = "kcfm"
+            return within_reach(KCFMPolicy(model, steps, execute), reach)
+        make_policy()  # checks the reach now
+        name = "kcfm" if reach is None else f"kcfm/reach={float(reach):g}"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map = TRANSPORT_MAPS[transport]
