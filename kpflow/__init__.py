@@ -17,7 +17,7 @@ def load_policy(path, steps: int = 10, execute: int = 8):
 
     A checkpoint trained on a GPU loads too; a missing file raises ``FileNotFoundError`` and a corrupt one a
     ``ValueError`` naming the file. Wrap it in :class:`kpflow.policies.transported_kcfm.TransportedKCFMPolicy` for
-    online transport, or in :class:`kpflow.policies.subgoal.SubgoalPolicy` to show it its goal within reach.
+    online transport, or in :class:`kpflow.policies.subgoal.SubgoalPolicy` to show it its goal within reach and turn.
     """
     from kpflow.policies.kcfm_policy import KCFMPolicy
 

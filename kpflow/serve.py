@@ -23,6 +23,7 @@ KEYS = {
     "execute": Key(int, lo=1),
     "control_hz": Key(float, lo=0),
     "reach": Key(float, lo=0, nullable=True),
+    "turn_deg": Key(float, lo=0, nullable=True),
     "host": Key(str),
     "port": Key(int, lo=0),
     "max_message_mb": Key(float, lo=0),
@@ -38,7 +39,8 @@ def main(cfg: DictConfig) -> None:
     fit_on = OmegaConf.to_container(cfg.fit_on) if cfg.fit_on is not None else None
     choice = OmegaConf.to_container(cfg.source)
     deployment = load_deployment(
-        cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice, cfg.reach
+        cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice, cfg.reach,
+        cfg.turn_deg,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])

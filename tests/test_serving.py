@@ -271,10 +271,28 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
         assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
-    with pytest.raises(ValueError, match="reach applies to the K-CFM as it is"):
+    with pytest.raises(ValueError, match="reach apply to the K-CFM as it is"):
         load_deployment(RELEASED, transport="ilwr", reach=60)
-    with pytest.raises(ValueError, match="reach must be a positive"):
+    with pytest.raises(ValueError, match="reach and turn_deg apply to the K-CFM as it is"):
+        load_deployment(RELEASED, transport="ilwr", reach=60, turn_deg=30)
+    with pytest.raises(ValueError, match="reach must be None or a positive"):
         load_deployment(RELEASED, reach=0)
+    with pytest.raises(ValueError, match="turn_deg must be None or a positive"):
+        load_deployment(RELEASED, turn_deg=-1)
+
+
+def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
+    """``turn_deg`` with ``reach`` serves what SubgoalPolicy with both returns in process."""
+    deployment = load_deployment(RELEASED, steps=4, reach=60, turn_deg=30)
+    assert deployment.metadata.policy == "kcfm/reach=60/turn_deg=30"
+    local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
+    reach_only = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
+    obs = {"keypoints": observation_keypoints((300.0, 280.0, np.pi / 4 + 2.0), (256.0, 256.0, np.pi / 4), (100.0, 400.0))}
+    with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
+        client.reset(3), local.reset(3), reach_only.reset(3)
+        served = client.act(obs)
+        np.testing.assert_array_equal(served, local.act(obs))
+        assert not np.array_equal(served, reach_only.act(obs))  # the block is turned 2 rad from its goal: the goal was turned
 
 
 def test_bad_source_index_file_is_a_clear_error(tmp_path):

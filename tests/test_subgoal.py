@@ -8,7 +8,7 @@ import torch
 from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
-from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift
+from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift, subgoal_turn
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.geometry import observation_keypoints
 from kpflow.tasks.pusht.rollout import run_episode
@@ -31,6 +31,48 @@ def test_shift_brings_a_far_goal_to_reach_on_the_line_and_leaves_a_near_one():
     np.testing.assert_allclose(moved[list(PUSHT_GOAL)] - new_goal, far[list(PUSHT_GOAL)] - goal, atol=1e-9)
     distance = np.linalg.norm(goal - block)
     np.testing.assert_array_equal(subgoal_shift(far, PUSHT_BLOCK, PUSHT_GOAL, distance + 1.0), np.zeros(2))
+
+
+def _turn(kp):
+    """The Procrustes angle from the block's centred keypoints to the goal's (radians)."""
+    o, g = kp[list(PUSHT_BLOCK)], kp[list(PUSHT_GOAL)]
+    o, g = o - o.mean(0), g - g.mean(0)
+    return np.arctan2(np.sum(o[:, 0] * g[:, 1] - o[:, 1] * g[:, 0]), np.sum(o * g))
+
+
+@pytest.mark.parametrize("goal_angle", [np.pi / 4 + 2.5, np.pi / 4 - 2.5, np.pi / 4 + 0.3])
+def test_turn_brings_the_goal_within_the_limit_about_its_centre(goal_angle):
+    """Block at 0.785 rad, goal turned 2.5 rad either way (or 0.3, within the limit): the goal shown is the goal turned
+    about its centroid so that the block needs exactly 60 degrees (the sign kept), its shape and place kept."""
+    kp = observation_keypoints((300.0, 280.0, np.pi / 4), (256.0, 256.0, goal_angle), (100.0, 100.0))
+    assert _turn(kp) == pytest.approx(goal_angle - np.pi / 4, abs=1e-9)  # the Procrustes angle is the poses' difference
+    policy = SubgoalPolicy(KCFMPolicy(_model(1)), PUSHT_BLOCK, PUSHT_GOAL, turn_deg=60.0)
+    shown = policy.shown({"keypoints": kp})["keypoints"]
+    goal = list(PUSHT_GOAL)
+    expected = np.clip(goal_angle - np.pi / 4, -np.pi / 3, np.pi / 3)
+    assert _turn(shown) == pytest.approx(expected, abs=1e-9)
+    assert subgoal_turn(kp, PUSHT_BLOCK, PUSHT_GOAL, np.pi / 3) == pytest.approx(expected - (goal_angle - np.pi / 4), abs=1e-12)
+    np.testing.assert_allclose(shown[goal].mean(0), kp[goal].mean(0), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(shown[goal] - shown[goal][:1], axis=1), np.linalg.norm(kp[goal] - kp[goal][:1], axis=1), atol=1e-9)
+    np.testing.assert_array_equal(np.delete(shown, goal, 0), np.delete(kp, goal, 0))  # block and agent as observed
+    if abs(goal_angle - np.pi / 4) < np.pi / 3:
+        np.testing.assert_allclose(shown, kp, atol=1e-12)
+
+
+def test_turn_then_reach_on_every_frame():
+    """Both limits: the goal turned about its centroid, then moved to within reach; every frame of the history by
+    the current frame's turn and shift."""
+    kp = observation_keypoints((700.0, 650.0, 0.2), (256.0, 256.0, 0.2 + 3.0), (600.0, 600.0))
+    before = kp.copy()
+    before[list(PUSHT_BLOCK)] += [4.0, -3.0]  # the block moved; the goal did not
+    history = np.stack([before, kp])
+    policy = SubgoalPolicy(KCFMPolicy(_model(2)), PUSHT_BLOCK, PUSHT_GOAL, reach=150.0, turn_deg=45.0)
+    shown = policy.shown({"keypoints_history": history})["keypoints_history"]
+    block, goal = _centroids(shown[-1])
+    assert np.linalg.norm(goal - block) == pytest.approx(150.0, abs=1e-9)
+    assert _turn(shown[-1]) == pytest.approx(np.pi / 4, abs=1e-9)
+    np.testing.assert_allclose(shown[0][list(PUSHT_GOAL)], shown[1][list(PUSHT_GOAL)], atol=1e-12)
+    np.testing.assert_array_equal(shown[0][list(PUSHT_BLOCK)], before[list(PUSHT_BLOCK)])
 
 
 def _model(n_obs: int) -> KCFM:
@@ -78,7 +120,11 @@ def test_rollout_hands_the_wrapped_policy_its_history():
 def test_bad_reach_and_keypoints_are_refused():
     policy = KCFMPolicy(_model(1))
     for reach in (0.0, -5.0, float("inf"), float("nan"), True, "200"):
-        with pytest.raises(ValueError, match="reach must be a positive finite distance"):
+        with pytest.raises(ValueError, match="reach must be None or a positive finite number"):
             SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
+        with pytest.raises(ValueError, match="turn_deg must be None or a positive finite number"):
+            SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, 100.0, reach)
+    with pytest.raises(ValueError, match="in the object's order"):
+        SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL[:3], turn_deg=30.0)
     with pytest.raises(ValueError, match="none in common"):
         SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_BLOCK, 100.0)

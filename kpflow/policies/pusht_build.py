@@ -65,19 +65,22 @@ def transport(
     return TransportPolicy(pusht_index(demos, horizon, weights, frame), make_map, execute, fit_on=fit, **options)
 
 
-def within_reach(policy, reach: float | None):
-    """``policy`` shown its Push-T goal at most ``reach`` px from the block (:class:`~.subgoal.SubgoalPolicy`); as it
-    is when ``reach`` is None."""
+def within_reach(policy, reach: float | None, turn_deg: float | None = None):
+    """``policy`` shown its Push-T goal at most ``reach`` px from the block and turned at most ``turn_deg`` degrees
+    from it (:class:`~.subgoal.SubgoalPolicy`); as it is when both are None."""
     from .subgoal import SubgoalPolicy
 
-    return policy if reach is None else SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
+    if reach is None and turn_deg is None:
+        return policy
+    return SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach, turn_deg)
 
 
-def kcfm(checkpoint: str, steps: int = 10, execute: int = 8, reach: float | None = None):
-    """The K-CFM at ``checkpoint``, shown its goal within ``reach`` px of the block when given (:func:`within_reach`)."""
+def kcfm(checkpoint: str, steps: int = 10, execute: int = 8, reach: float | None = None, turn_deg: float | None = None):
+    """The K-CFM at ``checkpoint``, shown its goal within ``reach`` px and ``turn_deg`` degrees of the block when
+    given (:func:`within_reach`)."""
     from .kcfm_policy import KCFMPolicy
 
-    return within_reach(KCFMPolicy.from_checkpoint(checkpoint, steps, execute), reach)
+    return within_reach(KCFMPolicy.from_checkpoint(checkpoint, steps, execute), reach, turn_deg)
 
 
 def transported_kcfm(

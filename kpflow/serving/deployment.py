@@ -52,6 +52,7 @@ def load_deployment(
     fit_on: list[int] | None = None,
     choice: dict | None = None,
     reach: float | None = None,
+    turn_deg: float | None = None,
 ) -> Deployment:
     """The K-CFM of ``checkpoint`` ready to serve, transported online through a ``transport`` map (``"ilwr"``,
     ``"gp"``, ``"rigid"``; the source index is read from beside the checkpoint) or as it is (None). A transported one
@@ -59,8 +60,8 @@ def load_deployment(
     :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the nearest, no stuck detection, when None).
 
     ``keypoint_groups`` names the observation's keypoints in order (Push-T's by default when the count fits).
-    ``reach`` (px, the K-CFM as it is on Push-T's keypoints only) shows it its goal within that distance of the block
-    (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
+    ``reach`` (px) and ``turn_deg`` (degrees; the K-CFM as it is on Push-T's keypoints only) show it its goal within
+    that distance and turn of the block (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), an unknown map or groups that do not
@@ -83,14 +84,15 @@ def load_deployment(
     keypoint_groups = {str(name): int(n) for name, n in keypoint_groups.items()}
     if sum(keypoint_groups.values()) != k or min(keypoint_groups.values()) < 1:
         raise ValueError(f"keypoint_groups {keypoint_groups} must count the model's {k} keypoints, each group at least 1")
-    if reach is not None and (transport is not None or keypoint_groups != PUSHT_KEYPOINTS):
-        raise ValueError(f"reach applies to the K-CFM as it is (transport=None) on Push-T's keypoints {PUSHT_KEYPOINTS}; got "
-                         f"transport={transport!r}, keypoint_groups={keypoint_groups}")
+    limits = {name: value for name, value in (("reach", reach), ("turn_deg", turn_deg)) if value is not None}
+    if limits and (transport is not None or keypoint_groups != PUSHT_KEYPOINTS):
+        raise ValueError(f"{' and '.join(limits)} apply to the K-CFM as it is (transport=None) on Push-T's keypoints "
+                         f"{PUSHT_KEYPOINTS}; got transport={transport!r}, keypoint_groups={keypoint_groups}")
     if transport is None:
         def make_policy() -> Policy:
-            return within_reach(KCFMPolicy(model, steps, execute), reach)
-        make_policy()  # checks the reach now
-        name = "kcfm" if reach is None else f"kcfm/reach={float(reach):g}"
+            return within_reach(KCFMPolicy(model, steps, execute), reach, turn_deg)
+        make_policy()  # checks the limits now
+        name = "/".join(["kcfm", *(f"{k}={float(v):g}" for k, v in limits.items())])
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map = TRANSPORT_MAPS[transport]
