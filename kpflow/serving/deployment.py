@@ -92,7 +92,7 @@ def load_deployment(
         def make_policy() -> Policy:
             return within_reach(KCFMPolicy(model, steps, execute), reach, turn_deg)
         make_policy()  # checks the limits now
-        name = "/".join(["kcfm", *(f"{k}={float(v):g}" for k, v in limits.items())])
+        name = "/".join(["kcfm", *(f"{limit}={float(value):g}" for limit, value in limits.items())])
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map = TRANSPORT_MAPS[transport]
