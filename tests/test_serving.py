@@ -275,9 +275,9 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         load_deployment(RELEASED, transport="ilwr", reach=60)
     with pytest.raises(ValueError, match="reach and turn_deg apply to the K-CFM as it is"):
         load_deployment(RELEASED, transport="ilwr", reach=60, turn_deg=30)
-    with pytest.raises(ValueError, match="reach must be None or a positive"):
+    with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
         load_deployment(RELEASED, reach=0)
-    with pytest.raises(ValueError, match="turn_deg must be None or a positive"):
+    with pytest.raises(ValueError, match="turn_deg must be a positive finite number or None"):
         load_deployment(RELEASED, turn_deg=-1)
 
 

@@ -120,9 +120,9 @@ def test_rollout_hands_the_wrapped_policy_its_history():
 def test_bad_reach_and_keypoints_are_refused():
     policy = KCFMPolicy(_model(1))
     for reach in (0.0, -5.0, float("inf"), float("nan"), True, "200"):
-        with pytest.raises(ValueError, match="reach must be None or a positive finite number"):
+        with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
             SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, reach)
-        with pytest.raises(ValueError, match="turn_deg must be None or a positive finite number"):
+        with pytest.raises(ValueError, match="turn_deg must be a positive finite number or None"):
             SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL, 100.0, reach)
     with pytest.raises(ValueError, match="in the object's order"):
         SubgoalPolicy(policy, PUSHT_BLOCK, PUSHT_GOAL[:3], turn_deg=30.0)

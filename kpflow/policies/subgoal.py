@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..maps.validation import check_positive
 from ..tasks.base import Policy
 
 
@@ -53,14 +54,6 @@ def subgoal_turn(keypoints: np.ndarray, object: tuple[int, ...], goal: tuple[int
     return float(np.clip(theta, -turn, turn) - theta)
 
 
-def _positive(name: str, value) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be None or a positive finite number; got {value!r}")
-    return float(value)
-
-
 class SubgoalPolicy:
     """``policy`` acting on observations whose goal is turned to within ``turn_deg`` of the object
     (:func:`subgoal_turn`) and moved to within ``reach`` of it (:func:`subgoal_shift`).
@@ -77,7 +70,10 @@ class SubgoalPolicy:
 
     def __init__(self, policy: Policy, object: tuple[int, ...], goal: tuple[int, ...], reach: float | None = None,
                  turn_deg: float | None = None) -> None:  # fmt: skip
-        self.reach, self.turn_deg = _positive("reach", reach), _positive("turn_deg", turn_deg)
+        check_positive("reach", reach, optional=True, what=" (the largest object-goal distance shown)")
+        check_positive("turn_deg", turn_deg, optional=True, what=" (the largest object-goal turn shown, degrees)")
+        self.reach = None if reach is None else float(reach)
+        self.turn_deg = None if turn_deg is None else float(turn_deg)
         if not object or not goal or set(object) & set(goal):
             raise ValueError(f"object and goal need >= 1 keypoint each and none in common; got {object} and {goal}")
         if self.turn_deg is not None and len(object) != len(goal):
@@ -99,7 +95,7 @@ class SubgoalPolicy:
             a = subgoal_turn(current, self.object, self.goal, np.radians(self.turn_deg))
             rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
             current = current.copy()
-            current[goal] = centre + (current[goal] - centre) @ rotation.T
+            current[goal] = centre + (current[goal] - centre) @ rotation.T  # the shift is read off the turned goal
         shift = np.zeros(current.shape[-1]) if self.reach is None else subgoal_shift(current, self.object, self.goal, self.reach)
         shown = dict(obs)
         for key in ("keypoints", "keypoints_history"):
