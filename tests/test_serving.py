@@ -253,6 +253,17 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         for _ in range(4):  # the same scene four times: the fourth decision is taken as stuck, on both sides
             np.testing.assert_array_equal(client.act(obs), local.act(obs))
         assert local.source.stuck_count == 1
+    # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
+    deployment = load_deployment(checkpoint, transport="ilwr", steps=4, fit_on=fit_on, choice=choice, reach=60, turn_deg=30)
+    assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
+    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice),
+                            PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
+    far = {"keypoints": observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))}
+    with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
+        client.reset(2), limited.reset(2), local.reset(2)
+        served = client.act(far)
+        np.testing.assert_array_equal(served, limited.act(far))
+        assert not np.array_equal(served, local.act(far))  # the goal, 180 px off and turned 2.2 rad, was moved
     with pytest.raises(ValueError, match="fit_on"):
         load_deployment(checkpoint, transport="ilwr", fit_on=[99])
     with pytest.raises(ValueError, match="transport must be"):
@@ -271,10 +282,10 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
         assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
-    with pytest.raises(ValueError, match="reach apply to the K-CFM as it is"):
-        load_deployment(RELEASED, transport="ilwr", reach=60)
-    with pytest.raises(ValueError, match="reach and turn_deg apply to the K-CFM as it is"):
-        load_deployment(RELEASED, transport="ilwr", reach=60, turn_deg=30)
+    with pytest.raises(ValueError, match="reach apply to Push-T's keypoints"):
+        load_deployment(RELEASED, reach=60, keypoint_groups={"block": 12, "goal": 12, "robot": 1})
+    with pytest.raises(ValueError, match="reach and turn_deg apply to Push-T's keypoints"):
+        load_deployment(RELEASED, reach=60, turn_deg=30, keypoint_groups={"keypoints": 25})
     with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
         load_deployment(RELEASED, reach=0)
     with pytest.raises(ValueError, match="turn_deg must be a positive finite number or None"):

@@ -241,3 +241,25 @@ def test_the_kcfm_sees_the_source_scene_with_the_robot_pulled_back(untrained, in
     np.testing.assert_allclose(every.last_pullback, back, atol=1e-9)
     with pytest.raises(ValueError, match="pull_back"):
         TransportedKCFMPolicy(untrained, index, pull_back="scene")
+
+
+def test_built_with_reach_and_turn_it_searches_and_acts_on_the_shown_goal(trained, store_path):
+    """``policy.reach`` / ``policy.turn_deg`` wrap the transported K-CFM in :class:`SubgoalPolicy`: the source search
+    and the K-CFM see the goal moved within reach and turn, so it acts exactly as the plain policy on that observation."""
+    from kpflow.policies.pusht_build import transported_kcfm
+    from kpflow.policies.subgoal import SubgoalPolicy
+    from kpflow.tasks.pusht.geometry import observation_keypoints
+
+    _, ckpt = trained
+    demos = ChunkDataModule(store_path, horizon=H)
+    wrapped = transported_kcfm(str(ckpt), demos, weights={"agent": 4.0}, reach=60.0, turn_deg=20.0)
+    plain = transported_kcfm(str(ckpt), demos, weights={"agent": 4.0})
+    assert isinstance(wrapped, SubgoalPolicy) and isinstance(wrapped.policy, TransportedKCFMPolicy)
+    assert isinstance(plain, TransportedKCFMPolicy)
+    obs = _obs(observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0)))  # goal 180 px off, turned 2.2 rad
+    shown = wrapped.shown(obs)
+    assert not np.allclose(shown["keypoints"], obs["keypoints"])
+    wrapped.reset(3), plain.reset(3)
+    np.testing.assert_array_equal(wrapped.act(obs), plain.act(shown))
+    assert wrapped.policy.last_source == plain.last_source == plain.index.query(shown["keypoints"])[0]
+    assert plain.index.query(obs["keypoints"])[0] != plain.last_source  # the observed goal would find another source

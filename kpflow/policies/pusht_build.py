@@ -93,11 +93,14 @@ def transported_kcfm(
     frame: str = "block",
     pull_back: str = "agent",
     fit_on: str = "block_agent",
+    reach: float | None = None,
+    turn_deg: float | None = None,
     **options,
 ):
     """:class:`~.transported_kcfm.TransportedKCFMPolicy` of the K-CFM at ``checkpoint`` over the demonstrations' index,
-    its map fitted on the keypoints ``fit_on`` names (:data:`FIT_ON`); ``options``: its source selection and stuck
-    detection (:class:`~.source_choice.SourceChoice`)."""
+    its map fitted on the keypoints ``fit_on`` names (:data:`FIT_ON`), shown its goal within ``reach`` px and
+    ``turn_deg`` degrees of the block when given (:func:`within_reach`: the source search then looks for that goal);
+    ``options``: its source selection and stuck detection (:class:`~.source_choice.SourceChoice`)."""
     from hydra.utils import instantiate
 
     from .kcfm_policy import KCFMPolicy
@@ -107,4 +110,5 @@ def transported_kcfm(
     model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute).model  # first: a refused file collects nothing
     demos, make_map = (instantiate(x) if isinstance(x, Mapping) and "_target_" in x else x for x in (demos, make_map))
     index = pusht_index(demos, model.hparams.horizon, weights, frame)
-    return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit, **options)
+    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit, **options)
+    return within_reach(policy, reach, turn_deg)

@@ -60,8 +60,8 @@ def load_deployment(
     :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the nearest, no stuck detection, when None).
 
     ``keypoint_groups`` names the observation's keypoints in order (Push-T's by default when the count fits).
-    ``reach`` (px) and ``turn_deg`` (degrees; the K-CFM as it is on Push-T's keypoints only) show it its goal within
-    that distance and turn of the block (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
+    ``reach`` (px) and ``turn_deg`` (degrees; Push-T's keypoints only) show the policy, transported or not, its goal
+    within that distance and turn of the block (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), an unknown map or groups that do not
@@ -85,23 +85,23 @@ def load_deployment(
     if sum(keypoint_groups.values()) != k or min(keypoint_groups.values()) < 1:
         raise ValueError(f"keypoint_groups {keypoint_groups} must count the model's {k} keypoints, each group at least 1")
     limits = {name: value for name, value in (("reach", reach), ("turn_deg", turn_deg)) if value is not None}
-    if limits and (transport is not None or keypoint_groups != PUSHT_KEYPOINTS):
-        raise ValueError(f"{' and '.join(limits)} apply to the K-CFM as it is (transport=None) on Push-T's keypoints "
-                         f"{PUSHT_KEYPOINTS}; got transport={transport!r}, keypoint_groups={keypoint_groups}")
+    if limits and keypoint_groups != PUSHT_KEYPOINTS:
+        raise ValueError(f"{' and '.join(limits)} apply to Push-T's keypoints {PUSHT_KEYPOINTS}; got keypoint_groups={keypoint_groups}")
     if transport is None:
         def make_policy() -> Policy:
             return within_reach(KCFMPolicy(model, steps, execute), reach, turn_deg)
-        make_policy()  # checks the limits now
-        name = "/".join(["kcfm", *(f"{limit}={float(value):g}" for limit, value in limits.items())])
+        name = "kcfm"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map = TRANSPORT_MAPS[transport]
         options = dict(choice or {})
-        TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)  # checks it all now
 
         def make_policy() -> Policy:
-            return TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)
+            policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)
+            return within_reach(policy, reach, turn_deg)
         name = f"transported_kcfm/{transport}"
+    make_policy()  # checks it all now
+    name = "/".join([name, *(f"{limit}={float(value):g}" for limit, value in limits.items())])
     observation = {"keypoints": [k, d]} if n_obs == 1 else {"keypoints_history": [n_obs, k, d]}
     metadata = PolicyMetadata(
         policy=name, observation=observation, keypoint_groups=keypoint_groups, action_shape=[int(execute), int(hp.action_dim)],
