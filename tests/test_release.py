@@ -83,6 +83,27 @@ def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_p
     assert result.scores["success_085"], result.scores
 
 
+@pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
+def test_released_table1_transported_kcfm_within_reach_and_turn_keeps_a_block_it_lost(tmp_path):
+    """With the defaults, transported K-CFM pushes the block of in-distribution tuning configuration 30908 away from
+    its goal and out through a wall (``results/pusht_table1.md``); shown its goal within 125 px and 30 degrees, its
+    source search finds sources with that goal and it covers the goal to 0.85 at step 192."""
+    from hydra.utils import instantiate
+
+    from kpflow.eval.episode_trial import EpisodeTrial
+    from tests.helpers import compose_config
+
+    ckpt = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
+    for limits, succeeds in ((["policy.reach=125", "policy.turn_deg=30"], True), ([], False)):
+        overrides = ["policy=transported_kcfm", f"policy.checkpoint={ckpt}", "data=pusht_store", f"data.path={STORE}", *limits, "logger=none"]
+        cfg = compose_config("evaluate", overrides, tmp_path)
+        trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=250)
+        result = trial.run("in_distribution", 30_908, {"policy": "transported_kcfm"}, seed=cfg.seed)
+        assert result.scores["success_085"] == succeeds, (limits, result.scores)
+        if succeeds:
+            assert result.scores["steps_085"] == 192, result.scores
+
+
 @pytest.mark.skipif(not (ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt").exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_path):
     """The released Table 1 K-CFM shown its goal within 125 px, built from the evaluation's config: on object-OOD
