@@ -59,28 +59,34 @@ def test_released_checkpoints_load_and_act_on_cpu():
 STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
 
 
+TABLE1_KCFM = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
+TABLE1_RELABELLED = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
+TRANSPORTED = ["policy=transported_kcfm", f"policy.checkpoint={TABLE1_RELABELLED}", "data=pusht_store", f"data.path={STORE}"]
+
+
+def _episode(tmp_path, overrides: list[str], split: str, index: int, max_steps: int) -> dict:
+    """The scores of one episode of the policy that ``python evaluate.py <overrides>`` builds, as its run plays it."""
+    from hydra.utils import instantiate
+
+    from kpflow.eval.episode_trial import EpisodeTrial
+    from tests.helpers import compose_config
+
+    cfg = compose_config("evaluate", [*overrides, "logger=none"], tmp_path)
+    trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=max_steps)
+    return trial.run(split, index, {"policy": overrides[0].removeprefix("policy=")}, seed=cfg.seed).scores
+
+
 @pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
 def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_path):
     """Transported K-CFM of Table 1 is the released K-CFM plus the store it was trained on (35 demos + corrections),
     built from the evaluation's own config: on the first object-OOD evaluation configuration its row's run covered
     the goal to 0.85 at step 472 (``results/pusht_table1.md``); here it must do so within 600 steps."""
-    from hydra.utils import instantiate
-
     from kpflow.data.episode_store import EpisodeStore
-    from kpflow.eval.episode_trial import EpisodeTrial
-    from tests.helpers import compose_config
 
     store = EpisodeStore(STORE)
     assert len(store) > 35 and store.n_steps > 6000
-    cfg = compose_config(
-        "evaluate",
-        ["policy=transported_kcfm", f"policy.checkpoint={ROOT / 'release' / 'pusht_table1_kcfm_35_relabelled.ckpt'}", "data=pusht_store",
-         f"data.path={STORE}", "logger=none"],
-        tmp_path,
-    )  # fmt: skip
-    trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=600)
-    result = trial.run("object_ood", 10_000, {"policy": "transported_kcfm"}, seed=cfg.seed)
-    assert result.scores["success_085"], result.scores
+    scores = _episode(tmp_path, TRANSPORTED, "object_ood", 10_000, max_steps=600)
+    assert scores["success_085"], scores
 
 
 @pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
@@ -88,76 +94,43 @@ def test_released_table1_transported_kcfm_within_reach_and_turn_keeps_a_block_it
     """With the defaults, transported K-CFM pushes the block of in-distribution tuning configuration 30908 away from
     its goal and out through a wall (``results/pusht_table1.md``); shown its goal within 125 px and 30 degrees, its
     source search finds sources with that goal and it covers the goal to 0.85 at step 192."""
-    from hydra.utils import instantiate
-
-    from kpflow.eval.episode_trial import EpisodeTrial
-    from tests.helpers import compose_config
-
-    ckpt = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
     for limits, succeeds in ((["policy.reach=125", "policy.turn_deg=30"], True), ([], False)):
-        overrides = ["policy=transported_kcfm", f"policy.checkpoint={ckpt}", "data=pusht_store", f"data.path={STORE}", *limits, "logger=none"]
-        cfg = compose_config("evaluate", overrides, tmp_path)
-        trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=250)
-        result = trial.run("in_distribution", 30_908, {"policy": "transported_kcfm"}, seed=cfg.seed)
-        assert result.scores["success_085"] == succeeds, (limits, result.scores)
+        scores = _episode(tmp_path, [*TRANSPORTED, *limits], "in_distribution", 30_908, max_steps=250)
+        assert scores["success_085"] == succeeds, (limits, scores)
         if succeeds:
-            assert result.scores["steps_085"] == 192, result.scores
+            assert scores["steps_085"] == 192, scores
 
 
-@pytest.mark.skipif(not (ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt").exists(), reason="no released Table 1 K-CFM")
+@pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_path):
     """The released Table 1 K-CFM shown its goal within 125 px, built from the evaluation's config: on object-OOD
     evaluation configuration 10001 its row's run covered the goal to 0.85 at step 291 (``results/pusht_table1.md``),
     where the K-CFM shown the real goal, 295 px away, never covered it at all."""
-    from hydra.utils import instantiate
-
-    from kpflow.eval.episode_trial import EpisodeTrial
-    from tests.helpers import compose_config
-
-    ckpt = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
     for reach, succeeds in ((125, True), (None, False)):
-        cfg = compose_config("evaluate", ["policy=kcfm", f"policy.checkpoint={ckpt}", f"policy.reach={reach or 'null'}", "logger=none"], tmp_path)
-        trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=400)
-        result = trial.run("object_ood", 10_001, {"policy": "kcfm"}, seed=cfg.seed)
-        assert result.scores["success_085"] == succeeds, (reach, result.scores)
+        scores = _episode(tmp_path, ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", f"policy.reach={reach or 'null'}"], "object_ood", 10_001, 400)
+        assert scores["success_085"] == succeeds, (reach, scores)
 
 
-@pytest.mark.skipif(not (ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt").exists(), reason="no released Table 1 K-CFM")
+@pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_within_turn_leaves_a_block_it_waited_beside(tmp_path):
     """Shown its goal within 125 px only, the released Table 1 K-CFM leaves the block of in-distribution tuning
     configuration 30323 near its goal turned half round and waits beside it (coverage at most 0.42 in 1,200 steps,
     ``results/pusht_table1.md``); shown it also turned at most 30 degrees from the block, it covers the goal to 0.85
     at step 240."""
-    from hydra.utils import instantiate
-
-    from kpflow.eval.episode_trial import EpisodeTrial
-    from tests.helpers import compose_config
-
-    ckpt = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
     for turn, succeeds in ((30, True), (None, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={ckpt}", "policy.reach=125", f"policy.turn_deg={turn or 'null'}", "logger=none"]
-        cfg = compose_config("evaluate", overrides, tmp_path)
-        trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=300)
-        result = trial.run("in_distribution", 30_323, {"policy": "kcfm"}, seed=cfg.seed)
-        assert result.scores["success_085"] == succeeds, (turn, result.scores)
+        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", f"policy.turn_deg={turn or 'null'}"]
+        scores = _episode(tmp_path, overrides, "in_distribution", 30_323, max_steps=300)
+        assert scores["success_085"] == succeeds, (turn, scores)
 
 
-@pytest.mark.skipif(not (ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt").exists(), reason="no released Table 1 K-CFM")
+@pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_with_20_euler_steps_covers_a_goal_10_steps_miss(tmp_path):
     """Shown its goal within 125 px and 30 degrees, the released Table 1 K-CFM sampling with 10 Euler steps never
     covers the goal of in-distribution tuning configuration 30656 to 0.85 (at most 0.68 in 1,200 steps,
     ``results/pusht_table1.md``); with 20 steps, Table 1's setting, it does at step 165."""
-    from hydra.utils import instantiate
-
-    from kpflow.eval.episode_trial import EpisodeTrial
-    from tests.helpers import compose_config
-
-    ckpt = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
     for steps, succeeds in ((20, True), (10, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={ckpt}", "policy.reach=125", "policy.turn_deg=30", f"policy.steps={steps}", "logger=none"]
-        cfg = compose_config("evaluate", overrides, tmp_path)
-        trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=200)
-        result = trial.run("in_distribution", 30_656, {"policy": "kcfm"}, seed=cfg.seed)
-        assert result.scores["success_085"] == succeeds, (steps, result.scores)
+        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", "policy.turn_deg=30", f"policy.steps={steps}"]
+        scores = _episode(tmp_path, overrides, "in_distribution", 30_656, max_steps=200)
+        assert scores["success_085"] == succeeds, (steps, scores)
         if succeeds:
-            assert result.scores["steps_085"] == 165, result.scores
+            assert scores["steps_085"] == 165, scores
