@@ -57,8 +57,6 @@ def test_released_checkpoints_load_and_act_on_cpu():
 
 
 STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
-
-
 TABLE1_KCFM = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
 TABLE1_RELABELLED = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
 TRANSPORTED = ["policy=transported_kcfm", f"policy.checkpoint={TABLE1_RELABELLED}", "data=pusht_store", f"data.path={STORE}"]
