@@ -244,7 +244,8 @@ def test_generation_refuses_to_append_to_an_earlier_run(generated):
     assert (out / "results.json").read_text() == before
 
 
-def test_a_kcfm_trained_on_generated_demos_drives_the_arm_in_closed_loop(generated, tmp_path):
+@pytest.mark.parametrize("objective", ["icfm", "ddpm"])  # K-CFM and the DP-equivalent baseline
+def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(generated, tmp_path, objective):
     import lightning
 
     from kpflow.data.chunks import ChunkDataModule
@@ -255,12 +256,14 @@ def test_a_kcfm_trained_on_generated_demos_drives_the_arm_in_closed_loop(generat
     out, _ = generated
     data = ChunkDataModule(out / "d0" / "gp" / "episodes.zarr", horizon=16, obs_key="keypoints", action_key="ee_target",
                            val_fraction=0.0, batch_size=64, n_obs=2)  # fmt: skip
-    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32))
+    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32),
+                 objective=objective)  # fmt: skip
     trainer = lightning.Trainer(max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                                 enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
     policy = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt", steps=2, execute=8)
+    assert type(policy.model.objective) is type(model.objective)
     with pytest.raises(ValueError, match=r"\[B, 2, 11, 3\]"):
         policy.model.sample(np.zeros((2, 11, 2)))
     task = SuiteTask("lift")
