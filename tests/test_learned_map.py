@@ -58,14 +58,16 @@ def test_flow_is_the_identity_when_the_pair_is_aligned():
     torch.testing.assert_close(flow(u, flow.condition(a, a)), u, atol=1e-12, rtol=0)  # the rotations' rounding
 
 
-def test_learned_map_is_the_identity_for_s_equal_t_and_the_rigid_motion_for_a_rigid_pair():
-    src, _ = keypoint_pair(2)
-    x = grid(2, n=8)
-    phi = LearnedMap(flow=random_flow()).fit(src, src)
+@pytest.mark.parametrize("d", [2, 3])  # 3-D: a robosuite segment's keypoints all belong to one rigid object
+def test_learned_map_is_the_identity_for_s_equal_t_and_the_rigid_motion_for_a_rigid_pair(d):
+    src, _ = keypoint_pair(d)
+    x = grid(d, n=8 if d == 2 else 5)
+    phi = LearnedMap(flow=random_flow(d=d)).fit(src, src)
     torch.testing.assert_close(phi(x), x, atol=1e-12, rtol=0)
-    tgt = src @ rotation(2, 0.7).T + torch.tensor([0.4, -0.2], dtype=src.dtype)
-    phi = LearnedMap(flow=random_flow()).fit(src, tgt)
-    torch.testing.assert_close(phi(x), x @ rotation(2, 0.7).T + torch.tensor([0.4, -0.2], dtype=src.dtype), atol=1e-12, rtol=0)
+    shift = torch.tensor([0.4, -0.2, 0.1][:d], dtype=src.dtype)
+    tgt = src @ rotation(d, 0.7).T + shift
+    phi = LearnedMap(flow=random_flow(d=d)).fit(src, tgt)
+    torch.testing.assert_close(phi(x), x @ rotation(d, 0.7).T + shift, atol=1e-12, rtol=0)
 
 
 @pytest.mark.parametrize("refine_steps", [0, 3])
