@@ -6,14 +6,16 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from kpflow.utils.config_checks import Key
+from kpflow.utils.config_checks import SEED, Key
+from kpflow.utils.errors import command
 from kpflow.utils.run import log_metrics, make_loggers, start_run
 
 SPLITS = ("in_distribution", "robot_ood", "object_ood", "standard", "all")
-KEYS = {"seed": Key(int, lo=0), "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
+KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
+@command
 def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS)
     loggers = make_loggers(cfg)

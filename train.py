@@ -16,10 +16,11 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
-from kpflow.utils.config_checks import TRAINER_KEYS, Key
+from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
+from kpflow.utils.errors import command
 from kpflow.utils.run import make_loggers, run_folder_contents, start_run, write_config
 
-KEYS = {"seed": Key(int, lo=0), "resume": Key(bool), "run_name": Key(str), **TRAINER_KEYS}
+KEYS = {"seed": SEED, "resume": Key(bool), "run_name": Key(str), **TRAINER_KEYS}
 
 
 class WriteConfig(Callback):
@@ -46,6 +47,7 @@ def check_resumable(model, last: Path) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
+@command
 def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS, write=False)
     if "model_checkpoint" not in cfg.get("callbacks", {}):

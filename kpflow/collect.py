@@ -13,14 +13,15 @@ from omegaconf import DictConfig
 
 from kpflow.data.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
-from kpflow.utils.config_checks import Key
+from kpflow.utils.config_checks import SEED, Key
+from kpflow.utils.errors import command
 from kpflow.utils.io import write_json
 from kpflow.utils.run import remove_unused_run_folder, start_run
 
 TASKS = ("pusht",)
 KEYS = {
     "n_episodes": Key(int, lo=1),
-    "seed": Key(int, lo=0),
+    "seed": SEED,
     "max_steps": Key(int, lo=1),
     "workers": Key(int, lo=1),
     "videos": Key(int, lo=0),
@@ -31,6 +32,7 @@ KEYS = {
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
+@command
 def main(cfg: DictConfig) -> dict:
     task = HydraConfig.get().runtime.choices.get("task")
     if task not in TASKS:  # only Push-T has a scripted collector

@@ -29,12 +29,13 @@ from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
-from kpflow.utils.config_checks import Key
+from kpflow.utils.config_checks import SEED, Key
+from kpflow.utils.errors import command
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
 from kpflow.utils.run import start_run
 
 KEYS = {
-    "seed": Key(int, lo=0),
+    "seed": SEED,
     "rounds": Key(int, lo=1),
     "episodes_per_round": Key(int, lo=1),
     "split": Key(str, choices=SPLITS),
@@ -105,6 +106,7 @@ def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="correct")
+@command
 def main(cfg: DictConfig) -> list[dict]:
     out = start_run(cfg, KEYS)
     demos = {k: cfg.data[k] for k in ("path", "n_episodes", "seed", "workers")}

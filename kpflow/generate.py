@@ -14,7 +14,8 @@ from omegaconf import DictConfig
 
 from kpflow.eval.generation import generate
 from kpflow.tasks.suite.task import SuiteTask
-from kpflow.utils.config_checks import Key
+from kpflow.utils.config_checks import SEED, Key
+from kpflow.utils.errors import command
 from kpflow.utils.run import remove_unused_run_folder, start_run
 
 KEYS = {
@@ -22,7 +23,7 @@ KEYS = {
     "n_sources": Key(int, lo=1),
     "candidates": Key(int, lo=1, nullable=True),
     "stop_early": Key(bool),
-    "seed": Key(int, lo=0),
+    "seed": SEED,
     "workers": Key(int, lo=1),
     "videos": Key(int, lo=0),
     "export": Key(bool),
@@ -30,6 +31,7 @@ KEYS = {
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="generate")
+@command
 def main(cfg: DictConfig) -> dict:
     task = instantiate(cfg.task)
     unknown = [f for f in cfg.families if f not in cfg.transports]

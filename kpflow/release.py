@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from kpflow.utils.checkpoint import read_checkpoint
+from kpflow.utils.errors import command
 from kpflow.utils.io import atomic_path
 
 KEEP = ("state_dict", "hyper_parameters", "pytorch-lightning_version")
@@ -37,6 +38,7 @@ def release(src: str | Path, dst: str | Path, note: str = "") -> Path:
     return dst
 
 
+@command
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("src", help="a K-CFM Lightning checkpoint")

@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from kpflow.serving.deployment import TRANSPORT_MAPS, load_deployment
 from kpflow.serving.server import PolicyServer
 from kpflow.utils.config_checks import Key, check_config
+from kpflow.utils.errors import command
 
 log = logging.getLogger("kpflow.serve")
 KEYS = {
@@ -32,6 +33,7 @@ KEYS = {
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="serve")
+@command
 def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)
     torch.set_num_threads(cfg.threads)

@@ -28,6 +28,7 @@ from .tasks.pusht.env import PushTEnv
 from .tasks.pusht.geometry import coverage
 from .tasks.pusht.rollout import StopEpisode, run_episode
 from .tasks.pusht.scene import GOAL_MODES, SPLITS
+from .utils.errors import command
 
 UNBOUNDED = 10**9  # steps: an env without max_steps records until Enter or success
 _STATUS_PX = 28  # height of the status line under the scene
@@ -232,6 +233,7 @@ class KeyboardTeleop:
         pg.display.flip()
 
 
+@command
 def main(argv: list[str] | None = None) -> None:
     """Command line: record ``--episodes`` keyboard demonstrations into ``--store``."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -38,8 +38,12 @@ BAD = [
     ("correct", "rounds=0", "config key rounds must be an integer >= 1; got 0"),
     ("correct", "eval_configs=1.5", "config key eval_configs must be an integer >= 0; got 1.5"),
     ("train", "trainer.max_epochs=abc", "config key trainer.max_epochs must be an integer >= -1 or null; got 'abc'"),
-    ("train", "+trainer.gradient_clip_val=-1", "config key trainer.gradient_clip_val must be a number >= 0 or null; got -1"),
+    ("train", "+trainer.gradient_clip_val=-1", "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got -1"),
     ("train", "resume=yes", "config key resume must be true or false; got 'yes'"),
+    # issue 40: a seed numpy cannot take, and a number that is not finite, name their key
+    ("evaluate", "seed=4294967296", r"config key seed must be an integer in 0..2147483647; got 4294967296"),
+    ("collect", "seed=-1", r"config key seed must be an integer in 0..2147483647; got -1"),
+    ("train", "+trainer.gradient_clip_val=inf", "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got inf"),
 ]
 
 

@@ -8,6 +8,7 @@ given one. :meth:`Key.check` does the same for a function's arguments.
 
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import dataclass
 from typing import Any, Mapping
@@ -19,18 +20,25 @@ _ABSENT = object()
 
 @dataclass(frozen=True)
 class Key:
-    """One scalar config key: its type (``int``, ``float``, ``bool`` or ``str``), an optional lower bound, the
-    allowed choices, and whether ``null`` is allowed."""
+    """One scalar config key: its type (``int``, ``float``, ``bool`` or ``str``), optional lower and upper bounds,
+    the allowed choices, and whether ``null`` is allowed. A number must be finite (``inf`` and ``nan`` are refused)."""
 
     kind: type
     lo: float | None = None
     choices: tuple | None = None
     nullable: bool = False
+    hi: float | None = None
 
     def describe(self) -> str:
         what = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}[self.kind]
-        if self.lo is not None:
+        if self.lo is not None and self.hi is not None:
+            what += f" in {self.lo}..{self.hi}"
+        elif self.lo is not None:
             what += f" >= {self.lo}"
+        elif self.hi is not None:
+            what += f" <= {self.hi}"
+        if self.kind is float:
+            what = "a finite " + what.removeprefix("a ")
         if self.choices is not None:
             what = "one of " + ", ".join(map(str, self.choices))
         return what + (" or null" if self.nullable else "")
@@ -43,11 +51,13 @@ class Key:
         elif self.kind is int:
             ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
         elif self.kind is float:
-            ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+            ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
         else:
             ok = isinstance(value, self.kind)
         if ok and self.lo is not None:
             ok = value >= self.lo
+        if ok and self.hi is not None:
+            ok = value <= self.hi
         if ok and self.choices is not None:
             ok = value in self.choices
         return ok
@@ -68,6 +78,10 @@ def check_config(cfg: DictConfig, keys: Mapping[str, Key]) -> None:
             continue
         key.check(f"config key {name}", value)
 
+
+#: Every command's ``seed``: numpy's legacy generator and Lightning's ``seed_everything`` take 0..2**32 - 1, and
+#: seeds are offset by a few thousand in places (a task's source scenes), so the bound keeps clear of the top.
+SEED = Key(int, lo=0, hi=2**31 - 1)
 
 # Keys of Lightning's Trainer that kpflow's trainer configs set or users commonly override.
 TRAINER_KEYS = {
