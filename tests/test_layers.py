@@ -17,7 +17,7 @@ LAYERS = [
     {"data"},
     {"policies"},
     {"eval", "serving"},
-    {"collect", "correct", "generate", "serve", "teleop", "release", "__init__"},  # command-line tools and the package's front door
+    {"collect", "correct", "generate", "serve", "teleop", "release", "verify", "__init__"},  # command-line tools and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 

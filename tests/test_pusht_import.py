@@ -126,8 +126,11 @@ def test_import_max_episodes_and_cli(source, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "imported 1 episodes" in out and str(tmp_path / "cli") in out
     assert EpisodeStore(tmp_path / "cli").n_episodes == 1
-    assert main([str(source), str(tmp_path / "cli"), "--no-progress"]) == 1  # refuses to overwrite
-    assert "already holds 1 episodes" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:  # refuses to overwrite, in one line (kpflow.utils.errors.command)
+        main([str(source), str(tmp_path / "cli"), "--no-progress"])
+    assert refused.value.code == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "already holds 1 episodes" in err and len(err.splitlines()) == 2
 
 
 def test_refuses_to_overwrite(source, tmp_path):
@@ -193,7 +196,7 @@ def test_validation_nan(recorded, tmp_path):
     [
         ("chunk bytes", r"field 'data/state' could not be read: a chunk is damaged"),
         ("zarray json", r"field 'data/action' has damaged metadata \(data/action/.zarray: JSONDecodeError"),
-        ("missing chunk", r"field 'data/state' is missing 1 chunk\(s\) of its first 108 rows"),
+        ("missing chunk", r"field 'data/state' is missing chunk\(s\) of its first 108 rows"),
     ],
 )
 def test_damaged_buffer_names_the_field(recorded, tmp_path, damage, match):

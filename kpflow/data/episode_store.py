@@ -23,6 +23,20 @@ with an empty index, per-episode attrs beyond the episodes, a missing chunk) is 
 refuses it with an error that says what is wrong, and changes nothing. (This protects against a crashing process,
 not against power loss: nothing is fsync'ed.)
 
+Integrity. The first episode records each field's dtype and trailing shape (``meta/.zattrs["fields"]``), and every
+episode records an xxh3_64 checksum of each field's rows as written (``meta/.zattrs["checksums"]``: per field, the
+episodes' 16-hex-digit checksums concatenated, written with the pending mark so that a committed episode always has
+one; one string per field keeps the metadata small to parse). Opening a store
+checks its arrays' dtypes and shapes against the record; every read (:meth:`EpisodeStore.episode`,
+:meth:`EpisodeStore.field`) checks the rows it returns against their episodes' checksums, and :meth:`EpisodeStore.verify`
+(``python -m kpflow.verify STORE``) checks everything. A mismatch raises a ``ValueError`` naming the field and the
+episode: edited dtypes, flipped bytes and chunks swapped between fields are refused instead of read as plausible
+numbers. Stores written before checksums existed (and foreign ones, such as Diffusion Policy's replay buffers) have
+no record: they are read unverified (:attr:`EpisodeStore.sealed` is False), and appending to one that holds episodes
+is refused until ``python -m kpflow.verify --seal STORE`` has recorded their checksums. Every zarr read goes through
+:class:`~kpflow.data.zarr_checks.CheckedStore`: no store can name a codec that runs code or a chunk that exhausts
+memory.
+
 One writer at a time: mode ``"a"`` takes an exclusive lock (:class:`~kpflow.utils.file_lock.FileLock`, an
 ``fcntl.flock`` on ``<store>/.kpflow-write.lock``, released when the store is closed or its process dies) before it looks at the
 store. A second writer waits up to ``wait`` seconds (``None``: as long as it takes) and then fails with an error
@@ -37,11 +51,12 @@ from pathlib import Path
 from typing import Any, Iterator, Mapping
 
 import numpy as np
+import xxhash
 import zarr
 from numcodecs import Blosc
 
 from ..utils.file_lock import FileLock
-from .zarr_checks import check_chunks, open_array, read
+from .zarr_checks import DTYPE_KINDS, check_chunks, open_array, open_group, read
 
 # Same codec as the standard Push-T replay buffer.
 _COMPRESSOR = Blosc(cname="zstd", clevel=5, shuffle=Blosc.BITSHUFFLE)
@@ -49,12 +64,36 @@ _MAX_CHUNK_ROWS = 1024
 _TARGET_CHUNK_BYTES = 1 << 22  # keep image chunks at a few MB
 _EPISODE_ATTRS = "episode_attrs"  # key of the per-episode attrs list in meta/.zattrs
 _PENDING = "pending_episode"  # key of the write-ahead mark of an append in progress, in meta/.zattrs
+_FIELDS = "fields"  # key of each field's recorded {"dtype", "shape"} (trailing), in meta/.zattrs
+_CHECKSUMS = "checksums"  # key of {field: the episodes' xxh3_64 hex digests concatenated}, in meta/.zattrs
+_HEX = 16  # hex digits of one checksum
 LOCK_NAME = ".kpflow-write.lock"
 
 
 def _chunk_rows(row_bytes: int) -> int:
     """Rows per chunk along time: up to 1024, fewer for large rows (images)."""
     return max(1, min(_MAX_CHUNK_ROWS, _TARGET_CHUNK_BYTES // max(row_bytes, 1)))
+
+
+def checksum(values: np.ndarray) -> str:
+    """The xxh3_64 checksum (16 hex digits) of ``values``' bytes in C order, as an episode's rows are stored."""
+    return xxhash.xxh3_64_hexdigest(np.ascontiguousarray(values))
+
+
+def _schema(values: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
+    """Each field's dtype (numpy's string, e.g. ``<f4``) and trailing shape, as recorded in ``meta/.zattrs``."""
+    return {name: {"dtype": v.dtype.str, "shape": list(v.shape[1:])} for name, v in values.items()}
+
+
+def _count(checksums: Any, where: str) -> int | None:
+    """How many episodes ``meta/.zattrs["checksums"]`` covers (None when absent); ``ValueError`` when its fields
+    disagree or it is not hex digests."""
+    if checksums is None:
+        return None
+    lengths = {len(v) if isinstance(v, str) else -1 for v in checksums.values()} if isinstance(checksums, dict) else {-1}
+    if len(lengths) != 1 or min(lengths) % _HEX or not all(c in "0123456789abcdef" for v in checksums.values() for c in v[:_HEX]):
+        raise ValueError(f"{where}: meta/.zattrs' checksums are damaged (each field must hold {_HEX} hex digits per episode)")
+    return lengths.pop() // _HEX
 
 
 def _check_ends(ends: np.ndarray, where: str) -> None:
@@ -69,12 +108,12 @@ def _check_ends(ends: np.ndarray, where: str) -> None:
         )
 
 
-def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: int | None, where: str) -> tuple[int, bool]:
+def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dict[str, int | None], where: str) -> tuple[int, bool]:
     """How many entries of ``raw`` (the stored ``episode_ends``) are committed, and whether an uncommitted append
     (or a stale pending mark) is left to clean up; raise ``ValueError`` for any state a torn append cannot leave.
 
-    ``rows``: the row count of every data array; ``n_attrs``: the length of the per-episode attrs list (None if
-    absent)."""
+    ``rows``: the row count of every data array; ``lists``: the length of each per-episode list in
+    ``meta/.zattrs`` (attrs, checksums; None if absent)."""
     n, extra_attrs = len(raw), 0
     if pending is None:
         limit = committed = int(raw[-1]) if n else 0
@@ -105,8 +144,9 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], n_attrs: i
                 f"{where}: data/{name} has {count} rows but {what}, and no append was in progress that could have "
                 "left them: the index is damaged; nothing was changed"
             )
-    if n_attrs is not None and n_attrs > n + extra_attrs:
-        raise ValueError(f"{where}: meta/.zattrs lists attrs for {n_attrs} episodes but the store holds {n}: the metadata is damaged")
+    for key, count in lists.items():
+        if count is not None and count > n + extra_attrs:
+            raise ValueError(f"{where}: meta/.zattrs lists {key} for {count} episodes but the store holds {n}: the metadata is damaged")
     dirty = pending is not None or n < len(raw) or any(c > committed for c in rows.values())
     return n, dirty
 
@@ -151,10 +191,7 @@ class EpisodeStore:
 
     def _open(self) -> None:
         where = str(self.path)
-        try:
-            self._root = zarr.open_group(store=zarr.DirectoryStore(where), mode=self.mode)
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, ValueError) as e:
-            raise ValueError(f"{where} is not a readable episode store: damaged .zgroup/.zattrs ({type(e).__name__}: {e})") from e
+        self._root = open_group(self.path, self.mode, "episode store")
         if self.mode == "a":
             _remove_partials(self.path)
         if "meta/episode_ends" not in self._root:
@@ -164,21 +201,49 @@ class EpisodeStore:
         self._data: zarr.Group = self._root["data"]
         self._meta: zarr.Group = self._root["meta"]
         self._ends_array = open_array(self._meta, "episode_ends", where)
+        if self._ends_array.ndim != 1 or self._ends_array.dtype.kind not in "iu":
+            raise ValueError(f"{where}: meta/episode_ends must be a 1-D integer array; it is {self._ends_array.dtype} {list(self._ends_array.shape)}")
         arrays = {name: open_array(self._data, name, where) for name in self._data.array_keys()}
+        check_chunks(self._ends_array, self._ends_array.shape[0], where, "meta/episode_ends")  # before reading it whole
         raw = np.asarray(read(self._ends_array, slice(None), where, "meta/episode_ends"), dtype=np.int64)
         try:
             meta_attrs = self._meta.attrs.asdict()
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
-        pending, listed = meta_attrs.get(_PENDING), meta_attrs.get(_EPISODE_ATTRS)
+        pending = meta_attrs.get(_PENDING)
+        self._schema: dict[str, dict] | None = meta_attrs.get(_FIELDS)
+        self._checksums: dict[str, str] | None = meta_attrs.get(_CHECKSUMS)
         rows = {name: a.shape[0] for name, a in arrays.items()}
-        n, dirty = _uncommitted(raw, pending, rows, None if listed is None else len(listed), where)
+        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": _count(self._checksums, where)}
+        n, dirty = _uncommitted(raw, pending, rows, lists, where)
         self._ends = raw[:n]
-        check_chunks(self._ends_array, n, where, "meta/episode_ends")
+        self._check_schema(arrays, n, pending is not None)
         for name, a in arrays.items():
             check_chunks(a, self.n_steps, where, name)
         if self.mode == "a" and dirty:
             self._drop_uncommitted(arrays, n < len(raw))
+
+    def _check_schema(self, arrays: dict[str, zarr.Array], n: int, pending: bool) -> None:
+        """Raise ``ValueError`` unless the arrays have the recorded fields, dtypes and shapes, and every committed
+        episode its checksums (stores with a record; see the module docstring)."""
+        where = str(self.path)
+        if self._schema is None:
+            if self._checksums is not None:
+                raise ValueError(f"{where}: meta/.zattrs holds checksums but no field record: the metadata is damaged")
+            return
+        if not isinstance(self._schema, dict) or not isinstance(self._checksums, dict) or set(self._checksums) != set(self._schema):
+            raise ValueError(f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)")
+        if _count(self._checksums, where) < n:
+            raise ValueError(f"{where}: meta/.zattrs holds checksums for {_count(self._checksums, where)} episodes but the store has {n}: the metadata is damaged")
+        if (n or arrays) and set(arrays) != set(self._schema) and not (pending and not n):
+            raise ValueError(f"{where}: the store's fields {sorted(arrays)} are not the recorded ones {sorted(self._schema)}")
+        for name, a in arrays.items():
+            spec = self._schema.get(name, {})
+            if spec and (a.dtype != np.dtype(spec.get("dtype")) or list(a.shape[1:]) != list(spec.get("shape", []))):
+                raise ValueError(
+                    f"{where}: field {name!r} is {a.dtype} {list(a.shape[1:])} on disk but was written as {spec.get('dtype')} "
+                    f"{spec.get('shape')}: its metadata was changed after it was written"
+                )
 
     def _init_layout(self) -> None:
         """Create ``data`` and ``meta/episode_ends`` in an empty group; refuse anything else."""
@@ -198,6 +263,7 @@ class EpisodeStore:
         if not len(self._ends):  # crash during the first episode: it had fixed the fields, forget them
             for name in arrays:
                 del self._data[name]
+            self._schema = None
         for array in arrays.values():
             if len(self._ends) and array.shape[0] > self.n_steps:
                 array.resize((self.n_steps, *array.shape[1:]))
@@ -205,6 +271,12 @@ class EpisodeStore:
         attrs.pop(_PENDING, None)
         if _EPISODE_ATTRS in attrs:
             attrs[_EPISODE_ATTRS] = attrs[_EPISODE_ATTRS][: self.n_episodes]
+        if _CHECKSUMS in attrs:
+            attrs[_CHECKSUMS] = {name: sums[: _HEX * self.n_episodes] for name, sums in attrs[_CHECKSUMS].items()}
+        if not len(self._ends):
+            attrs.pop(_FIELDS, None)
+            attrs.pop(_CHECKSUMS, None)
+        self._checksums = attrs.get(_CHECKSUMS)
         self._meta.attrs.put(attrs)
 
     def close(self) -> None:
@@ -271,9 +343,13 @@ class EpisodeStore:
         return slice(int(self._ends[i - 1]) if i else 0, int(self._ends[i]))
 
     def episode(self, i: int) -> dict[str, np.ndarray]:
-        """Every field of episode ``i`` as ``{name: array [T, ...]}``."""
+        """Every field of episode ``i`` as ``{name: array [T, ...]}``, checked against the episode's checksums."""
+        i = self._index(i)
         rows = self.episode_slice(i)
-        return {name: read(self._data[name], rows, str(self.path), name) for name in self.fields}
+        values = {name: read(self._data[name], rows, str(self.path), name) for name in self.fields}
+        for name, v in values.items():
+            self._verify(name, i, v)
+        return values
 
     def episode_attrs(self, i: int) -> dict[str, Any]:
         """The attrs given to :meth:`add_episode` for episode ``i`` (``{}`` if none)."""
@@ -282,10 +358,65 @@ class EpisodeStore:
         return dict(listed[i]) if i < len(listed) else {}
 
     def field(self, name: str) -> np.ndarray:
-        """The committed rows of field ``name``, all episodes concatenated, loaded into memory."""
+        """The committed rows of field ``name``, all episodes concatenated, loaded into memory and checked against
+        every episode's checksum."""
         if name not in self.fields:
             raise KeyError(f"no field {name!r} in {self.path}; fields: {self.fields}")
-        return read(self._data[name], slice(0, self.n_steps), str(self.path), name)
+        values = read(self._data[name], slice(0, self.n_steps), str(self.path), name)
+        if self.sealed:
+            for i, (a, b) in enumerate(zip([0, *self._ends[:-1].tolist()], self._ends.tolist())):
+                self._verify(name, i, values[a:b])
+        return values
+
+    @property
+    def sealed(self) -> bool:
+        """Whether the store records its fields and every episode's checksums, so that reads are verified (False for
+        stores written before kpflow recorded them and for foreign ones; ``python -m kpflow.verify --seal``)."""
+        return self._schema is not None
+
+    def _verify(self, name: str, i: int, values: np.ndarray) -> None:
+        """Raise ``ValueError`` naming the field and episode if ``values`` (episode ``i``'s rows of field ``name``)
+        differ from what was written (stores without checksums are not verified)."""
+        if self._schema is not None and checksum(values) != self._checksums[name][_HEX * i : _HEX * (i + 1)]:
+            raise ValueError(
+                f"{self.path}: field {name!r} of episode {i} does not match the checksum recorded when it was written: "
+                "the data on disk has changed (damaged or edited chunks)"
+            )
+
+    def verify(self, progress: bool = False) -> dict[str, Any]:
+        """Read every field of every episode and check it (module docstring); returns ``{"episodes", "steps",
+        "fields", "sealed"}``. Raises ``ValueError`` naming the first field and episode that differ from what was
+        written, or a chunk that does not decode; a store without checksums is read whole (every chunk decodes, no
+        NaN or inf) but its values cannot be checked (``sealed`` False)."""
+        from tqdm import tqdm
+
+        for name in tqdm(self.fields, desc=f"verify {self.path.name}", unit="field", disable=not progress):
+            values = self.field(name)
+            if values.dtype.kind == "f" and not np.isfinite(values).all():
+                row = int(np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(1))[0])
+                episode = int(np.searchsorted(self._ends, row, side="right"))
+                raise ValueError(f"{self.path}: field {name!r} of episode {episode} holds NaN or inf (row {row})")
+        return {"episodes": self.n_episodes, "steps": self.n_steps, "fields": list(self.fields), "sealed": self.sealed}
+
+    def seal(self) -> None:
+        """Record the fields and every episode's checksums of a store that has none (one written before kpflow
+        recorded them), after reading it whole (:meth:`verify`); mode ``"a"`` only. A sealed store is left as it is."""
+        if self.mode != "a" or self._lock is None:
+            raise PermissionError(f"{self.path} must be open with mode='a' to seal it")
+        if self.sealed:
+            return
+        self.verify()
+        arrays = {name: self._data[name] for name in self.fields}
+        starts = [0, *self._ends[:-1].tolist()]
+        sums = {}
+        for name in self.fields:
+            values = self.field(name)
+            sums[name] = "".join(checksum(values[a:b]) for a, b in zip(starts, self._ends.tolist()))
+        attrs = dict(self._meta.attrs.asdict())
+        attrs[_FIELDS] = {name: {"dtype": a.dtype.str, "shape": list(a.shape[1:])} for name, a in arrays.items()}
+        attrs[_CHECKSUMS] = sums
+        self._meta.attrs.put(attrs)  # one .zattrs write: sealed whole or not at all
+        self._schema, self._checksums = attrs[_FIELDS], sums
 
     # ----------------------------------------------------------------------------------------- writing
 
@@ -313,6 +444,11 @@ class EpisodeStore:
 
         if self._lock is None:
             raise PermissionError(f"{self.path} was closed; open it again with mode='a' to add episodes")
+        if not self.sealed and self.n_episodes:
+            raise ValueError(
+                f"{self.path} holds {self.n_episodes} episodes written without checksums (by an earlier kpflow, or another "
+                f"tool): record them first with `python -m kpflow.verify --seal {self.path}`, then append"
+            )
         start = self.n_steps
         end = start + len(next(iter(values.values())))
         mark = dict(self._meta.attrs.asdict())  # 1. the write-ahead mark (with the episode's attrs): one .zattrs write
@@ -321,6 +457,9 @@ class EpisodeStore:
         if attrs is not None or listed is not None:  # per-episode attrs, kept as long as the episode count
             listed = list(listed or [])[: self.n_episodes]
             mark[_EPISODE_ATTRS] = listed + [{}] * (self.n_episodes - len(listed)) + [dict(attrs or {})]
+        mark[_FIELDS] = self._schema or _schema(values)
+        earlier = mark.get(_CHECKSUMS) or {}
+        mark[_CHECKSUMS] = {name: earlier.get(name, "")[: _HEX * self.n_episodes] + checksum(v) for name, v in values.items()}
         self._meta.attrs.put(mark)
         if not self.fields:
             for name, v in values.items():
@@ -333,6 +472,7 @@ class EpisodeStore:
         self._commit(end)  # 3. the commit point
         del mark[_PENDING]
         self._meta.attrs.put(mark)
+        self._schema, self._checksums = mark[_FIELDS], mark[_CHECKSUMS]
         return self.n_episodes - 1
 
     def _commit(self, end: int) -> None:
@@ -346,7 +486,7 @@ class EpisodeStore:
         if self.fields:
             values = self._as_stored(values)
         for name, v in values.items():
-            if v.dtype.kind in "fc" and not np.isfinite(v).all():
+            if v.dtype.kind == "f" and not np.isfinite(v).all():
                 raise ValueError(f"field {name!r} contains NaN or inf")
         return values
 
@@ -402,8 +542,8 @@ def _episode_arrays(episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         v = np.asarray(value)
         if v.ndim == 0:
             raise ValueError(f"field {name!r} is a scalar; expected an array [T, ...] with a leading time axis")
-        if v.dtype.kind not in "biufc":
-            raise ValueError(f"field {name!r} has dtype {v.dtype}; only bool and numeric arrays are stored")
+        if v.dtype.kind not in DTYPE_KINDS or v.dtype.itemsize > 8:
+            raise ValueError(f"field {name!r} has dtype {v.dtype}; only bool, integer and float arrays of at most 8 bytes are stored")
         values[name] = v
     lengths = {name: len(v) for name, v in values.items()}
     if len(set(lengths.values())) > 1:

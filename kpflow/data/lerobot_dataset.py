@@ -31,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from kpflow.utils.formats import check_parquet_rows
 from kpflow.utils.io import atomic_dir
 
 from .episode_store import EpisodeStore
@@ -42,10 +43,48 @@ DEFAULT_FEATURES = {name: {"dtype": dtype, "shape": [1], "names": None} for name
                     (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"), ("index", "int64"), ("task_index", "int64"))}  # fmt: skip
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 AXES = "xyz"
+MAX_WIDTH = 1 << 16  # values per frame of an imported feature (states and actions; images live in videos)
 
 
 def feature_name(field: str) -> str:
     return {"keypoints": "observation.state", "action": "action"}.get(field, f"observation.{field}")
+
+
+def _width(spec: dict, where: str) -> int:
+    """Values per frame of a feature (the product of its ``shape``), at most :data:`MAX_WIDTH`."""
+    shape = spec.get("shape") if isinstance(spec, dict) else None
+    if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 1 for n in shape):
+        raise ValueError(f"{where} has no valid shape in info.json ({shape!r})")
+    width = int(np.prod(shape))
+    if width > MAX_WIDTH:
+        raise ValueError(f"{where} has {width} values per frame; kpflow imports state and action features of at most {MAX_WIDTH}")
+    return width
+
+
+def keypoint_layout(names: list[str] | None) -> tuple[int, int] | None:
+    """``(K, D)`` when ``names`` are exactly kpflow's keypoint names ``k0.x, k0.y, ..., k<K-1>.<axis D-1>`` in that
+    order (what :func:`export_lerobot` writes), else None: repeated, missing or shuffled names are not keypoints."""
+    if not names or not all(isinstance(n, str) and re.fullmatch(r"k\d+\.[xyz]", n) for n in names):
+        return None
+    d = len({n.split(".")[1] for n in names})
+    if len(names) % d:
+        return None
+    k = len(names) // d
+    return (k, d) if list(names) == [f"k{i}.{AXES[j]}" for i in range(k) for j in range(d)] else None
+
+
+def _keypoints_shaped(flat: np.ndarray, names, field: str, where: str) -> np.ndarray:
+    """``flat [T, F]`` for store field ``field``; kpflow's keypoint names reshape it to ``[T, K, D]``. Names that repeat,
+    or keypoint names out of order, are refused (they would import as a different layout)."""
+    if isinstance(names, list) and len(set(map(str, names))) != len(names):
+        repeated = sorted({str(n) for n in names if names.count(n) > 1})
+        raise ValueError(f"{where} names its values with repeats ({repeated[:3]}): each value needs its own name")
+    if field != "keypoints" or not isinstance(names, list) or not any(re.fullmatch(r"k\d+\.[xyz]", str(n)) for n in names):
+        return flat
+    layout = keypoint_layout(names)
+    if layout is None or layout[0] * layout[1] != flat.shape[1]:
+        raise ValueError(f"{where}: its keypoint names are not k0.x, k0.y, ... in order for its {flat.shape[1]} values: {names[:6]!r}...")
+    return flat.reshape(len(flat), *layout)
 
 
 def _names(field: str, shape: tuple[int, ...]) -> list[str] | None:
@@ -184,17 +223,16 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
     info = read_info(root)
     features = info["features"]
     if columns is None:
-        names = features.get("observation.state", {}).get("names") or []
-        keypoints = bool(names) and all(re.fullmatch(r"k\d+\.[xyz]", n) for n in names)
-        columns = {"observation.state": "keypoints" if keypoints else "state", "action": "action"}
+        layout = keypoint_layout(features.get("observation.state", {}).get("names"))
+        columns = {"observation.state": "keypoints" if layout else "state", "action": "action"}
     if unknown := sorted(set(columns) - set(features)):
         raise ValueError(f"{root} has no features {unknown} (it has {sorted(features)})")
     files = sorted((root / "data").glob("*/*.parquet"))
     if not files:
         raise ValueError(f"{root} has no data files (data/*/*.parquet)")
+    widths = {feature: _width(features[feature], f"{root}: feature {feature}") for feature in columns}
+    check_parquet_rows(files, int(info["total_frames"]), {**widths, "episode_index": 1, "frame_index": 1}, str(root))
     table = pa.concat_tables([pq.read_table(f, columns=[*columns, "episode_index", "frame_index"]) for f in files])
-    if table.num_rows != info["total_frames"]:
-        raise ValueError(f"{root}: info.json says {info['total_frames']} frames, the data files hold {table.num_rows}")
     episode = table["episode_index"].to_numpy()
     order = np.lexsort((table["frame_index"].to_numpy(), episode))
     values = {}
@@ -203,10 +241,7 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
         shape = features[feature]["shape"]
         if flat.shape[1] != int(np.prod(shape)):
             raise ValueError(f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame")
-        names = features[feature].get("names") or []
-        if name == "keypoints" and names and all(re.fullmatch(r"k\d+\.[xyz]", n) for n in names):
-            d = len({n.split(".")[1] for n in names})
-            flat = flat.reshape(len(flat), -1, d)
+        flat = _keypoints_shaped(flat, features[feature].get("names"), name, f"{root}: feature {feature}")
         values[name] = flat
     episode = episode[order]
     bounds = np.flatnonzero(np.diff(episode)) + 1

@@ -23,22 +23,21 @@ bias velocity, so nothing leaks from one rollout into the next (it matches a fre
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.zarr_checks import check_chunks, open_array, read
+from kpflow.data.zarr_checks import check_chunks, open_array, open_group, read
 from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
 from kpflow.tasks.pusht.scene import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES
+from kpflow.utils.errors import command
 from kpflow.utils.io import atomic_dir
 
 #: Arrays of the standard layout that the import reads, with their trailing shapes.
@@ -89,12 +88,9 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
 def _replay_arrays(path: Path) -> dict:
     """The replay buffer's arrays (``data/state``, ``data/action``, ``meta/episode_ends``), each checked for
     presence, shape and dtype."""
-    try:
-        root = zarr.open_group(store=zarr.DirectoryStore(str(path)), mode="r")
-    except (zarr.errors.GroupNotFoundError, zarr.errors.ContainsArrayError) as e:
-        raise ValueError(f"{path} is not a Push-T replay buffer: not a zarr group ({e})") from e
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path} is not a readable Push-T replay buffer: damaged .zgroup ({type(e).__name__}: {e})") from e
+    if not (path / ".zgroup").is_file():
+        raise ValueError(f"{path} is not a Push-T replay buffer: not a zarr group (no .zgroup)")
+    root = open_group(path, "r", "Push-T replay buffer")  # every array checked: no codec that runs code
 
     arrays = {}
     for name, (trailing, meaning) in {**REQUIRED, "meta/episode_ends": ((), "cumulative episode end rows")}.items():
@@ -105,9 +101,9 @@ def _replay_arrays(path: Path) -> dict:
             raise ValueError(f"{path}: missing array {name} (expected {expected}: {meaning})")
         if array.ndim != 1 + len(trailing) or array.shape[1:] != trailing:
             raise ValueError(f"{path}: {name} has shape {list(array.shape)}; expected {expected} ({meaning})")
-        kinds = "iu" if name == "meta/episode_ends" else "iuf"
+        kinds = "iu" if name == "meta/episode_ends" else "f"
         if array.dtype.kind not in kinds:
-            raise ValueError(f"{path}: {name} has dtype {array.dtype}; expected {'an integer' if kinds == 'iu' else 'a numeric'} dtype")
+            raise ValueError(f"{path}: {name} has dtype {array.dtype}; expected {'an integer' if kinds == 'iu' else 'a float'} dtype")
         arrays[name] = array
 
     return arrays
@@ -118,6 +114,7 @@ def _episode_ends(arrays: dict, path: Path) -> np.ndarray:
     n_rows = arrays["data/state"].shape[0]
     if arrays["data/action"].shape[0] != n_rows:
         raise ValueError(f"{path}: data/action has {arrays['data/action'].shape[0]} rows but data/state has {n_rows}")
+    check_chunks(arrays["meta/episode_ends"], arrays["meta/episode_ends"].shape[0], str(path), "meta/episode_ends")
     ends = np.asarray(read(arrays["meta/episode_ends"], slice(None), str(path), "meta/episode_ends"), dtype=np.int64)
     if not len(ends):
         raise ValueError(f"{path}: meta/episode_ends is empty: the buffer holds no episodes")
@@ -312,6 +309,7 @@ def replay_errors(
 # ----------------------------------------------------------------------------------------------- CLI
 
 
+@command
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m kpflow.data.pusht_import",
@@ -323,11 +321,7 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace DEST if it already holds episodes")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
-    try:
-        store = import_pusht_replay(args.source, args.dest, args.max_episodes, not args.no_progress, args.overwrite)
-    except (FileNotFoundError, FileExistsError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    store = import_pusht_replay(args.source, args.dest, args.max_episodes, not args.no_progress, args.overwrite)
     print(f"imported {store.n_episodes} episodes ({store.n_steps} steps) from {args.source} into {args.dest}; "
           f"fields: {', '.join(store.fields)}")
     return 0

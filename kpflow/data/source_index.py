@@ -21,6 +21,7 @@ import torch
 from ..maps.affine import fit_affine
 from ..tasks.pusht.geometry import N_T_KEYPOINTS
 from ..utils.config_checks import Key
+from ..utils.formats import read_npz
 from ..utils.io import atomic_path
 from .chunks import ChunkDataset
 from .episode_store import EpisodeStore
@@ -63,6 +64,8 @@ class SourceIndex:
         weights = np.ones(k, np.float32) if weights is None else np.asarray(weights, np.float32)
         if weights.shape != (k,):
             raise ValueError(f"weights must have one entry per keypoint ({k}), got shape {weights.shape}")
+        if not (np.isfinite(weights).all() and (weights >= 0).all() and weights.any()):
+            raise ValueError(f"keypoint weights must be finite, >= 0 and not all 0 (every distance would be NaN or 0); got {weights.tolist()}")
         self.keypoints, self.chunks, self.weights = keypoints, chunks, weights
         self.reference = None if reference is None else list(reference)
         if self.reference is not None and not (len(self.reference) >= 2 and all(0 <= r < k for r in self.reference)):
@@ -106,19 +109,19 @@ class SourceIndex:
 
     @classmethod
     def load(cls, path: str | Path) -> "SourceIndex":
-        """The index :meth:`save` wrote to ``path`` (read with ``allow_pickle=False``: nothing in it can run code).
+        """The index :meth:`save` wrote to ``path`` (read by :func:`~kpflow.utils.formats.read_npz`: nothing in it can
+        run code or declare more memory than it holds; the weights are checked as by the constructor).
 
         Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file for anything else."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no source index at {path}")
         try:
-            with np.load(path, allow_pickle=False) as f:
-                arrays = {k: f[k] for k in ("keypoints", "chunks", "weights", "reference")}
-        except Exception as e:
-            raise ValueError(f"{path} is not a source index written by SourceIndex.save ({type(e).__name__}: {e})") from None
-        reference = tuple(int(r) for r in arrays["reference"]) or None
-        return cls(arrays["keypoints"], arrays["chunks"], arrays["weights"], reference)
+            arrays = read_npz(path, ("keypoints", "chunks", "weights", "reference"))
+            reference = tuple(int(r) for r in arrays["reference"]) or None
+            return cls(arrays["keypoints"], arrays["chunks"], arrays["weights"], reference)
+        except ValueError as e:
+            raise ValueError(f"{path} is not a usable source index: {e}") from None
 
     def canonical(self, keypoints: np.ndarray) -> np.ndarray:
         """Keypoint sets ``[B, K, D]`` moved rigidly onto the template's reference pose (unchanged without one)."""

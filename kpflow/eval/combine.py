@@ -17,8 +17,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from kpflow.eval.trials import trial_from_record
+from kpflow.utils.formats import read_yaml
 from kpflow.utils.io import write_text
 
+#: Where the reports a pooled table may instantiate live.
+REPORTS = "kpflow.eval.reports."
 #: The config keys in which the shards of one evaluation differ.
 SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "first_config", "output_dir")
 
@@ -34,11 +37,21 @@ def _identity(cfg: DictConfig) -> str:
     return json.dumps(OmegaConf.to_container(cfg), sort_keys=True)
 
 
+def _report_config(cfg: DictConfig, job: Path) -> DictConfig:
+    """The job's report config, if its ``_target_`` is one of kpflow's reports: a config read from disk must not
+    name any other callable, since instantiating it would call it."""
+    report = cfg.experiment.trial.report
+    target = str(report.get("_target_", ""))
+    if not target.startswith(REPORTS):
+        raise ValueError(f"{job / 'config.yaml'}: experiment.trial.report names {target!r}, not one of kpflow's reports ({REPORTS}*)")
+    return report
+
+
 def pool_shards(jobs: list[Path]) -> str | None:
     """The pooled tables of the jobs that split one evaluation by trial ranges (module docstring); None if none did."""
     groups: dict[str, list[tuple[Path, DictConfig]]] = {}
     for job in jobs:
-        cfg = OmegaConf.load(job / "config.yaml") if (job / "config.yaml").is_file() else None
+        cfg = read_yaml(job / "config.yaml") if (job / "config.yaml").is_file() else None
         if cfg is not None and OmegaConf.select(cfg, "experiment.trial.report") is not None:  # a trial-loop evaluation
             groups.setdefault(_identity(cfg), []).append((job, cfg))
     parts = []
@@ -53,7 +66,7 @@ def pool_shards(jobs: list[Path]) -> str | None:
         cells: dict[tuple, list] = {}
         for t in trials:
             cells.setdefault((t.condition, *t.variant.values()), []).append(t)
-        report = instantiate(shards[0][1].experiment.trial.report)
+        report = instantiate(_report_config(shards[0][1], shards[0][0]))
         summaries = {cell: report.summarise(members) for cell, members in cells.items()}
         names = ", ".join(job.name for job, _ in shards)
         parts.append(f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n" + report.table(summaries, axes))

@@ -1,0 +1,121 @@
+"""Reading npz, YAML and parquet files so that no file can run code or make kpflow allocate more than it could hold.
+
+Each reader checks what a file declares before decoding its payload, and raises ``ValueError`` naming the file and
+the entry that is refused:
+
+- **npz** (:func:`read_npz`): numpy's ``allow_pickle=False`` (an object array is refused, not unpickled); each
+  member's ``.npy`` header must declare a plain numeric dtype and exactly the bytes the zip entry holds, and the
+  entry may expand at most :data:`MAX_DEFLATE_RATIO` times its stored size (deflate's own limit is 1032), so that a
+  small file cannot declare gigabytes that numpy would allocate before reading.
+- **YAML** (:func:`read_yaml`): at most :data:`MAX_YAML_BYTES`, and no anchors or aliases (an alias-expanding "billion
+  laughs" document is a few hundred bytes that OmegaConf would expand into gigabytes); parsed by OmegaConf, whose
+  loader is PyYAML's safe one (no Python tags).
+- **parquet** (:func:`check_parquet_rows`): the files' footers must declare exactly the rows the dataset says it
+  has, and columns of at most a bounded size per row, before any column is decompressed. pyarrow builds only
+  arrow arrays from parquet, never Python objects, so nothing in it can run code.
+
+Checkpoints have their own reader (:mod:`kpflow.utils.checkpoint`, ``torch.load(weights_only=True)``), and so do zarr
+stores (:mod:`kpflow.data.zarr_checks`). kpflow writes hdf5 (robomimic's layout) but never reads it.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+#: how many times its stored size a deflated npz member may expand (deflate cannot exceed 1032).
+MAX_DEFLATE_RATIO = 1100
+#: the largest YAML file read (run configs are a few kB).
+MAX_YAML_BYTES = 1 << 20
+_NPY_KINDS = "biuf"
+
+
+def read_npz(path: str | Path, names: Iterable[str]) -> dict[str, np.ndarray]:
+    """The arrays ``names`` of the npz file at ``path``, checked first (module docstring).
+
+    Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and member otherwise (not a
+    zip, a missing member, a refused dtype, a header that does not match the member's size)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no file at {path}")
+    names = list(names)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for name in names:
+                _check_member(archive, name, path)
+        with np.load(path, allow_pickle=False) as f:
+            return {name: f[name] for name in names}
+    except (zipfile.BadZipFile, OSError, EOFError) as e:
+        raise ValueError(f"{path} is not a readable npz file ({type(e).__name__}: {e})") from None
+
+
+def _check_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
+    """Raise ``ValueError`` unless member ``name``.npy declares a numeric array whose bytes are what the entry holds."""
+    try:
+        info = archive.getinfo(f"{name}.npy")
+    except KeyError:
+        raise ValueError(f"{path} has no array {name!r} (it has {sorted(n.removesuffix('.npy') for n in archive.namelist())})") from None
+    if info.compress_type != zipfile.ZIP_STORED and info.file_size > MAX_DEFLATE_RATIO * max(info.compress_size, 1) + 4096:
+        raise ValueError(f"{path}: array {name!r} claims {info.file_size} bytes from {info.compress_size} stored; refusing to read it")
+    with archive.open(info) as member:
+        try:
+            version = np.lib.format.read_magic(member)
+            if version not in ((1, 0), (2, 0)):  # 3.0 exists for structured dtypes with unicode names only
+                raise ValueError(f"format version {version} is not read")
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(member)
+        except ValueError as e:
+            raise ValueError(f"{path}: array {name!r} has a damaged header ({e})") from None
+        header = member.tell()
+    if dtype.kind not in _NPY_KINDS or dtype.fields is not None or dtype.subdtype is not None:
+        raise ValueError(f"{path}: array {name!r} has dtype {dtype}; kpflow reads bool, integer and float arrays")
+    declared = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if header + declared != info.file_size:
+        raise ValueError(f"{path}: array {name!r} declares {shape} x {dtype} ({declared} bytes) but holds {info.file_size - header}")
+
+
+def read_yaml(path: str | Path):
+    """The YAML file at ``path`` as an OmegaConf object, checked first (module docstring)."""
+    import yaml
+    from omegaconf import OmegaConf
+
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_YAML_BYTES:
+        raise ValueError(f"{path} is {size} bytes; kpflow reads YAML files of at most {MAX_YAML_BYTES >> 20} MiB")
+    text = path.read_text()
+    try:
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None):
+                raise ValueError(f"{path} uses YAML anchors or aliases, which kpflow refuses (they can expand without bound)")
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path} is not valid YAML ({e})") from None
+    return OmegaConf.create(text)
+
+
+def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], where: str) -> None:
+    """Raise ``ValueError`` unless the parquet ``files`` declare ``rows`` rows in all and, for each column of
+    ``columns`` (name -> values per row), at most 16 bytes per value and row uncompressed (float32 or int64 values
+    plus list offsets and validity), read from their footers only."""
+    import pyarrow.parquet as pq
+
+    total = 0
+    for f in files:
+        meta = pq.ParquetFile(f).metadata
+        total += meta.num_rows
+        for g in range(meta.num_row_groups):
+            group = meta.row_group(g)
+            for c in range(group.num_columns):
+                column = group.column(c)
+                name = column.path_in_schema.split(".list.")[0]  # a list column's values are "<name>.list.element"
+                width = columns.get(name)
+                if width is not None and column.total_uncompressed_size > 16 * width * group.num_rows + 65536:
+                    raise ValueError(
+                        f"{where}: {f.name} declares {column.total_uncompressed_size} bytes for column {name} over "
+                        f"{group.num_rows} rows ({width} values each); refusing to decompress it"
+                    )
+    if total != rows:
+        raise ValueError(f"{where}: info.json says {rows} frames, the data files declare {total}")
