@@ -61,6 +61,19 @@ def test_metrics_benchmark_checks_itself_against_the_double_loop(tmp_path):
     assert all(float(row[6]) < 1e-6 for row in rows)  # kpflow's value agrees with the cell-by-cell recursion
 
 
+def test_store_read_benchmark_times_checked_against_unchecked_reads(tmp_path):
+    from tests.helpers import walk_to_block_store
+
+    walk_to_block_store(tmp_path / "demos.zarr")
+    out = tmp_path / "store_read.md"
+    cmd = [sys.executable, "benchmarks/store_read.py", "--stores", str(tmp_path / "demos.zarr"), "--repeats", "1", "--out", str(out)]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| demos.zarr")]
+    assert [row[5].strip() for row in rows] == ["every field whole", "every episode"]
+    assert all(float(row[8]) > 0 for row in rows) and "Target (at most 10 % more time" in out.read_text()
+
+
 @pytest.mark.slow
 def test_learned_map_benchmark_writes_its_tables(tmp_path):
     from tests.helpers import keypoint_pair, train_learned_map, walk_to_block_store
