@@ -3,6 +3,11 @@
 Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (transported online through a map with
 ``transport=...``, its source index read from ``source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
 Connect with :class:`~kpflow.serving.client.PolicyClient`.
+
+The config keys, then the host and port (the host must resolve and the port bind), are checked before the model is
+loaded, so a mistyped address fails at once with one line naming it. ``input_margin`` (10 by default) is how far
+outside the K-CFM's training keypoints, in extents of their box on each side, an observation may lie before it is
+refused (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); null turns the check off.
 """
 
 import logging
@@ -12,7 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from kpflow.serving.deployment import TRANSPORT_MAPS, load_deployment
-from kpflow.serving.server import PolicyServer
+from kpflow.serving.server import PolicyServer, check_address
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command
 
@@ -26,8 +31,9 @@ KEYS = {
     "reach": Key(float, lo=0, nullable=True),
     "turn_deg": Key(float, lo=0, nullable=True),
     "host": Key(str),
-    "port": Key(int, lo=0),
-    "max_message_mb": Key(float, lo=0),
+    "port": Key(int, lo=0, hi=65535),
+    "max_message_mb": Key(float, lo=0.001, hi=1024),  # PolicyServer takes frames of at least 1024 bytes
+    "input_margin": Key(float, lo=0, nullable=True),
     "threads": Key(int, lo=1),
 }
 
@@ -36,13 +42,14 @@ KEYS = {
 @command
 def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)
+    check_address(cfg.host, cfg.port)  # before the model is loaded
     torch.set_num_threads(cfg.threads)
     groups = OmegaConf.to_container(cfg.keypoint_groups) if cfg.keypoint_groups is not None else None
     fit_on = OmegaConf.to_container(cfg.fit_on) if cfg.fit_on is not None else None
     choice = OmegaConf.to_container(cfg.source)
     deployment = load_deployment(
         cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice, cfg.reach,
-        cfg.turn_deg,
+        cfg.turn_deg, cfg.input_margin,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])

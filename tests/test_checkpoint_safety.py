@@ -1,7 +1,9 @@
 """No entry point runs code from a checkpoint: a real checkpoint with one planted pickled object whose
 ``__reduce__`` calls ``os.system`` is refused by ``kpflow.load_policy``, ``load_checkpoint``, ``evaluate.py`` (both
 K-CFM policies), ``train.py ... resume=true`` and a Trainer resuming through :class:`SafeCheckpointIO`; and the
-planted command never runs. Non-finite weights are refused at load, naming the file and the tensor."""
+planted command never runs. Non-finite weights are refused at load, naming the file and the tensor, and so are
+hyper-parameters that do not build the weights' shapes (a tiny file asking for a 1.9 GB network), before anything
+is allocated."""
 
 import os
 import subprocess
@@ -122,3 +124,45 @@ def test_foreign_and_truncated_files_are_clear_errors(kcfm_run, tmp_path):
     torch.save({"weights": torch.ones(2)}, plain)
     with pytest.raises(ValueError, match="not a Lightning checkpoint: no state_dict"):
         kpflow.load_policy(plain)
+
+
+def test_hyper_parameters_that_ask_for_a_huge_network_are_refused_before_allocating(kcfm_run, tmp_path):
+    """A real checkpoint (a few MB) with ``down_dims=[1024, 2048]`` written into its hyper-parameters and its small
+    weights kept: building it would allocate ~460M parameters (1.9 GB, counted on the meta device). load_checkpoint
+    refuses it naming the file and the first mismatching tensors, and a process that tries grows by well under 300 MB
+    (its peak resident memory, read after the refusal)."""
+    checkpoint = torch.load(kcfm_run / "good.ckpt", weights_only=True)
+    checkpoint["hyper_parameters"]["down_dims"] = [1024, 2048]
+    big = tmp_path / "big.ckpt"
+    torch.save(checkpoint, big)
+    with torch.device("meta"):
+        would_build = sum(p.numel() for p in KCFM(**checkpoint["hyper_parameters"]).parameters())
+    assert would_build > 400e6  # the case is live: without the check, 4 bytes each
+    with pytest.raises(ValueError, match=rf"{big}: its hyper-parameters do not match its weights, refusing to build the KCFM: "
+                                         r"'net\.down\.0\.0\.conv0\.block\.0\.weight' is \[32, 2, 5\] in the file, \[1024, 2, 5\] by the hyper-parameters"):  # fmt: skip
+        kpflow.load_policy(big)
+    script = (
+        "import resource, sys, torch\n"
+        "from kpflow.policies.kcfm import KCFM\n"
+        "from kpflow.utils.checkpoint import load_checkpoint, read_checkpoint\n"
+        "read_checkpoint(sys.argv[1])\n"  # the file itself read once: what the check may cost
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "try:\n    load_checkpoint(KCFM, sys.argv[1])\nexcept ValueError as e:\n    print('refused', e)\n"
+        "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(big)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "refused" in done.stdout, done.stderr[-2000:]
+    grew_mb = int(done.stdout.split("grew_kb ")[1]) / 1024
+    assert grew_mb < 300, grew_mb  # building it would have taken about 1900 MB
+
+
+def test_hyper_parameters_that_do_not_match_the_weights_name_the_tensors(kcfm_run, tmp_path):
+    """Missing and foreign tensors are named too; a checkpoint whose hyper-parameters fit still loads."""
+    checkpoint = torch.load(kcfm_run / "good.ckpt", weights_only=True)
+    checkpoint["state_dict"]["extra.weight"] = torch.ones(3)
+    del checkpoint["state_dict"]["kp_std"]
+    odd = tmp_path / "odd.ckpt"
+    torch.save(checkpoint, odd)
+    with pytest.raises(ValueError, match=rf"{odd}: .*'kp_std' missing from the file; 'extra.weight' in the file is not in the model"):
+        load_checkpoint(KCFM, odd)
+    assert load_checkpoint(KCFM, kcfm_run / "good.ckpt").hparams.horizon == H

@@ -152,6 +152,19 @@ def test_a_bad_request_gets_an_error_and_the_connection_goes_on(uri, message, ma
         assert client.act(observation(0)).shape == (8, 2)
 
 
+def test_reset_refuses_a_seed_that_is_not_an_integer(uri):
+    """PolicyClient.reset(1.5) used to send seed 1: a bool, float or string seed is refused on the client, naming it,
+    and nothing is sent; numpy integers are integers."""
+    with PolicyClient(uri) as client:
+        for seed in (1.5, 2.0, True, "1"):
+            with pytest.raises(ValueError, match=rf"reset's seed must be an integer or None, got {seed!r} \({type(seed).__name__}\)"):
+                client.reset(seed)
+        client.reset(np.int64(3))
+        first = client.act(observation(0))
+        client.reset(3)
+        np.testing.assert_array_equal(client.act(observation(0)), first)
+
+
 def test_garbage_text_and_oversized_frames_get_error_replies(uri):
     with PolicyClient(uri) as client:
         for frame, match in ((b"\xc1\xff\x00", "not a msgpack message"), ("hello", "must be binary"),
@@ -309,7 +322,7 @@ def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
 def test_bad_source_index_file_is_a_clear_error(tmp_path):
     bad = tmp_path / "source_index.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match="is not a source index"):
+    with pytest.raises(ValueError, match="is not a usable source index"):
         SourceIndex.load(bad)
 
 

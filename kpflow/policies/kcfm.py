@@ -33,6 +33,7 @@ import lightning
 import numpy as np
 import torch
 
+from kpflow.policies.checks import INPUT_MARGIN
 from kpflow.policies.objectives import build_objective
 from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
@@ -44,6 +45,7 @@ LR_SCHEDULES = ("cosine", "constant")
 GOAL_SLICE = slice(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS)  # the goal T's 12 keypoints among the 25
 _MIN_STD = 1e-3  # px: a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
 _MIN_HALF_RANGE = 1e-6  # an action dimension with a smaller range is centred but not scaled
+_BOX_STDS = 3.0  # the box of one keypoint coordinate: its training mean +- this many standard deviations
 
 
 # ------------------------------------------------------------------------------------------------- losses
@@ -261,13 +263,19 @@ class KCFM(lightning.LightningModule):
         obs, chunks, mask = ds.arrays()  # one row per step of the training episodes only
         self.set_normalisation(obs, chunks, mask)
 
-    def _condition(self, history: torch.Tensor) -> torch.Tensor:
-        """Condition ``c [B, n_obs D K]`` (float32) of world keypoint frames ``[B, n_obs, K, D]``: every frame in the
-        current (last) frame's goal frame if ``goal_frame``, standardised, concatenated oldest first."""
+    def _stats_frame(self, history: torch.Tensor) -> torch.Tensor:
+        """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
+        frame in the current (last) frame's goal frame if ``goal_frame``, else as they are."""
         kp = history.to(torch.float64)
-        b, n = kp.shape[:2]
         if self.hparams.goal_frame:
             kp = to_frame(kp.flatten(1, 2), *goal_pose(kp[:, -1, GOAL_SLICE])).reshape(kp.shape)
+        return kp
+
+    def _condition(self, history: torch.Tensor) -> torch.Tensor:
+        """Condition ``c [B, n_obs D K]`` (float32) of world keypoint frames ``[B, n_obs, K, D]``: every frame in the
+        statistics' frame (:meth:`_stats_frame`), standardised, concatenated oldest first."""
+        kp = self._stats_frame(history)
+        b, n = kp.shape[:2]
         return ((kp.reshape(b, n, -1) - self.kp_mean.double()) / self.kp_std.double()).reshape(b, -1).float()
 
     def action_frame(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -404,6 +412,47 @@ class KCFM(lightning.LightningModule):
         bad = ~torch.isfinite(kp).reshape(len(kp), -1).all(-1)
         if bad.any():
             raise ValueError(f"keypoints contain NaN or inf (batch items {torch.nonzero(bad).flatten()[:10].tolist()})")
+        return kp
+
+    def keypoint_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box ``(lo [D], hi [D])`` (float64) of the training keypoints, in the frame of the statistics (the
+        goal's with ``goal_frame``, else the world): per dimension, the least ``mean - 3 std`` and the largest
+        ``mean + 3 std`` over every keypoint's statistics (the normalisation buffers; a checkpoint carries them)."""
+        d = self.hparams.keypoint_dim
+        mean, std = self.kp_mean.double().reshape(-1, d), self.kp_std.double().reshape(-1, d)
+        return (mean - _BOX_STDS * std).min(0).values, (mean + _BOX_STDS * std).max(0).values
+
+    def check_in_range(self, keypoints, input_margin: float | None = INPUT_MARGIN) -> torch.Tensor:
+        """Keypoint frames checked by :meth:`_check_keypoints` (shape, finite) and refused when far outside the data
+        the model was trained on; returned as ``[B, n_obs, K, D]`` float64.
+
+        With ``(lo, hi)`` the :meth:`keypoint_box` and ``w = hi - lo``, every coordinate must lie in
+        ``[lo - m w, hi + m w]`` (``m = input_margin``, per dimension): in the world and, with ``goal_frame``, in the
+        goal's frame too (the statistics' frame; a goal-frame model's statistics say nothing of where the goal is, so
+        its world coordinates are held to the same widened box). Nothing is checked when ``input_margin`` is None or
+        the statistics were never set (an untrained model has no range).
+
+        Raises:
+            ValueError: naming the first keypoint outside, its coordinates, the accepted interval and the box.
+        """
+        kp = self._check_keypoints(keypoints)
+        if input_margin is None or not bool(self.stats_set):
+            return kp
+        lo, hi = self.keypoint_box()
+        lo_ok, hi_ok = lo - input_margin * (hi - lo), hi + input_margin * (hi - lo)
+        frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame else [])
+        for where, x in frames:
+            outside = ~((x >= lo_ok) & (x <= hi_ok))  # NaN (a frame that overflowed) counts as outside
+            if outside.any():
+                b, f, k, d = (int(i) for i in torch.nonzero(outside)[0])
+                frame = f" of observation frame {f}" if self.hparams.n_obs > 1 else ""
+                at = ", ".join(f"{v:.4g}" for v in kp[b, f, k].tolist())
+                raise ValueError(
+                    f"the observation is far outside the range this K-CFM was trained on: keypoint {k}{frame} at ({at}) has "
+                    f"coordinate {d} = {float(x[b, f, k, d]):.4g}{where}, outside the accepted [{float(lo_ok[d]):.4g}, "
+                    f"{float(hi_ok[d]):.4g}] (the training keypoints' box [{float(lo[d]):.4g}, {float(hi[d]):.4g}], mean +- "
+                    f"{_BOX_STDS:g} std, widened by input_margin={input_margin:g} times its extent on each side); refusing to act on it"
+                )
         return kp
 
     @torch.no_grad()

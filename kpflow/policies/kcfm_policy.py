@@ -4,6 +4,10 @@
 observation history, as :func:`~kpflow.tasks.pusht.rollout.run_episode` provides) with ``steps`` network calls and
 returns its first ``execute`` absolute agent targets (px). The flow's starting noise comes from a CPU ``torch.Generator`` seeded by
 :meth:`KCFMPolicy.reset`, so an episode is reproducible from its seed (and does not depend on the model's device).
+
+An observation far outside the training data (farther outside its keypoints' box than ``input_margin`` times the
+box's extent, :meth:`KCFM.check_in_range`) is refused before the network runs, and actions that are not finite are
+never returned (:func:`~kpflow.policies.checks.check_actions`): both raise a ``ValueError`` naming the cause.
 """
 
 from __future__ import annotations
@@ -13,7 +17,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from kpflow.utils.config_checks import Key
+
+from .checks import INPUT_MARGIN, check_actions
 from .kcfm import KCFM, MAX_STEPS
+
+_INPUT_MARGIN = Key(float, lo=0, nullable=True)
 
 
 def check_steps_and_execute(model: KCFM, steps: int, execute: int) -> None:
@@ -32,21 +41,25 @@ class KCFMPolicy:
         model: a trained K-CFM (put in eval mode).
         steps: network calls per chunk (Euler steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``).
         execute: how many of the chunk's ``horizon`` actions :meth:`act` returns.
+        input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the
+            box on each side (:meth:`KCFM.check_in_range`; >= 0); None: no range check.
     """
 
-    def __init__(self, model: KCFM, steps: int = 10, execute: int = 8) -> None:
+    def __init__(self, model: KCFM, steps: int = 10, execute: int = 8, input_margin: float | None = INPUT_MARGIN) -> None:
         check_steps_and_execute(model, steps, execute)
+        _INPUT_MARGIN.check("input_margin", input_margin)
         self.model, self.steps, self.execute = model.eval(), int(steps), int(execute)
+        self.input_margin = None if input_margin is None else float(input_margin)
         self.n_obs = int(model.hparams.n_obs)
         self.generator = torch.Generator()
         self.reset()
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, steps: int = 10, execute: int = 8) -> "KCFMPolicy":
+    def from_checkpoint(cls, path: str | Path, steps: int = 10, execute: int = 8, input_margin: float | None = INPUT_MARGIN) -> "KCFMPolicy":
         """The policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         from kpflow.utils.checkpoint import load_checkpoint
 
-        return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute)
+        return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute, input_margin)
 
     def reset(self, seed: int | None = None) -> None:
         """Reseed the sampling noise with ``seed`` (0 when None)."""
@@ -54,12 +67,18 @@ class KCFMPolicy:
 
     def act(self, obs: dict) -> np.ndarray:
         """The first ``execute`` actions ``[execute, A]`` of a chunk sampled for ``obs["keypoints"] [K, 2]`` (or
-        ``obs["keypoints_history"] [n_obs, K, 2]``)."""
+        ``obs["keypoints_history"] [n_obs, K, 2]``).
+
+        Raises:
+            ValueError: keypoints of the wrong shape, not finite or far outside the training data
+                (:meth:`KCFM.check_in_range`); actions that came out NaN or inf.
+        """
         if self.n_obs == 1:
             keypoints = obs["keypoints"]
         elif "keypoints_history" in obs:
             keypoints = obs["keypoints_history"]
         else:
             raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
+        keypoints = self.model.check_in_range(keypoints, self.input_margin)
         chunk = self.model.sample(keypoints, self.steps, self.generator)
-        return chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy()
+        return check_actions(chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy(), "the K-CFM")

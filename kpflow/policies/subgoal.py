@@ -25,6 +25,9 @@ object needs at most ``a`` to match it:
 Procrustes solution). As the object turns the subgoal turns on ahead of it until the goal is within ``a``. With an
 observation history, every frame's goal is moved by the current frame's turn and translation (the goal does not
 move in an episode).
+
+The wrapped policy's actions are checked as every K-CFM policy's are (:func:`~kpflow.policies.checks.check_actions`):
+NaN or inf is refused, not returned.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import numpy as np
 
 from ..maps.validation import check_positive
 from ..tasks.base import Policy
+from .checks import check_actions
 
 
 def subgoal_shift(keypoints: np.ndarray, object: tuple[int, ...], goal: tuple[int, ...], reach: float) -> np.ndarray:
@@ -85,28 +89,36 @@ class SubgoalPolicy:
         self.policy.reset(seed)
 
     def shown(self, obs: dict) -> dict:
-        """``obs`` with every frame's goal turned and moved as the current frame's needs (module docstring)."""
-        current = np.asarray(obs["keypoints"] if "keypoints" in obs else np.asarray(obs["keypoints_history"])[-1], dtype=np.float64)
+        """``obs`` with every frame's goal turned and moved as the current frame's needs (module docstring).
+
+        Raises ``ValueError`` for keypoints that hold NaN or inf, or that are so large that moving the goal overflows.
+        """
+        frames = {key: np.array(obs[key], dtype=np.float64) for key in ("keypoints", "keypoints_history") if key in obs}
+        for key, kp in frames.items():
+            if not np.isfinite(kp).all():
+                raise ValueError(f"obs[{key!r}] holds {int((~np.isfinite(kp)).sum())} NaN or inf value(s)")
+        current = (frames["keypoints"] if "keypoints" in frames else frames["keypoints_history"][-1]).copy()
         goal = list(self.goal)
-        centre, rotation = current[goal].mean(0), None
-        if self.turn_deg is not None:
-            if current.shape[-1] != 2:
-                raise ValueError(f"turn_deg applies to planar keypoints; got {current.shape[-1]}-D ones")
-            a = subgoal_turn(current, self.object, self.goal, np.radians(self.turn_deg))
-            rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-            current = current.copy()
-            current[goal] = centre + (current[goal] - centre) @ rotation.T  # the shift is read off the turned goal
-        shift = np.zeros(current.shape[-1]) if self.reach is None else subgoal_shift(current, self.object, self.goal, self.reach)
-        shown = dict(obs)
-        for key in ("keypoints", "keypoints_history"):
-            if key in obs:
-                kp = np.array(obs[key], dtype=np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, naming the observation
+            centre, rotation = current[goal].mean(0), None
+            if self.turn_deg is not None:
+                if current.shape[-1] != 2:
+                    raise ValueError(f"turn_deg applies to planar keypoints; got {current.shape[-1]}-D ones")
+                a = subgoal_turn(current, self.object, self.goal, np.radians(self.turn_deg))
+                rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+                current[goal] = centre + (current[goal] - centre) @ rotation.T  # the shift is read off the turned goal
+            shift = np.zeros(current.shape[-1]) if self.reach is None else subgoal_shift(current, self.object, self.goal, self.reach)
+            for kp in frames.values():
                 if rotation is not None:
                     kp[..., goal, :] = centre + (kp[..., goal, :] - centre) @ rotation.T
                 kp[..., goal, :] += shift
-                shown[key] = kp
-        return shown
+        for key, kp in frames.items():
+            if not np.isfinite(kp).all():
+                largest = np.abs(np.asarray(obs[key], dtype=np.float64)).max()
+                raise ValueError(f"obs[{key!r}] is too large to move its goal within reach and turn: it overflowed (largest coordinate {largest:.4g})")
+        return {**obs, **frames}
 
     def act(self, obs: dict) -> np.ndarray:
-        """The wrapped policy's chunk for ``obs`` with its goal within reach and turn (:meth:`shown`)."""
-        return self.policy.act(self.shown(obs))
+        """The wrapped policy's chunk for ``obs`` with its goal within reach and turn (:meth:`shown`); ``ValueError`` if it
+        holds NaN or inf."""
+        return check_actions(self.policy.act(self.shown(obs)), "the policy within reach and turn")

@@ -29,6 +29,10 @@ the first 8 targets against the demonstrated chunk is 46.3 / 191.6 px with all k
 (26.4 / 346.2 through the GP map) and 21.4 / 62.7 px with the robot alone, against 10.4 / 51.2 px for policy
 transportation and 18.3 / 40.2 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
 agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
+
+The observation is held to the K-CFM's training range before anything is fitted, and the K-CFM's input after the
+pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that come out NaN or inf are refused
+(:func:`~kpflow.policies.checks.check_actions`), as :class:`~kpflow.policies.kcfm_policy.KCFMPolicy` does.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import torch
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from .checks import INPUT_MARGIN, check_actions
 from .chunk_transport import fitted_keypoints
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
@@ -63,6 +68,8 @@ class TransportedKCFMPolicy:
         pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
         fit_on: indices of the keypoints the map is fitted on (None: all).
+        input_margin: how far outside the K-CFM's training keypoints an observation may lie
+            (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`); None: no range check.
         choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
 
     After :meth:`act`, ``last_source`` (index of ``S``), ``last_map`` (``phi``) and ``last_pullback``
@@ -78,9 +85,10 @@ class TransportedKCFMPolicy:
         execute: int = 8,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
+        input_margin: float | None = INPUT_MARGIN,
         **choice,
     ) -> None:
-        self.policy = KCFMPolicy(model, steps, execute)  # validates steps and execute
+        self.policy = KCFMPolicy(model, steps, execute, input_margin)  # validates steps, execute and input_margin
         if self.policy.n_obs != 1:
             raise ValueError(f"online transport pulls back one observation: it needs a K-CFM with n_obs=1; this one has n_obs={self.policy.n_obs}")
         k = int(model.hparams.n_keypoints)
@@ -104,11 +112,12 @@ class TransportedKCFMPolicy:
         execute: int = 8,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
+        input_margin: float | None = INPUT_MARGIN,
         **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
-        base = KCFMPolicy.from_checkpoint(path, steps, execute)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, **choice)
+        base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, **choice)
 
     @property
     def model(self) -> KCFM:
@@ -129,9 +138,15 @@ class TransportedKCFMPolicy:
         self.last_source, self.last_map, self.last_pullback = None, None, None
 
     def act(self, obs: dict) -> np.ndarray:
-        """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``."""
+        """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``.
+
+        Raises:
+            ValueError: an observation of the wrong shape, not finite or far outside the K-CFM's training data;
+                actions that came out NaN or inf.
+        """
+        self.model.check_in_range(obs["keypoints"], self.policy.input_margin)  # shape, finite, within range
         target = np.asarray(obs["keypoints"], dtype=np.float64)
-        i = self.source.choose(target)  # the index validates the shape and finiteness of the observation
+        i = self.source.choose(target)
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
         phi = self.make_map().fit(source_t[self.fit_on], target_t[self.fit_on])
@@ -145,4 +160,4 @@ class TransportedKCFMPolicy:
         with torch.no_grad():
             out = phi(torch.from_numpy(chunk)).to(torch.float64).numpy()
         self.last_source, self.last_map, self.last_pullback = i, phi, pullback.numpy()
-        return out
+        return check_actions(out, "the transported K-CFM")

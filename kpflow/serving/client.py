@@ -13,7 +13,7 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from .protocol import PolicyMetadata
+from .protocol import PolicyMetadata, check_seed
 from .wire import pack, unpack
 
 
@@ -65,8 +65,10 @@ class PolicyClient:
         return self._receive()
 
     def reset(self, seed: int | None = None) -> None:
-        """Start a new episode on the server (``seed`` reseeds the connection's policy)."""
-        self.request({"reset": {"seed": None if seed is None else int(seed)}})
+        """Start a new episode on the server (``seed``, an integer or None, reseeds the connection's policy).
+
+        Raises ``ValueError`` for any other seed (a bool, a float, a string): it is refused, not truncated."""
+        self.request({"reset": {"seed": check_seed({"seed": seed})}})
 
     def act(self, obs: dict) -> np.ndarray:
         """The server policy's actions ``[execute, A]`` (float64) for ``obs`` (its keys beyond the metadata's ignored)."""

@@ -14,6 +14,7 @@ from typing import Callable
 
 from ..data.source_index import SourceIndex
 from ..maps import AffineMap, GPMap, ILWRMap
+from ..policies.checks import INPUT_MARGIN
 from ..tasks.base import Policy
 from .protocol import PolicyMetadata
 
@@ -53,6 +54,7 @@ def load_deployment(
     choice: dict | None = None,
     reach: float | None = None,
     turn_deg: float | None = None,
+    input_margin: float | None = INPUT_MARGIN,
 ) -> Deployment:
     """The K-CFM of ``checkpoint`` ready to serve, transported online through a ``transport`` map (``"ilwr"``,
     ``"gp"``, ``"rigid"``; the source index is read from beside the checkpoint) or as it is (None). A transported one
@@ -61,7 +63,9 @@ def load_deployment(
 
     ``keypoint_groups`` names the observation's keypoints in order (Push-T's by default when the count fits).
     ``reach`` (px) and ``turn_deg`` (degrees; Push-T's keypoints only) show the policy, transported or not, its goal
-    within that distance and turn of the block (:class:`~kpflow.policies.subgoal.SubgoalPolicy`).
+    within that distance and turn of the block (:class:`~kpflow.policies.subgoal.SubgoalPolicy`). ``input_margin``:
+    how far outside the K-CFM's training keypoints an observation may lie before it is refused, in extents of their
+    box on each side (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`; None: no range check).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), an unknown map or groups that do not
@@ -89,7 +93,7 @@ def load_deployment(
         raise ValueError(f"{' and '.join(limits)} apply to Push-T's keypoints {PUSHT_KEYPOINTS}; got keypoint_groups={keypoint_groups}")
     if transport is None:
         def make_policy() -> Policy:
-            return within_reach(KCFMPolicy(model, steps, execute), reach, turn_deg)
+            return within_reach(KCFMPolicy(model, steps, execute, input_margin), reach, turn_deg)
         name = "kcfm"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
@@ -97,7 +101,7 @@ def load_deployment(
         options = dict(choice or {})
 
         def make_policy() -> Policy:
-            policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, **options)
+            policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, **options)
             return within_reach(policy, reach, turn_deg)
         name = f"transported_kcfm/{transport}"
     make_policy()  # checks it all now

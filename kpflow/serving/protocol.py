@@ -76,7 +76,7 @@ def check_seed(body: Any) -> int | None:
         raise ValueError(f"reset takes {{'seed': int or None}}, got {body!r}")
     seed = body.get("seed")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))):
-        raise ValueError(f"reset's seed must be an integer or None, got {seed!r}")
+        raise ValueError(f"reset's seed must be an integer or None, got {seed!r} ({type(seed).__name__})")
     return None if seed is None else int(seed)
 
 

@@ -4,7 +4,8 @@ Each connection gets the metadata, then its own policy from the deployment; its 
 policy's ``act`` running in a worker thread so that other connections are served meanwhile. A request that is not
 well formed gets an error reply and the connection goes on, a frame larger than ``max_message_bytes`` included; one
 larger than :data:`HARD_LIMIT` times that is refused by the websocket layer before it is read (close code 1009,
-"message too big"), which ends that connection only. Shutting down (SIGINT,
+"message too big"), which ends that connection only. Actions that are not finite are never sent: the reply is an
+error naming the cause (:func:`~kpflow.policies.checks.check_actions`). Shutting down (SIGINT,
 SIGTERM, or leaving :meth:`PolicyServer.running`) stops accepting connections, lets the requests in flight finish
 and closes every connection with code 1001 ("going away").
 """
@@ -14,15 +15,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import socket
 import threading
 import time
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
-import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
+from ..policies.checks import check_actions
+from ..utils.config_checks import Key
 from .deployment import Deployment
 from .protocol import check_observation, check_request, check_seed
 from .wire import WireError, pack, unpack
@@ -30,6 +33,25 @@ from .wire import WireError, pack, unpack
 log = logging.getLogger(__name__)
 MAX_MESSAGE_BYTES = 1 << 20
 HARD_LIMIT = 8  # frames up to this many times max_message_bytes are read and answered with an error
+
+
+def check_address(host: str, port: int) -> None:
+    """Raise ``ValueError`` naming ``host`` and ``port`` unless the server could listen there: the host must resolve
+    and the port bind (tried on every address the host resolves to, as the server binds, then closed again)."""
+    Key(int, lo=0, hi=65535).check("port", port)
+    try:
+        addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as e:
+        raise ValueError(f"cannot serve on {host}:{port}: the host {host!r} does not resolve ({e})") from None
+    for family, kind, proto, _, address in addresses:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does, and IPv6 only on IPv6
+            if family == socket.AF_INET6:
+                probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                probe.bind(address)
+            except OSError as e:
+                raise ValueError(f"cannot serve on {host}:{port}: binding {address[0]} port {port} failed ({e.strerror or e})") from None
 
 
 class PolicyServer:
@@ -63,7 +85,7 @@ class PolicyServer:
             obs = check_observation(body, self.metadata.observation)
             start = time.perf_counter()
             actions = await asyncio.to_thread(policy.act, obs)
-            return {"actions": np.asarray(actions, dtype=np.float64), "server_ms": 1e3 * (time.perf_counter() - start)}
+            return {"actions": check_actions(actions, f"the served policy ({self.metadata.policy})"), "server_ms": 1e3 * (time.perf_counter() - start)}
         except (WireError, ValueError) as e:
             return {"error": str(e)}
         except Exception as e:  # the policy failed on a well-formed request: say so, keep serving

@@ -8,7 +8,9 @@ fits that: weights and buffers, plain hyper-parameters, optimiser, scheduler, lo
 needs more is refused with an error naming it, and so are weights that hold NaN or inf.
 
 - :func:`load_checkpoint` builds a LightningModule from its hyper-parameters and loads its weights (what
-  ``load_from_checkpoint`` does, without its ``weights_only=False``).
+  ``load_from_checkpoint`` does, without its ``weights_only=False``). The hyper-parameters are first checked against
+  the weights' shapes on PyTorch's meta device (no memory), so a tiny file whose hyper-parameters ask for a huge
+  network is refused before anything is allocated.
 - :class:`SafeCheckpointIO` is the Trainer plugin that makes ``trainer.fit(ckpt_path=...)`` read the same way.
 """
 
@@ -53,13 +55,34 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
                 f"{path} was refused: it holds pickled objects other than tensors and plain containers, which could "
                 f"run code when loaded (kpflow reads checkpoints with torch.load(weights_only=True)): {reason}"
             ) from None
-        raise ValueError(f"{path} is not a readable checkpoint ({type(e).__name__}: {lines[-1] if lines else e})") from None
+        raise ValueError(f"{path} is not a readable checkpoint (not a torch file: {unpickling_reason(lines)})") from None
     except Exception as e:  # torch raises several types for truncated or foreign files
-        raise ValueError(f"{path} is not a readable checkpoint ({type(e).__name__}: {e})") from e
+        reason = f"{type(e).__name__}: {e}" if str(e) else ("the file is empty" if path.stat().st_size == 0 else type(e).__name__)
+        raise ValueError(f"{path} is not a readable checkpoint, truncated or not a torch file ({reason})") from None
     if not isinstance(checkpoint, dict) or not isinstance(checkpoint.get("state_dict"), dict):
         raise ValueError(f"{path} is not a Lightning checkpoint: no state_dict")
     check_finite(checkpoint["state_dict"], path)
     return checkpoint
+
+
+def unpickling_reason(lines: list[str]) -> str:
+    """What torch's weights-only unpickler objected to, from its error's ``lines``: the line after its
+    ``WeightsUnpickler error:`` header (e.g. ``Unsupported operand 103``), without the advice around it."""
+    for i, line in enumerate(lines):
+        if "WeightsUnpickler error:" in line:
+            rest = [line.split("WeightsUnpickler error:", 1)[1].strip(), *lines[i + 1 :]]
+            return next((part for part in rest if part), "unreadable")
+    return next((line for line in lines if line), "unreadable")
+
+
+def shape_mismatches(expected: dict[str, Any], held: dict[str, Any]) -> list[str]:
+    """How the tensors ``held`` (a file's state_dict) differ from the ``expected`` ones (a module's, e.g. built on the
+    meta device): names missing from the file, shapes that differ, names the module does not have; in that order."""
+    shape = {name: list(t.shape) for name, t in held.items() if isinstance(t, torch.Tensor)}
+    problems = [f"{name!r} missing from the file" for name in expected if name not in shape]
+    problems += [f"{name!r} is {shape[name]} in the file, {list(t.shape)} by the hyper-parameters"
+                 for name, t in expected.items() if name in shape and shape[name] != list(t.shape)]  # fmt: skip
+    return problems + [f"{name!r} in the file is not in the model" for name in held if name not in expected]
 
 
 def check_finite(state_dict: dict[str, Any], path: str | Path) -> None:
@@ -75,16 +98,25 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     trained on a GPU loads anywhere), in eval mode. Reads through :func:`read_checkpoint`.
 
     Raises ``FileNotFoundError`` for a missing file, :class:`UnsafeCheckpointError` for a file that could run code,
-    and ``ValueError`` naming the file for a corrupt or foreign one or non-finite weights.
+    and ``ValueError`` naming the file for a corrupt or foreign one, non-finite weights, or hyper-parameters that do
+    not build a module with the weights' names and shapes (checked on the meta device before anything is allocated:
+    :func:`shape_mismatches`).
     """
     checkpoint = read_checkpoint(path, map_location)
     hparams = checkpoint.get("hyper_parameters", {})
     try:
-        model = cls(**hparams)
-        model.on_load_checkpoint(checkpoint)
-        model.load_state_dict(checkpoint["state_dict"])
+        with torch.device("meta"):  # shapes only, no storage: whatever size the hyper-parameters ask for costs nothing
+            skeleton = cls(**hparams)
+        problems = shape_mismatches(skeleton.state_dict(), checkpoint["state_dict"])
+        if not problems:
+            model = cls(**hparams)
+            model.on_load_checkpoint(checkpoint)
+            model.load_state_dict(checkpoint["state_dict"])
     except (TypeError, RuntimeError, ValueError) as e:
         raise ValueError(f"{path} is not a readable {cls.__name__} checkpoint ({type(e).__name__}: {e})") from e
+    if problems:
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ValueError(f"{path}: its hyper-parameters do not match its weights, refusing to build the {cls.__name__}: {'; '.join(problems[:3])}{more}")
     return model.eval()
 
 
