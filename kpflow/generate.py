@@ -4,6 +4,14 @@ Transports ``n_sources`` scripted demonstrations into ``n`` new scenes per varia
 (:mod:`kpflow.eval.generation`), and keeps the successes: ``<variant>/<family>/episodes.zarr`` and robomimic's
 ``demos.hdf5``, with ``results.json``, ``results.md`` (generation rates with 95% intervals, failure reasons,
 throughput), a video and the resolved config in the run folder.
+
+Every attempt is committed as it finishes (:mod:`kpflow.eval.generation_journal`), so a run that was stopped (a
+kill, a crash, a lost machine) continues in its folder with the same command plus ``resume=true`` and its folder:
+``run_name=NAME`` (the folder ``outputs/generate/<task>/NAME``) or ``hydra.run.dir=FOLDER``. It skips the attempts
+already committed and ends with the stores and results an uninterrupted run writes (the throughput counts the
+attempts the resumed run made). Without ``resume=true`` a folder that holds a generation run is refused; with it,
+one whose settings (``generation.json``) differ from the command's is refused, naming them (``workers``, ``videos``
+and ``export`` may change).
 """
 
 from pathlib import Path
@@ -13,10 +21,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from kpflow.eval.generation import generate
+from kpflow.eval.generation_journal import check_output, run_manifest
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command
-from kpflow.utils.run import remove_unused_run_folder, start_run
+from kpflow.utils.run import remove_unused_run_folder, start_run, write_config
 
 KEYS = {
     "n": Key(int, lo=1),
@@ -27,6 +36,8 @@ KEYS = {
     "workers": Key(int, lo=1),
     "videos": Key(int, lo=0),
     "export": Key(bool),
+    "resume": Key(bool),
+    "run_name": Key(str),
 }
 
 
@@ -40,11 +51,13 @@ def main(cfg: DictConfig) -> dict:
         if unknown:
             raise ValueError(f"families {unknown} are not among the transports {sorted(cfg.transports)}")
         raise ValueError(f"generation needs a robosuite benchmark task (lift, stack, can, square), not {type(task).__name__}")
-    out = start_run(cfg, KEYS)
+    out = start_run(cfg, KEYS, write=False)  # claims the folder: no other run passes the check below with us
     families = {name: instantiate(cfg.transports[name]) for name in cfg.families}
-    results = generate(out, task, families, list(cfg.variants), n=cfg.n, n_sources=cfg.n_sources, seed=cfg.seed,
-                       candidates=cfg.candidates, stop_early=cfg.stop_early, workers=cfg.workers, videos=cfg.videos,
-                       export=cfg.export)  # fmt: skip
+    settings = dict(n=cfg.n, n_sources=cfg.n_sources, seed=cfg.seed, candidates=cfg.candidates, stop_early=cfg.stop_early)
+    check_output(out, run_manifest(task, families, list(cfg.variants), **settings), cfg.resume)  # before config.yaml
+    write_config(cfg)
+    results = generate(out, task, families, list(cfg.variants), **settings, workers=cfg.workers, videos=cfg.videos,
+                       export=cfg.export, resume=cfg.resume)  # fmt: skip
     for row in results["summary"]:
         print(f"{task.name} {row['variant']} {row['family']}: {row['successes']}/{row['trials']} generated")
     return results

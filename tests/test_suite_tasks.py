@@ -233,14 +233,16 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
         assert [n.decode() for n in f["mask/train"][:]] == sorted(f["data"], key=lambda k: int(k.split("_")[1]))
 
 
-def test_generation_refuses_to_append_to_an_earlier_run(generated):
+def test_generation_refuses_an_earlier_runs_folder_unless_resumed_with_its_settings(generated):
     from kpflow.eval.generation import generate
     from kpflow.policies.segment_transport import SegmentTransport
 
     out, _ = generated
     before = (out / "results.json").read_text()
-    with pytest.raises(FileExistsError, match="episodes.zarr exists"):
+    with pytest.raises(FileExistsError, match="already holds a generation run .* pass resume=true"):
         generate(out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False)
+    with pytest.raises(ValueError, match=r"generation.json: resume=true continues a run with its own settings.*families"):
+        generate(out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False, resume=True)
     assert (out / "results.json").read_text() == before
 
 

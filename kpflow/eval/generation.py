@@ -10,6 +10,12 @@ decides; with ``stop_early`` False every segment runs and the success test decid
 only the task's success), the first failed check kept as the reason of an attempt that fails. Successes are kept:
 :func:`generate` writes them into one :class:`~kpflow.data.episode_store.EpisodeStore` per family and exports them
 in robomimic's hdf5 layout.
+
+An attempt is a function of the settings, ``seed``, its variant, index and family only: not of the attempts the
+same worker ran before it (every attempt resets the simulator, :meth:`~kpflow.tasks.suite.env.SuiteEnv.reset_to`,
+and every worker builds the same model, :data:`~kpflow.tasks.suite.env.MODEL_SEED`), so the number of workers and
+how the attempts fall to them change nothing, and a run stopped at any point and resumed
+(:mod:`.generation_journal`) ends with the numbers of one that was not.
 """
 
 from __future__ import annotations
@@ -21,10 +27,11 @@ import numpy as np
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.robomimic_export import export_robomimic
-from kpflow.eval.parallel import map_jobs
+from kpflow.eval.generation_journal import STORE, CellJournal, check_output, run_manifest, write_manifest
+from kpflow.eval.parallel import iter_jobs
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.policies.segment_transport import SegmentTransport
-from kpflow.tasks.suite.env import controller_config
+from kpflow.tasks.suite.env import MODEL_SEED, controller_config
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.io import write_json, write_text
 from kpflow.utils.video import write_video
@@ -77,7 +84,7 @@ class Generator:
     def attempt(self, variant: str, index: int, family: str, frames: list | None = None) -> tuple[dict, dict | None]:
         """One attempt: its record and, if it succeeded, the episode (``action [T, 7]``, robosuite's; ``ee_target
         [T, 10]``, the same as position, 6-D rotation and gripper; ``keypoints [T, K, 3]``; ``state [T, S]``;
-        ``ee_pos [T, 3]``)."""
+        ``ee_pos [T, 3]``). Both are the same, to the bit, whichever attempts this generator ran before."""
         task, env, transport = self.task, self.env, self.families[family]
         scene = task.sample_scene(env, variant, index, self.seed)
         env.reset_to(scene)
@@ -128,14 +135,16 @@ def _attempt(job: tuple) -> tuple[dict, dict | None]:
 
 
 def rate_table(summaries: dict[tuple[str, str], dict], throughput: dict[tuple[str, str], dict]) -> str:
-    """The markdown table of generation rates per variant and family."""
+    """The markdown table of generation rates per variant and family (throughput ``-`` where this process ran none
+    of a cell's attempts)."""
     rows = [
         "| variant | family | attempts | generated [95% CI] | failure reasons | attempts / min | sim time / wall time |",
         "|---|---|---|---|---|---|---|",
     ]
     for (variant, family), s in summaries.items():
         t = throughput[(variant, family)]
-        rows.append(f"| {variant} | {family} | {s['trials']} | {success_cells(s)} | {t['attempts_per_minute']:.1f} | {t['real_time']:.2f} |")
+        rate, real = ("-", "-") if not t["attempts_run"] else (f"{t['attempts_per_minute']:.1f}", f"{t['real_time']:.2f}")
+        rows.append(f"| {variant} | {family} | {s['trials']} | {success_cells(s)} | {rate} | {real} |")
     return "\n".join(rows) + "\n"
 
 
@@ -153,11 +162,18 @@ def generate(
     videos: int = 1,
     export: bool = True,
     progress: bool = True,
+    resume: bool = False,
 ) -> dict:
     """``n`` attempts per variant and family into ``output_dir`` (module docstring): ``results.json`` (every
-    attempt and the summary), ``results.md``, ``<variant>/<family>/episodes.zarr`` (the successes) and, with
-    ``export``, ``<variant>/<family>/demos.hdf5`` (robomimic's layout); ``videos`` attempts of the first family
-    filmed. Returns the results."""
+    attempt and the summary), ``results.md``, ``<variant>/<family>/episodes.zarr`` (the successes, in attempt
+    order) and, with ``export``, ``<variant>/<family>/demos.hdf5`` (robomimic's layout); ``videos`` attempts of the
+    first family filmed. Returns the results.
+
+    Each attempt is committed as it finishes, in attempt order (:mod:`.generation_journal`). With ``resume`` a run
+    that was stopped continues in its folder from the first attempt it had not committed (the settings in its
+    ``generation.json`` must be these; ``workers``, ``videos`` and ``export`` may differ) and ends with the stores
+    and results an uninterrupted run writes, but for the throughput, which counts only the attempts this call ran
+    (``attempts_run``). Without ``resume`` a folder that holds a generation run is refused."""
     if n < 1 or workers < 1 or videos < 0:
         raise ValueError(f"n and workers must be >= 1 and videos >= 0; got {n}, {workers}, {videos}")
     bad = [v for v in variants if v not in task.variants]
@@ -166,32 +182,19 @@ def generate(
     if not families:
         raise ValueError("give at least one family")
     out = Path(output_dir)
-    taken = [str(out / v / f / "episodes.zarr") for v in variants for f in families if (out / v / f / "episodes.zarr").exists()]
-    if taken:
-        raise FileExistsError(f"{taken[0]} exists: generation writes a fresh store per variant and family (choose another output_dir)")
+    manifest = run_manifest(task, families, variants, n, n_sources, seed, candidates, stop_early)
+    check_output(out, manifest, resume)
     out.mkdir(parents=True, exist_ok=True)
+    write_manifest(out, manifest)
     generator = Generator(task, families, n_sources, seed, candidates=candidates, stop_early=stop_early)
     summaries, throughput, records = {}, {}, []
     for variant in variants:
         for family in families:
-            jobs = [(variant, i, family) for i in range(n)]
-            start = time.perf_counter()
-            results = map_jobs(_attempt, jobs, workers, _setup, (generator,), desc=f"{task.name} {variant} {family}",
-                               unit="attempt", progress=progress)  # fmt: skip
-            wall = time.perf_counter() - start
-            cell = [r for r, _ in results]
+            cell, run = _run_cell(out / variant / family, generator, variant, family, n, workers, progress)
             records += cell
-            summaries[(variant, family)] = success_summary(cell)
-            sim_seconds = sum(r["steps"] for r in cell) / CONTROL_FREQ
-            throughput[(variant, family)] = {"attempts_per_minute": 60 * n / wall, "real_time": sim_seconds / wall, "wall_s": wall}
-            folder = out / variant / family
-            folder.mkdir(parents=True, exist_ok=True)
-            episodes = [(r, e) for r, e in results if e is not None]
-            with EpisodeStore(folder / "episodes.zarr", mode="a") as store:
-                for r, e in episodes:
-                    store.add_episode(e, attrs={k: r[k] for k in ("variant", "index", "family", "source")})
-            if export and episodes:
-                export_robomimic(folder / "demos.hdf5", [e for _, e in episodes], task.spec.env_name, generator_env_kwargs(task))
+            summaries[(variant, family)], throughput[(variant, family)] = success_summary(cell), run
+            if export:
+                _export(out / variant / family, task)
     video_paths = _film(out, generator, variants[0], next(iter(families)), videos)
     results = {
         "task": task.name,
@@ -206,14 +209,51 @@ def generate(
     write_json(out / "results.json", results)
     header = f"# Generation: {task.name}\n\n{n} attempts per variant and family, {n_sources} scripted source(s), seed {seed}"
     header += f", each attempt's source among the {candidates} nearest" if candidates else ""
-    header += ".\n\n" if stop_early else ", every segment run to the success test.\n\n"
-    write_text(out / "results.md", header + rate_table(summaries, throughput))
+    header += "." if stop_early else ", every segment run to the success test."
+    ran = sum(t["attempts_run"] for t in throughput.values())
+    if ran < len(records):
+        header += f" Resumed: {len(records) - ran} of the {len(records)} attempts were committed by an earlier run; "
+        header += f"the throughput columns time the {ran} this run made." if ran else "this run made none, so no throughput."
+    write_text(out / "results.md", header + "\n\n" + rate_table(summaries, throughput))
     return results
+
+
+def _run_cell(folder: Path, generator: Generator, variant: str, family: str, n: int, workers: int, progress: bool) -> tuple[list[dict], dict]:
+    """One variant and family: its committed attempts continued up to ``n``, each committed as it finishes; the
+    records and the throughput of the attempts run here."""
+    journal = CellJournal(folder, variant, family)
+    records = journal.committed()
+    if len(records) > n:
+        raise ValueError(f"{journal.journal} holds {len(records)} attempts, more than n = {n}: the cell is damaged")
+    jobs = [(variant, i, family) for i in range(len(records), n)]
+    desc = f"{generator.task.name} {variant} {family}" + (f" (from attempt {len(records)})" if records else "")
+    start = time.perf_counter()
+    with journal:
+        if jobs:
+            for record, episode in iter_jobs(_attempt, jobs, workers, _setup, (generator,), desc=desc, unit="attempt",
+                                             progress=progress):  # fmt: skip
+                journal.commit(record, episode)
+                records.append(record)
+    wall = time.perf_counter() - start
+    sim_seconds = sum(r["steps"] for r in records[len(records) - len(jobs):]) / CONTROL_FREQ
+    run = {"attempts_run": len(jobs), "wall_s": wall, "attempts_per_minute": None, "real_time": None}
+    if jobs:
+        run.update(attempts_per_minute=60 * len(jobs) / wall, real_time=sim_seconds / wall)
+    return records, run
+
+
+def _export(folder: Path, task: SuiteTask) -> None:
+    """The cell's stored episodes in robomimic's layout, ``demos.hdf5`` (none without a success)."""
+    with EpisodeStore(folder / STORE) as store:
+        episodes = list(store)
+    if episodes:
+        export_robomimic(folder / "demos.hdf5", episodes, task.spec.env_name, generator_env_kwargs(task))
 
 
 def generator_env_kwargs(task: SuiteTask) -> dict:
     """The robosuite ``env_kwargs`` recorded in the hdf5 export (what robomimic rebuilds the environment from)."""
-    return {"robots": ["Panda"], "controller_configs": controller_config(), "control_freq": CONTROL_FREQ, **task.spec.env_kwargs}
+    return {"robots": ["Panda"], "controller_configs": controller_config(), "control_freq": CONTROL_FREQ, "seed": MODEL_SEED,
+            **task.spec.env_kwargs}  # fmt: skip
 
 
 def _film(out: Path, generator: Generator, variant: str, family: str, videos: int) -> list[str]:

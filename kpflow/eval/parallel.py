@@ -9,7 +9,7 @@ worker OpenMP never uses that pool (and the workers do not oversubscribe the cor
 from __future__ import annotations
 
 import multiprocessing as mp
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from tqdm import tqdm
 
@@ -26,6 +26,22 @@ def map_jobs(
 ) -> list:
     """``[work(job) for job in jobs]``, computed by ``workers`` forked processes (each runs ``initializer(*initargs)``
     once first) or, for ``workers == 1``, in this process after ``initializer(*initargs)``."""
+    return list(iter_jobs(work, jobs, workers, initializer, initargs, desc, unit, progress))
+
+
+def iter_jobs(
+    work: Callable,
+    jobs: Sequence,
+    workers: int,
+    initializer: Callable | None = None,
+    initargs: tuple = (),
+    desc: str = "jobs",
+    unit: str = "job",
+    progress: bool = True,
+) -> Iterator:
+    """:func:`map_jobs` as a generator: ``work(job)`` for each job in the order of ``jobs``, each yielded as soon as it
+    and every job before it are done, so the caller can commit results while later jobs run. Closing the generator
+    early (or an exception in the caller) terminates the workers; nothing is left running."""
     if workers > 1:
         pool = mp.get_context("fork").Pool(workers, initializer=_one_thread_then, initargs=(initializer, initargs))
         results = pool.imap(work, jobs)
@@ -34,11 +50,16 @@ def map_jobs(
         if initializer is not None:
             initializer(*initargs)
         results = map(work, jobs)
+    finished = False
     try:
-        return list(tqdm(results, total=len(jobs), desc=desc, unit=unit, disable=not progress))
+        yield from tqdm(results, total=len(jobs), desc=desc, unit=unit, disable=not progress)
+        finished = True
     finally:
         if pool is not None:
-            pool.close()
+            if finished:
+                pool.close()
+            else:
+                pool.terminate()
             pool.join()
 
 
