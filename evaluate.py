@@ -1,6 +1,11 @@
 """Evaluate: ``python evaluate.py policy=transport split=all`` (Push-T) or ``python evaluate.py experiment=frames``.
-Builds the experiment (and what it needs: policy, data, map) from ``conf/``, runs it, and writes the resolved
-config, results, plots and videos under the run's output folder."""
+Builds the experiment (and what it needs: policy, data, map) from ``conf/``, runs it, writes the resolved
+config, results, plots and videos under the run's output folder and prints the table it computed (an experiment
+returns its results with ``metrics`` for the loggers, ``table``: the text of its results.md, and the ``figures`` and
+``videos`` it wrote).
+
+The run folder is the run's alone: a second run into a folder another live run holds is refused at once
+(:func:`~kpflow.utils.run.claim_run_folder`)."""
 
 import hydra
 from hydra.utils import instantiate
@@ -22,10 +27,10 @@ def main(cfg: DictConfig) -> dict:
     run = instantiate(cfg.experiment)
     results = run(output_dir=out, seed=cfg.seed)
     log_metrics(loggers, results["metrics"])
-    print((out / "results.md").read_text())
-    print(f"results: {out / 'results.md'}  plots: {sorted(str(p) for p in out.glob('*.png'))}")
-    if videos := sorted(str(p) for p in out.glob("*.mp4")):
-        print(f"videos: {videos}")
+    print(results["table"])  # what this run computed (results.md holds the same text)
+    print(f"results: {out / 'results.md'}  plots: {[str(out / f) for f in results.get('figures', [])]}")
+    if results.get("videos"):
+        print(f"videos: {results['videos']}")
     return results
 
 

@@ -2,8 +2,10 @@
 checkpoints the best and last epochs under the run folder (``conf/callbacks``), and with ``run_name=NAME resume=true`` continues
 that run from its last checkpoint.
 
-A run folder belongs to one run: reusing it without ``resume=true`` is refused, and the resolved config is written
-only once training has started (a resume that fails, e.g. on a size mismatch, leaves the run's config as it was).
+A run folder belongs to one run: a run started into a folder another live run holds is refused at once, naming
+that run's pid (:func:`~kpflow.utils.run.claim_run_folder`, taken before anything else looks at the folder), reusing
+a finished or dead run's folder without ``resume=true`` is refused, and the resolved config is written only once
+training has started (a resume that fails, e.g. on a size mismatch, leaves the run's config as it was).
 Checkpoints are read with ``torch.load(weights_only=True)`` (:class:`~kpflow.utils.checkpoint.SafeCheckpointIO`),
 so resuming never runs code from a checkpoint file."""
 
@@ -49,13 +51,14 @@ def check_resumable(model, last: Path) -> None:
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 @command
 def main(cfg: DictConfig) -> dict:
-    out = start_run(cfg, KEYS, write=False)
+    out = start_run(cfg, KEYS, write=False)  # claims the folder (rank 0): no other run passes the check below with us
     if "model_checkpoint" not in cfg.get("callbacks", {}):
         raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see conf/callbacks/default.yaml)")
     last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
     if cfg.resume and not last.exists():
         raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")
-    # DDP's other processes re-run this script into the same folder (rank 0 has checked it): only rank 0 checks
+    # DDP's other processes re-run this script into the same folder (rank 0 has claimed and checked it): only rank 0
+    # claims it (start_run) and checks it
     if not cfg.resume and rank_zero_only.rank == 0 and (used := run_folder_contents(out)):
         raise FileExistsError(
             f"{out} already holds a run ({', '.join(used)}): pass resume=true to continue it, or choose another run_name"

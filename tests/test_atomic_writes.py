@@ -118,3 +118,74 @@ def test_killed_overwriting_import_keeps_the_old_store_and_the_next_import_clean
     np.testing.assert_array_equal(EpisodeStore(dest).episode_ends, old_ends)  # the old store, intact
     new = import_pusht_replay(source, dest, max_episodes=5, progress=False, overwrite=True)
     assert len(new) == 5 and not any(tmp_path.glob(".demos.zarr.*"))
+
+
+# A full disk, planted without root: the file-size limit (RLIMIT_FSIZE, inherited by ffmpeg, a child process) with
+# SIGXFSZ ignored makes every write past FULL_AT bytes fail with EFBIG, as writes to a full disk fail with ENOSPC.
+FULL_AT = 16_384
+FULL_DISK = f"""
+import resource, signal, sys
+import numpy as np
+
+def disk_full():
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, ({FULL_AT}, {FULL_AT}))
+
+what, path = sys.argv[1:]
+frames = [np.random.default_rng(i).integers(0, 255, (64, 64, 3), dtype=np.uint8) for i in range(30)]
+if what == "old_video":  # what write_video did before it checked: imageio straight into the temporary, renamed after
+    import imageio.v2 as imageio
+    disk_full()
+    imageio.mimsave(path, frames, format="FFMPEG", fps=10, codec="libx264", macro_block_size=1)
+elif what == "video":
+    from kpflow.utils.video import write_video
+    disk_full()
+    write_video(frames, path)
+elif what in ("text", "json"):
+    from kpflow.utils.io import write_json, write_text
+    disk_full()
+    write_text(path, "| row |\\n" * {FULL_AT}) if what == "text" else write_json(path, {{"trials": list(range({FULL_AT}))}})
+elif what == "figure":
+    import matplotlib.pyplot as plt
+    from kpflow.utils.io import save_figure
+    fig = plt.figure(figsize=(4, 4))
+    plt.imshow(np.random.default_rng(0).random((200, 200)))
+    disk_full()
+    save_figure(fig, path, dpi=200)
+elif what == "checkpoint":  # how train.py's checkpoints are saved (Lightning's save through SafeCheckpointIO)
+    import torch
+    from kpflow.utils.checkpoint import SafeCheckpointIO
+    disk_full()
+    SafeCheckpointIO().save_checkpoint({{"state_dict": {{"w": torch.randn(20_000)}}}}, path)
+"""
+
+
+def write_on_a_full_disk(what: str, path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", FULL_DISK, what, str(path)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+
+
+def test_a_video_cut_short_by_a_full_disk_is_refused_and_nothing_reaches_its_name(tmp_path):
+    import imageio_ffmpeg
+
+    # the planted case is live: ffmpeg's failed writes go unnoticed, and the file it leaves does not play
+    old = tmp_path / "old.mp4"
+    done = write_on_a_full_disk("old_video", old)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert old.stat().st_size == FULL_AT
+    with pytest.raises(RuntimeError, match="moov atom not found"):
+        imageio_ffmpeg.count_frames_and_secs(str(old))
+    # write_video reads the temporary back before renaming it: it raises, naming the file, and leaves nothing
+    for name in ("episode.mp4", "episode.gif"):
+        path = tmp_path / "run" / name
+        done = write_on_a_full_disk("video", path)
+        assert done.returncode == 1, done.stderr[-2000:]
+        assert f"\nOSError: {path} was not written: " in done.stderr, done.stderr[-2000:]
+        assert sorted(p.name for p in path.parent.iterdir()) == []  # neither the video nor its temporary
+
+
+@pytest.mark.parametrize("what, name", [("text", "results.md"), ("json", "results.json"), ("figure", "success.png"), ("checkpoint", "last.ckpt")])
+def test_results_figures_and_checkpoints_cut_short_by_a_full_disk_leave_nothing(tmp_path, what, name):
+    path = tmp_path / name
+    done = write_on_a_full_disk(what, path)
+    assert done.returncode == 1 and "File too large" in done.stderr, done.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []

@@ -165,10 +165,21 @@ def test_generation_tasks_and_transports_build_from_the_generate_config(name, tm
     assert scenes[0] == scenes[1] != scenes[2]
 
 
+def square_kcfm(tmp_path) -> Path:
+    """An untrained K-CFM checkpoint with the square task's layout (its policy keypoints and end-effector actions)."""
+    from kpflow.policies.kcfm import KCFM
+    from kpflow.tasks.suite.task import SuiteTask
+
+    layout = SuiteTask("square").policy_layout
+    model = KCFM(n_keypoints=layout.n_keypoints, keypoint_dim=layout.keypoint_dim, action_dim=layout.action_dim, horizon=16, down_dims=[16, 32])
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}, tmp_path / "square.ckpt")
+    return tmp_path / "square.ckpt"
+
+
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))
 def test_experiment_options_compose_and_instantiate(name, entry, tmp_path):
-    # suite_policy evaluates a trained checkpoint: any K-CFM builds it (the released Push-T one here)
-    extra = [f"policy.checkpoint={RELEASED}"] if name == "suite_policy" else []
+    # suite_policy evaluates a trained checkpoint of its task's layout (square's: an untrained K-CFM saved here)
+    extra = [f"policy.checkpoint={square_kcfm(tmp_path)}"] if name == "suite_policy" else []
     cfg = compose_config(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
     if entry == "evaluate":
         run = instantiate(cfg.experiment)

@@ -191,3 +191,18 @@ def test_released_checkpoints_accept_the_evaluation_splits(checkpoint):
     for split in ("object_ood", "robot_ood"):
         result = run_episode(PushTEnv(split=split), policy, split_config(split, 10000), max_steps=16, seed=0)
         assert result.steps == 16
+
+
+def test_policies_refuse_a_seed_that_is_not_an_integer(tiny):
+    """reset(1.5) used to seed 1: in process as on the client (tests/test_serving.py), a K-CFM, a transported K-CFM and
+    policy transportation's source choice refuse it, naming the seed; numpy integers are integers."""
+    good, _, index = tiny
+    model = load_checkpoint(KCFM, good)
+    for policy in (KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4)):
+        for seed in (1.5, True, "1", -1):
+            with pytest.raises(ValueError, match=f"seed must be an integer >= 0 or null; got {seed!r}"):
+                policy.reset(seed)
+        policy.reset(np.int64(3))
+        first = policy.act(scene())
+        policy.reset(3)
+        np.testing.assert_array_equal(policy.act(scene()), first)

@@ -1,6 +1,7 @@
 """Entry points refuse bad config values naming the key before writing anything, a run folder belongs to one run,
 a failed resume leaves the run's config as it was, and an interrupted collection continues where it stopped."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -200,3 +201,23 @@ def test_two_jobs_collecting_into_one_store_on_first_use_give_one_collection(tmp
         assert job.exitcode == 0
     collect_pusht(whole, 2, workers=1, progress=False)
     same_store(path, whole)
+
+
+def test_wandb_mode_disabled_leaves_the_wandb_logger_out(tmp_path, monkeypatch):
+    from kpflow.utils.run import make_loggers
+    from tests.helpers import compose_config
+
+    cfg = compose_config("evaluate", ["logger=default"], tmp_path)
+    monkeypatch.setenv("WANDB_MODE", "offline")  # the default logger group: CSV and an offline wandb run
+    assert [type(lg).__name__ for lg in make_loggers(cfg)] == ["CSVLogger", "WandbLogger"]
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    assert [type(lg).__name__ for lg in make_loggers(cfg)] == ["CSVLogger"]
+
+
+def test_a_run_with_wandb_disabled_writes_no_wandb_folder(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=affine", "logger=default", "experiment.n_configs=2", "task.n_points=40", f"hydra.run.dir={out}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "WANDB_MODE": "disabled"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert list((out / "csv").rglob("metrics.csv"))  # the run logged, through the CSV logger only
+    assert not (out / "wandb").exists() and "wandb:" not in done.stdout + done.stderr  # nor wandb's console lines

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from kpflow.data.transported_demos import transport_into
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
+from kpflow.maps.learned import check_map_factory
 from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
@@ -134,9 +135,12 @@ def run_frames_experiment(
     n_configs: int = 8,
     horizon: float = 0.05,
 ) -> dict:
-    """Run both figures, write ``figure1.png``, ``figure2.png``, ``results.md`` and ``results.json`` into
-    ``output_dir``; return the results (with a flat ``metrics`` dict for loggers)."""
+    """Run both figures (a learned map first checked against the task's keypoints:
+    :func:`~kpflow.maps.learned.check_map_factory`), write ``figure1.png``, ``figure2.png``, ``results.md`` and
+    ``results.json`` into ``output_dir``; return what ``results.json`` holds (with a flat ``metrics`` dict for
+    loggers and the ``figures`` written) plus ``table``: the text of ``results.md``."""
     out = Path(output_dir)
+    check_map_factory(make_map, *task.keypoints(task.source_scene()).shape, "the frames task")
     torch.manual_seed(seed)
     f1 = figure1(task, make_map, out)
     f2 = figure2(task, make_map, out, n_configs, seed, horizon)
@@ -148,6 +152,6 @@ def run_frames_experiment(
         + markdown_table(f2["configs"] + [{"config": "mean", **f2["mean"]}], cols2)
     )
     write_text(out / "results.md", table)
-    results = {"figure1": f1, "figure2": f2, "metrics": {f"fig2/{k}": v for k, v in f2["mean"].items()}}
+    results = {"figure1": f1, "figure2": f2, "figures": ["figure1.png", "figure2.png"], "metrics": {f"fig2/{k}": v for k, v in f2["mean"].items()}}
     write_json(out / "results.json", results)
-    return results
+    return {**results, "table": table}

@@ -108,8 +108,8 @@ def run_trials(
 
     ``conditions``: a list, one condition, or ``"all"``/None for the trial's default conditions. ``n_trials`` and
     ``first_index``: one number, or one per condition (Push-T's ``standard`` protocol runs 500 episodes from seed
-    100000). ``videos``: how many showcase trials to film. Returns the results with a flat ``metrics`` dict
-    (``<condition>/<options>/<figure>``) for loggers.
+    100000). ``videos``: how many showcase trials to film. Returns what ``results.json`` holds, with a flat
+    ``metrics`` dict (``<condition>/<options>/<figure>``) for loggers, plus ``table``: the text of ``results.md``.
     """
     if conditions is None or conditions == ALL:
         conditions = list(trial.default_conditions)
@@ -158,5 +158,6 @@ def run_trials(
         "/".join((*cell, k)): v for cell, s in summaries.items() for k, v in s.items() if isinstance(v, float)
     }
     write_json(out / "results.json", results)
-    write_text(out / "results.md", report.header(trial, {c: n for c, (_, n) in counts.items()}) + report.table(summaries, axes))
-    return results
+    table = report.header(trial, {c: n for c, (_, n) in counts.items()}) + report.table(summaries, axes)
+    write_text(out / "results.md", table)
+    return {**results, "table": table}

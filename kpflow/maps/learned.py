@@ -23,11 +23,13 @@ from __future__ import annotations
 import functools
 import os
 import stat
+from typing import Callable
 
 import torch
 
 from kpflow.maps import learned_kernels
 from kpflow.maps.affine import AlignedMap
+from kpflow.maps.base import TransportMap
 from kpflow.maps.conditional_flow import ConditionalFlow
 from kpflow.maps.ilwr import ILWRMap
 from kpflow.maps.validation import scale_floor
@@ -43,16 +45,24 @@ def normalise(aligned_source: torch.Tensor, target: torch.Tensor) -> tuple[torch
 @functools.lru_cache(maxsize=8)
 def _load(path: str, mtime_ns: int, dtype: torch.dtype, device: str) -> tuple[ConditionalFlow, str]:
     from kpflow.maps.map_module import MapModule
-    from kpflow.utils.checkpoint import load_checkpoint
+    from kpflow.utils.checkpoint import UnsafeCheckpointError, load_checkpoint
 
-    module = load_checkpoint(MapModule, path)
+    try:
+        module = load_checkpoint(MapModule, path)
+    except UnsafeCheckpointError:
+        raise
+    except ValueError as e:  # it read, but not as a learned map (another model's checkpoint, a damaged file)
+        raise ValueError(f"{e}; a learned map needs a MapModule checkpoint (python train.py experiment=pusht_map)") from e
     flow = module.flow.to(device=device, dtype=dtype).eval().requires_grad_(False)
     return flow, str(module.hparams.alignment)
 
 
 def load_flow(path: str | os.PathLike, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> tuple[ConditionalFlow, str]:
     """The trained flow of a :class:`~kpflow.maps.map_module.MapModule` checkpoint (frozen, in ``dtype`` on ``device``)
-    and the alignment it was trained behind. Cached per file (re-read when the file changes), dtype and device."""
+    and the alignment it was trained behind. Cached per file (re-read when the file changes), dtype and device.
+
+    Raises ``FileNotFoundError`` when nothing is at ``path`` and ``ValueError`` naming ``path`` when it is not a
+    learned map's checkpoint (or :class:`~kpflow.utils.checkpoint.UnsafeCheckpointError`, when it could run code)."""
     p = os.path.abspath(path)
     try:
         st = os.stat(p)
@@ -61,6 +71,20 @@ def load_flow(path: str | os.PathLike, dtype: torch.dtype = torch.float64, devic
     if st is None or not stat.S_ISREG(st.st_mode):
         raise FileNotFoundError(f"no learned-map checkpoint at {path} (train one: python train.py experiment=pusht_map)")
     return _load(p, st.st_mtime_ns, dtype, str(torch.device(device)))
+
+
+def check_map_factory(make_map: Callable[[], TransportMap], n_keypoints: int, dim: int, use: str) -> None:
+    """Build one map from the factory ``make_map`` now, while the run is being built, so that a map that cannot work
+    fails before its first fit: a learned map reads its checkpoint (a missing file, or one that is not a learned
+    map's, raises naming it; :func:`load_flow`) and must have been trained on keypoint sets of ``n_keypoints``
+    ``dim``-D points, which ``use`` (said in the error) fits it on; otherwise ``ValueError`` names the checkpoint
+    and both layouts."""
+    made = make_map()
+    if isinstance(made, LearnedMap) and (made.n_keypoints, made.dim) != (n_keypoints, dim):
+        raise ValueError(
+            f"the learned map {made.checkpoint or '(in memory)'} was trained on {made.n_keypoints} keypoints in "
+            f"{made.dim}-D, but {use} fits it on {n_keypoints} keypoints in {dim}-D: pass a learned map trained on those"
+        )
 
 
 class LearnedMap(AlignedMap):
@@ -93,6 +117,8 @@ class LearnedMap(AlignedMap):
             raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
         self.checkpoint, self.refine_steps, self._given_flow, self.compiled = checkpoint, int(refine_steps), flow, compiled
         self._loaded = {(torch.float64, "cpu"): loaded[0]} if loaded is not None else {}
+        trained = flow if flow is not None else loaded[0]
+        self.n_keypoints, self.dim = int(trained.n_keypoints), int(trained.dim)  #: the keypoint sets it was trained on
         self.flow: ConditionalFlow | None = None
         self.refiner: ILWRMap | None = None
         self._cond = None  # the torch condition, built on first need

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from kpflow.utils.config_checks import Key
+from kpflow.utils.config_checks import RESET_SEED, Key
 
 from .checks import INPUT_MARGIN, check_actions
 from .kcfm import KCFM, MAX_STEPS
@@ -62,7 +62,8 @@ class KCFMPolicy:
         return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute, input_margin)
 
     def reset(self, seed: int | None = None) -> None:
-        """Reseed the sampling noise with ``seed`` (0 when None)."""
+        """Reseed the sampling noise with ``seed`` (an integer >= 0; 0 when None)."""
+        RESET_SEED.check("seed", seed)
         self.generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
 
     def act(self, obs: dict) -> np.ndarray:

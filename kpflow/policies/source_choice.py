@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data.source_index import SourceIndex
-from ..utils.config_checks import Key
+from ..utils.config_checks import RESET_SEED, Key
 
 
 class SourceChoice:
@@ -54,7 +54,8 @@ class SourceChoice:
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
-        """Reseed the draws with ``seed`` (0 when None) and forget the object's track."""
+        """Reseed the draws with ``seed`` (an integer >= 0; 0 when None) and forget the object's track."""
+        RESET_SEED.check("seed", seed)
         self.rng = np.random.default_rng(0 if seed is None else int(seed))
         self.object_track: list[np.ndarray] = []  # the object's keypoints at each decision since the last escape
         self.stuck_count = 0

@@ -32,6 +32,17 @@ class Policy(Protocol):
 
 
 @dataclass(frozen=True)
+class PolicyLayout:
+    """What a task's learned policies observe and return: ``n_keypoints`` keypoints in ``keypoint_dim``-D, actions of
+    ``action_dim`` values. A task declares it (``task.policy_layout``); a checkpoint's is checked against it before the
+    policy is run on that task."""
+
+    n_keypoints: int
+    keypoint_dim: int
+    action_dim: int
+
+
+@dataclass(frozen=True)
 class Trajectory:
     """An end-effector trajectory, one row per 20 Hz control step: ``positions [T, 3]`` and ``rotations [T, 3, 3]``
     of the cup's tip or the jaws' grip site (absolute targets for the operational-space controller), ``grasp [T]`` (holding: the suction cup's vacuum on, or the jaws closed),

@@ -24,6 +24,8 @@ import lightning
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
+from kpflow.utils.io import atomic_path
+
 M = TypeVar("M", bound=lightning.LightningModule)
 
 
@@ -122,8 +124,16 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
 
 class SafeCheckpointIO(TorchCheckpointIO):
     """Lightning's checkpoint IO with reading through :func:`read_checkpoint` (``Trainer(plugins=[SafeCheckpointIO()])``),
-    so resuming a run never runs code from its checkpoint. Saving stays Lightning's, which is already atomic (an
-    fsspec transaction: a temporary file moved into place)."""
+    so resuming a run never runs code from its checkpoint, and saving through a temporary file beside the target
+    (:func:`~kpflow.utils.io.atomic_path`), so a checkpoint reaches its name only when whole. (Lightning's own save
+    writes its temporary into the system's temp folder and moves it; on another filesystem that move is a copy, which
+    a full disk can cut short at the final name.) Remote paths (``s3://...``) keep Lightning's save."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        if storage_options is not None or "://" in str(path):
+            return super().save_checkpoint(checkpoint, path, storage_options)
+        with atomic_path(path) as tmp:
+            torch.save(checkpoint, tmp)
 
     def load_checkpoint(self, path, map_location: Callable | None = lambda storage, loc: storage) -> dict[str, Any]:
         return read_checkpoint(path, map_location=map_location)

@@ -82,6 +82,8 @@ def check_config(cfg: DictConfig, keys: Mapping[str, Key]) -> None:
 #: Every command's ``seed``: numpy's legacy generator and Lightning's ``seed_everything`` take 0..2**32 - 1, and
 #: seeds are offset by a few thousand in places (a task's source scenes), so the bound keeps clear of the top.
 SEED = Key(int, lo=0, hi=2**31 - 1)
+#: A policy's ``reset(seed)``: an integer (numpy's too) or None; 1.5 is refused, not truncated.
+RESET_SEED = Key(int, lo=0, nullable=True)
 
 # Keys of Lightning's Trainer that kpflow's trainer configs set or users commonly override.
 TRAINER_KEYS = {

@@ -1,11 +1,39 @@
-"""An exclusive inter-process lock on a file (``fcntl.flock``), released when closed or when its process dies."""
+"""An exclusive inter-process lock on a file (``fcntl.flock``), released when closed or when its process dies.
+
+A lock belongs to the process that took it: a child forked while it is held (a pool of workers) closes its copy of
+the descriptor at once, so that the lock is released when its owner dies, not when the last of its children does.
+"""
 
 from __future__ import annotations
 
 import fcntl
 import os
 import time
+import weakref
 from pathlib import Path
+
+_HELD: "weakref.WeakSet[FileLock]" = weakref.WeakSet()  # this process's held locks
+
+
+def _drop_in_child() -> None:
+    """After ``fork``, in the child: close the inherited descriptors (``os.close`` only: ``flock(LOCK_UN)`` would
+    release the parent's lock too, since both descriptors share one open file)."""
+    for lock in list(_HELD):
+        if lock._fd is not None:
+            os.close(lock._fd)
+            lock._fd = None
+    _HELD.clear()
+
+
+os.register_at_fork(after_in_child=_drop_in_child)
+
+
+class LockHeld(TimeoutError):
+    """A :class:`FileLock` could not be taken: ``holder`` (a pid, or None when unknown) held ``path``."""
+
+    def __init__(self, message: str, path: Path, holder: int | None) -> None:
+        super().__init__(message)
+        self.path, self.holder = path, holder
 
 
 class FileLock:
@@ -18,8 +46,9 @@ class FileLock:
         on_wait: called once, with the holder's pid (or None), when the lock is taken and we start waiting.
 
     Raises:
-        TimeoutError: the lock was still held after ``wait`` seconds, or is held by this process through another
-            handle (waiting would deadlock); the message names the file and the holder.
+        LockHeld: (a ``TimeoutError``) the lock was still held after ``wait`` seconds, or is held by this process
+            through another handle (waiting would deadlock); the message names the file and the holder, and so do
+            its ``path`` and ``holder``.
     """
 
     POLL_S = 0.05
@@ -37,18 +66,19 @@ class FileLock:
                 holder = self.holder()
                 if holder == os.getpid():  # another handle of this very process: waiting would never end
                     self.release()
-                    raise TimeoutError(f"{self.path} is held by this process already, through another open handle: close that first") from None
+                    raise LockHeld(f"{self.path} is held by this process already, through another open handle: close that first", self.path, holder) from None
                 if deadline is not None and time.monotonic() >= deadline:
                     self.release()
                     who = f"process {holder}" if holder else "another process"
                     after = f" after {wait} s" if wait else ""
-                    raise TimeoutError(f"{self.path} is held by {who}{after}: wait for it to finish, or wait longer") from None
+                    raise LockHeld(f"{self.path} is held by {who}{after}: wait for it to finish, or wait longer", self.path, holder) from None
                 if not waiting and on_wait is not None:
                     on_wait(holder)
                 waiting = True
                 time.sleep(self.POLL_S)
         os.ftruncate(self._fd, 0)
         os.pwrite(self._fd, str(os.getpid()).encode(), 0)
+        _HELD.add(self)
 
     def holder(self) -> int | None:
         """The pid written by the current holder (None if unknown)."""
@@ -59,6 +89,7 @@ class FileLock:
         return int(text) if text.isdigit() else None
 
     def release(self) -> None:
+        _HELD.discard(self)
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor drops the flock
             self._fd = None

@@ -8,8 +8,10 @@ Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observ
 
 from __future__ import annotations
 
+from ..base import PolicyLayout
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
+from .geometry import N_KEYPOINTS
 from .scene import Config, split_config, standard_config
 
 
@@ -18,6 +20,8 @@ class PushTTask:
 
     name = "pusht"
     conditions = ENV_SPLITS
+    #: what its learned policies observe and return: 12 block, 12 goal and the agent's keypoints (px); agent targets
+    policy_layout = PolicyLayout(N_KEYPOINTS, 2, 2)
 
     def make_env(self, condition: str = "in_distribution", **kwargs) -> PushTEnv:
         """The env of ``condition``'s workspace (``kwargs``: :class:`~.env.PushTEnv`'s options)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from kpflow.tasks.arm.motion import yaw_of
+from kpflow.tasks.base import PolicyLayout
 
 from .specs import TaskSpec
 
@@ -114,6 +115,18 @@ def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float) -> np.ndarray:
 def gripper_keypoints(env) -> np.ndarray:
     """The grip site's position ``[1, 3]``."""
     return env.ee_pose()[0][None]
+
+
+#: keypoints after the objects' in a policy's observation: the grip site and the two finger pads
+GRIPPER_KEYPOINTS = 3
+
+
+def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
+    """The shape of :func:`policy_keypoints` for ``spec`` (the objects' keypoints counted on a unit pose, then the
+    grip site and the finger pads, all 3-D) with actions of ``action_dim`` values."""
+    names = [spec.grasp] + ([spec.target] if spec.target else [])
+    n = sum(len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0)) for name in names) + GRIPPER_KEYPOINTS
+    return PolicyLayout(n, 3, action_dim)
 
 
 def policy_keypoints(env, spec: TaskSpec) -> np.ndarray:

@@ -19,7 +19,8 @@ from kpflow.tasks.base import Segment, SegmentStart, Trajectory
 
 from .demonstrator import path_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, scene_keypoints
+from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, policy_layout, scene_keypoints
+from .rollout import ACTION_DIM
 from .scene import VARIANTS, Scene, sample_scene
 from .specs import task_spec
 
@@ -50,6 +51,7 @@ class SuiteTask:
         self.spec = task_spec(name)
         self.name = self.spec.name
         self.variants = VARIANTS
+        self.policy_layout = policy_layout(self.spec, ACTION_DIM)  #: what its learned policies observe and return
 
     def make_env(self, render: bool = False) -> SuiteEnv:
         return SuiteEnv(self.spec, render=render)
