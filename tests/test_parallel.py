@@ -19,7 +19,7 @@ def _work(job: int) -> tuple[int, int]:
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_map_jobs_keeps_the_order_and_runs_the_initializer_in_each_worker(workers):
-    out = map_jobs(_work, list(range(20)), workers, _setup, (100,), progress=False)
+    out = map_jobs(_work, list(range(20)), workers, initializer=_setup, initargs=(100,), progress=False)
     assert [value for value, _ in out] == list(range(100, 120))
     pids = {pid for _, pid in out}
     assert (pids == {os.getpid()}) if workers == 1 else (os.getpid() not in pids and len(pids) <= 2)

@@ -14,19 +14,11 @@ from typing import Callable, Iterator, Sequence
 from tqdm import tqdm
 
 
-def map_jobs(
-    work: Callable,
-    jobs: Sequence,
-    workers: int,
-    initializer: Callable | None = None,
-    initargs: tuple = (),
-    desc: str = "jobs",
-    unit: str = "job",
-    progress: bool = True,
-) -> list:
+def map_jobs(work: Callable, jobs: Sequence, workers: int, **options) -> list:
     """``[work(job) for job in jobs]``, computed by ``workers`` forked processes (each runs ``initializer(*initargs)``
-    once first) or, for ``workers == 1``, in this process after ``initializer(*initargs)``."""
-    return list(iter_jobs(work, jobs, workers, initializer, initargs, desc, unit, progress))
+    once first) or, for ``workers == 1``, in this process after ``initializer(*initargs)``; ``options``: those of
+    :func:`iter_jobs`."""
+    return list(iter_jobs(work, jobs, workers, **options))
 
 
 def iter_jobs(

@@ -129,7 +129,7 @@ def run_trials(
     out.mkdir(parents=True, exist_ok=True)
 
     jobs = [(c, first + i, v, seed) for c in conditions for v in variants for first, n in [counts[c]] for i in range(n)]
-    records = map_jobs(_run, jobs, workers, _setup, (trial,), desc=f"{trial.name} trials", unit="trial", progress=progress)
+    records = map_jobs(_run, jobs, workers, initializer=_setup, initargs=(trial,), desc=f"{trial.name} trials", unit="trial", progress=progress)
     trials = [trial_from_record(r, axes) for r in records]
     report = trial.report
     summaries = {(c, *v.values()): report.summarise([t for t in trials if t.condition == c and t.variant == v]) for c in conditions for v in variants}
