@@ -16,6 +16,7 @@ needs more is refused with an error naming it, and so are weights that hold NaN 
 
 from __future__ import annotations
 
+import io
 import pickle
 from pathlib import Path
 from typing import Any, Callable, TypeVar
@@ -132,8 +133,10 @@ class SafeCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
         if storage_options is not None or "://" in str(path):
             return super().save_checkpoint(checkpoint, path, storage_options)
+        buffer = io.BytesIO()  # serialised first, as Lightning does: a failed write is then the file's OSError
+        torch.save(checkpoint, buffer)
         with atomic_path(path) as tmp:
-            torch.save(checkpoint, tmp)
+            tmp.write_bytes(buffer.getbuffer())
 
     def load_checkpoint(self, path, map_location: Callable | None = lambda storage, loc: storage) -> dict[str, Any]:
         return read_checkpoint(path, map_location=map_location)
