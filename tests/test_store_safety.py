@@ -342,3 +342,13 @@ def test_lerobot_files_declaring_other_row_counts_are_refused_before_decompressi
     (root / "meta/info.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="info.json says 10 frames, the data files declare 160"):
         import_lerobot(root, tmp_path / "imported.zarr")
+
+
+def test_damaged_checksum_records_are_refused_on_open(store):
+    attrs = json.loads((store / "meta/.zattrs").read_text())
+    for damage in ({**attrs["checksums"], "action": "zz" + attrs["checksums"]["action"][2:]},  # not hex
+                   {**attrs["checksums"], "action": attrs["checksums"]["action"][:-16]},  # one episode short
+                   {"action": attrs["checksums"]["action"]}):  # a field missing  # fmt: skip
+        (store / "meta/.zattrs").write_text(json.dumps({**attrs, "checksums": damage}))
+        with pytest.raises(ValueError, match="checksums are damaged|meta/.zattrs' field record or checksums are damaged"):
+            EpisodeStore(store)

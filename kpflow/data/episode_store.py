@@ -67,6 +67,7 @@ _PENDING = "pending_episode"  # key of the write-ahead mark of an append in prog
 _FIELDS = "fields"  # key of each field's recorded {"dtype", "shape"} (trailing), in meta/.zattrs
 _CHECKSUMS = "checksums"  # key of {field: the episodes' xxh3_64 hex digests concatenated}, in meta/.zattrs
 _HEX = 16  # hex digits of one checksum
+_DIGEST = 8  # its bytes
 LOCK_NAME = ".kpflow-write.lock"
 
 
@@ -85,15 +86,19 @@ def _schema(values: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
     return {name: {"dtype": v.dtype.str, "shape": list(v.shape[1:])} for name, v in values.items()}
 
 
-def _count(checksums: Any, where: str) -> int | None:
-    """How many episodes ``meta/.zattrs["checksums"]`` covers (None when absent); ``ValueError`` when its fields
-    disagree or it is not hex digests."""
+def _digests(checksums: Any, where: str) -> dict[str, bytes] | None:
+    """``meta/.zattrs["checksums"]`` (None when absent) as bytes per field, 8 per episode; ``ValueError`` when its
+    fields disagree in length or it is not hex digests."""
     if checksums is None:
         return None
-    lengths = {len(v) if isinstance(v, str) else -1 for v in checksums.values()} if isinstance(checksums, dict) else {-1}
-    if len(lengths) != 1 or min(lengths) % _HEX or not all(c in "0123456789abcdef" for v in checksums.values() for c in v[:_HEX]):
+    try:
+        digests = {name: bytes.fromhex(v) for name, v in checksums.items()}
+    except (AttributeError, TypeError, ValueError):
+        digests = None  # not a dict of strings, or not hex
+    lengths = {len(d) for d in digests.values()} if digests else set()
+    if digests is None or len(lengths) > 1 or any(len(d) * 2 != len(checksums[n]) or len(d) % _DIGEST for n, d in digests.items()):
         raise ValueError(f"{where}: meta/.zattrs' checksums are damaged (each field must hold {_HEX} hex digits per episode)")
-    return lengths.pop() // _HEX
+    return digests
 
 
 def _check_ends(ends: np.ndarray, where: str) -> None:
@@ -212,9 +217,10 @@ class EpisodeStore:
             raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
         pending = meta_attrs.get(_PENDING)
         self._schema: dict[str, dict] | None = meta_attrs.get(_FIELDS)
-        self._checksums: dict[str, str] | None = meta_attrs.get(_CHECKSUMS)
+        self._set_checksums(meta_attrs.get(_CHECKSUMS))
+        n_checksums = None if self._checksums is None else self._n_checksums
         rows = {name: a.shape[0] for name, a in arrays.items()}
-        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": _count(self._checksums, where)}
+        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": n_checksums}
         n, dirty = _uncommitted(raw, pending, rows, lists, where)
         self._ends = raw[:n]
         self._check_schema(arrays, n, pending is not None)
@@ -222,6 +228,11 @@ class EpisodeStore:
             check_chunks(a, self.n_steps, where, name)
         if self.mode == "a" and dirty:
             self._drop_uncommitted(arrays, n < len(raw))
+
+    def _set_checksums(self, checksums: dict[str, str] | None) -> None:
+        """The record (hex, as in ``meta/.zattrs``) and its digests as bytes, which reads compare against."""
+        self._checksums, self._digests = checksums, _digests(checksums, str(self.path)) or {}
+        self._n_checksums = len(next(iter(self._digests.values()), b"")) // _DIGEST  # episodes the record covers
 
     def _check_schema(self, arrays: dict[str, zarr.Array], n: int, pending: bool) -> None:
         """Raise ``ValueError`` unless the arrays have the recorded fields, dtypes and shapes, and every committed
@@ -233,8 +244,8 @@ class EpisodeStore:
             return
         if not isinstance(self._schema, dict) or not isinstance(self._checksums, dict) or set(self._checksums) != set(self._schema):
             raise ValueError(f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)")
-        if _count(self._checksums, where) < n:
-            raise ValueError(f"{where}: meta/.zattrs holds checksums for {_count(self._checksums, where)} episodes but the store has {n}: the metadata is damaged")
+        if self._n_checksums < n:
+            raise ValueError(f"{where}: meta/.zattrs holds checksums for {self._n_checksums} episodes but the store has {n}: the metadata is damaged")
         if (n or arrays) and set(arrays) != set(self._schema) and not (pending and not n):
             raise ValueError(f"{where}: the store's fields {sorted(arrays)} are not the recorded ones {sorted(self._schema)}")
         for name, a in arrays.items():
@@ -276,7 +287,7 @@ class EpisodeStore:
         if not len(self._ends):
             attrs.pop(_FIELDS, None)
             attrs.pop(_CHECKSUMS, None)
-        self._checksums = attrs.get(_CHECKSUMS)
+        self._set_checksums(attrs.get(_CHECKSUMS))
         self._meta.attrs.put(attrs)
 
     def close(self) -> None:
@@ -348,7 +359,7 @@ class EpisodeStore:
         rows = self.episode_slice(i)
         values = {name: read(self._data[name], rows, str(self.path), name) for name in self.fields}
         for name, v in values.items():
-            self._verify(name, i, v)
+            self._verify(name, v, i, i + 1)
         return values
 
     def episode_attrs(self, i: int) -> dict[str, Any]:
@@ -363,9 +374,7 @@ class EpisodeStore:
         if name not in self.fields:
             raise KeyError(f"no field {name!r} in {self.path}; fields: {self.fields}")
         values = read(self._data[name], slice(0, self.n_steps), str(self.path), name)
-        if self.sealed:
-            for i, (a, b) in enumerate(zip([0, *self._ends[:-1].tolist()], self._ends.tolist())):
-                self._verify(name, i, values[a:b])
+        self._verify(name, values, 0, self.n_episodes)
         return values
 
     @property
@@ -374,10 +383,21 @@ class EpisodeStore:
         stores written before kpflow recorded them and for foreign ones; ``python -m kpflow.verify --seal``)."""
         return self._schema is not None
 
-    def _verify(self, name: str, i: int, values: np.ndarray) -> None:
-        """Raise ``ValueError`` naming the field and episode if ``values`` (episode ``i``'s rows of field ``name``)
-        differ from what was written (stores without checksums are not verified)."""
-        if self._schema is not None and checksum(values) != self._checksums[name][_HEX * i : _HEX * (i + 1)]:
+    def _verify(self, name: str, values: np.ndarray, first: int, stop: int) -> None:
+        """Raise ``ValueError`` naming the field and the first episode whose rows differ from what was written, for
+        ``values``: the rows of field ``name`` of episodes ``first .. stop - 1``, as read (stores without checksums are
+        not verified). One pass: each episode's digest is taken over a byte view of ``values``, and the joined
+        digests are compared with the record at once."""
+        if self._schema is None:
+            return
+        row = values[0].nbytes if len(values) else 0
+        start = int(self._ends[first - 1]) if first else 0  # the first row of ``values`` in the store
+        b = ((self._ends[first:stop] - start) * row).tolist()
+        data, digest = memoryview(np.ascontiguousarray(values)).cast("B"), xxhash.xxh3_64_digest
+        got = b"".join([digest(data[x:y]) for x, y in zip([0, *b[:-1]], b)])
+        want = self._digests[name][_DIGEST * first : _DIGEST * stop]
+        if got != want:
+            i = first + next(k for k in range(stop - first) if got[_DIGEST * k : _DIGEST * (k + 1)] != want[_DIGEST * k : _DIGEST * (k + 1)])
             raise ValueError(
                 f"{self.path}: field {name!r} of episode {i} does not match the checksum recorded when it was written: "
                 "the data on disk has changed (damaged or edited chunks)"
@@ -416,7 +436,8 @@ class EpisodeStore:
         attrs[_FIELDS] = {name: {"dtype": a.dtype.str, "shape": list(a.shape[1:])} for name, a in arrays.items()}
         attrs[_CHECKSUMS] = sums
         self._meta.attrs.put(attrs)  # one .zattrs write: sealed whole or not at all
-        self._schema, self._checksums = attrs[_FIELDS], sums
+        self._schema = attrs[_FIELDS]
+        self._set_checksums(sums)
 
     # ----------------------------------------------------------------------------------------- writing
 
@@ -472,7 +493,8 @@ class EpisodeStore:
         self._commit(end)  # 3. the commit point
         del mark[_PENDING]
         self._meta.attrs.put(mark)
-        self._schema, self._checksums = mark[_FIELDS], mark[_CHECKSUMS]
+        self._schema = mark[_FIELDS]
+        self._set_checksums(mark[_CHECKSUMS])
         return self.n_episodes - 1
 
     def _commit(self, end: int) -> None:
