@@ -25,11 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for path in args.stores:
         with EpisodeStore(path, mode="a" if args.seal else "r") as store:
-            report = store.verify(progress=not args.no_progress)
-            sealed_now = args.seal and not store.sealed
-            if sealed_now:
-                store.seal()
-            state = "sealed now" if sealed_now else "verified" if store.sealed else "unsealed: read whole, values unverifiable (--seal records them)"
+            sealed_before = store.sealed
+            report = store.seal(not args.no_progress) if args.seal else store.verify(not args.no_progress)
+            state = "verified" if sealed_before else "sealed now" if store.sealed else "unsealed: read whole, values unverifiable (--seal records them)"
         print(f"{path}: {report['episodes']} episodes, {report['steps']} steps, fields {', '.join(report['fields'])}: {state}")
     return 0
 

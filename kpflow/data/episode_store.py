@@ -76,9 +76,13 @@ def _chunk_rows(row_bytes: int) -> int:
     return max(1, min(_MAX_CHUNK_ROWS, _TARGET_CHUNK_BYTES // max(row_bytes, 1)))
 
 
-def checksum(values: np.ndarray) -> str:
-    """The xxh3_64 checksum (16 hex digits) of ``values``' bytes in C order, as an episode's rows are stored."""
-    return xxhash.xxh3_64_hexdigest(np.ascontiguousarray(values))
+def episode_digests(values: np.ndarray, ends: list[int]) -> bytes:
+    """The xxh3_64 digests (8 bytes each) of consecutive episodes' rows of ``values`` (their bytes in C order, as
+    stored), the episodes ending at rows ``ends`` of ``values``: one byte view, one library call per episode."""
+    row = values[0].nbytes if len(values) else 0
+    data, digest = memoryview(np.ascontiguousarray(values)).cast("B"), xxhash.xxh3_64_digest
+    bounds = [end * row for end in ends]
+    return b"".join([digest(data[a:b]) for a, b in zip([0, *bounds[:-1]], bounds)])
 
 
 def _schema(values: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
@@ -217,10 +221,9 @@ class EpisodeStore:
             raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
         pending = meta_attrs.get(_PENDING)
         self._schema: dict[str, dict] | None = meta_attrs.get(_FIELDS)
-        self._set_checksums(meta_attrs.get(_CHECKSUMS))
-        n_checksums = None if self._checksums is None else self._n_checksums
+        self._digests = _digests(meta_attrs.get(_CHECKSUMS), where)
         rows = {name: a.shape[0] for name, a in arrays.items()}
-        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": n_checksums}
+        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": None if self._digests is None else self._n_checksums}
         n, dirty = _uncommitted(raw, pending, rows, lists, where)
         self._ends = raw[:n]
         self._check_schema(arrays, n, pending is not None)
@@ -229,20 +232,20 @@ class EpisodeStore:
         if self.mode == "a" and dirty:
             self._drop_uncommitted(arrays, n < len(raw))
 
-    def _set_checksums(self, checksums: dict[str, str] | None) -> None:
-        """The record (hex, as in ``meta/.zattrs``) and its digests as bytes, which reads compare against."""
-        self._checksums, self._digests = checksums, _digests(checksums, str(self.path)) or {}
-        self._n_checksums = len(next(iter(self._digests.values()), b"")) // _DIGEST  # episodes the record covers
+    @property
+    def _n_checksums(self) -> int:
+        """How many episodes the checksum record covers."""
+        return len(next(iter(self._digests.values()), b"")) // _DIGEST if self._digests else 0
 
     def _check_schema(self, arrays: dict[str, zarr.Array], n: int, pending: bool) -> None:
         """Raise ``ValueError`` unless the arrays have the recorded fields, dtypes and shapes, and every committed
         episode its checksums (stores with a record; see the module docstring)."""
         where = str(self.path)
         if self._schema is None:
-            if self._checksums is not None:
+            if self._digests is not None:
                 raise ValueError(f"{where}: meta/.zattrs holds checksums but no field record: the metadata is damaged")
             return
-        if not isinstance(self._schema, dict) or not isinstance(self._checksums, dict) or set(self._checksums) != set(self._schema):
+        if not isinstance(self._schema, dict) or self._digests is None or set(self._digests) != set(self._schema):
             raise ValueError(f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)")
         if self._n_checksums < n:
             raise ValueError(f"{where}: meta/.zattrs holds checksums for {self._n_checksums} episodes but the store has {n}: the metadata is damaged")
@@ -287,7 +290,7 @@ class EpisodeStore:
         if not len(self._ends):
             attrs.pop(_FIELDS, None)
             attrs.pop(_CHECKSUMS, None)
-        self._set_checksums(attrs.get(_CHECKSUMS))
+        self._digests = _digests(attrs.get(_CHECKSUMS), str(self.path))
         self._meta.attrs.put(attrs)
 
     def close(self) -> None:
@@ -386,15 +389,12 @@ class EpisodeStore:
     def _verify(self, name: str, values: np.ndarray, first: int, stop: int) -> None:
         """Raise ``ValueError`` naming the field and the first episode whose rows differ from what was written, for
         ``values``: the rows of field ``name`` of episodes ``first .. stop - 1``, as read (stores without checksums are
-        not verified). One pass: each episode's digest is taken over a byte view of ``values``, and the joined
-        digests are compared with the record at once."""
+        not verified). One pass: the episodes' joined digests (:func:`episode_digests`) are compared with the record
+        at once."""
         if self._schema is None:
             return
-        row = values[0].nbytes if len(values) else 0
         start = int(self._ends[first - 1]) if first else 0  # the first row of ``values`` in the store
-        b = ((self._ends[first:stop] - start) * row).tolist()
-        data, digest = memoryview(np.ascontiguousarray(values)).cast("B"), xxhash.xxh3_64_digest
-        got = b"".join([digest(data[x:y]) for x, y in zip([0, *b[:-1]], b)])
+        got = episode_digests(values, (self._ends[first:stop] - start).tolist())
         want = self._digests[name][_DIGEST * first : _DIGEST * stop]
         if got != want:
             i = first + next(k for k in range(stop - first) if got[_DIGEST * k : _DIGEST * (k + 1)] != want[_DIGEST * k : _DIGEST * (k + 1)])
@@ -408,6 +408,16 @@ class EpisodeStore:
         "fields", "sealed"}``. Raises ``ValueError`` naming the first field and episode that differ from what was
         written, or a chunk that does not decode; a store without checksums is read whole (every chunk decodes, no
         NaN or inf) but its values cannot be checked (``sealed`` False)."""
+        for _ in self._read_whole(progress):
+            pass
+        return self._report()
+
+    def _report(self) -> dict[str, Any]:
+        return {"episodes": self.n_episodes, "steps": self.n_steps, "fields": list(self.fields), "sealed": self.sealed}
+
+    def _read_whole(self, progress: bool) -> Iterator[tuple[str, np.ndarray]]:
+        """Each field read whole (:meth:`field`: checked against the record, if any) and refused if it holds NaN or
+        inf, naming the episode."""
         from tqdm import tqdm
 
         for name in tqdm(self.fields, desc=f"verify {self.path.name}", unit="field", disable=not progress):
@@ -416,28 +426,24 @@ class EpisodeStore:
                 row = int(np.flatnonzero(~np.isfinite(values.reshape(len(values), -1)).all(1))[0])
                 episode = int(np.searchsorted(self._ends, row, side="right"))
                 raise ValueError(f"{self.path}: field {name!r} of episode {episode} holds NaN or inf (row {row})")
-        return {"episodes": self.n_episodes, "steps": self.n_steps, "fields": list(self.fields), "sealed": self.sealed}
+            yield name, values
 
-    def seal(self) -> None:
+    def seal(self, progress: bool = False) -> dict[str, Any]:
         """Record the fields and every episode's checksums of a store that has none (one written before kpflow
-        recorded them), after reading it whole (:meth:`verify`); mode ``"a"`` only. A sealed store is left as it is."""
+        recorded them), reading it whole once (what :meth:`verify` checks); mode ``"a"`` only. A sealed store is only
+        verified. Returns :meth:`verify`'s report."""
         if self.mode != "a" or self._lock is None:
             raise PermissionError(f"{self.path} must be open with mode='a' to seal it")
         if self.sealed:
-            return
-        self.verify()
-        arrays = {name: self._data[name] for name in self.fields}
-        starts = [0, *self._ends[:-1].tolist()]
-        sums = {}
-        for name in self.fields:
-            values = self.field(name)
-            sums[name] = "".join(checksum(values[a:b]) for a, b in zip(starts, self._ends.tolist()))
+            return self.verify(progress)
+        ends = self._ends.tolist()
+        sums = {name: episode_digests(values, ends).hex() for name, values in self._read_whole(progress)}
         attrs = dict(self._meta.attrs.asdict())
-        attrs[_FIELDS] = {name: {"dtype": a.dtype.str, "shape": list(a.shape[1:])} for name, a in arrays.items()}
+        attrs[_FIELDS] = _schema({name: self._data[name] for name in self.fields})
         attrs[_CHECKSUMS] = sums
         self._meta.attrs.put(attrs)  # one .zattrs write: sealed whole or not at all
-        self._schema = attrs[_FIELDS]
-        self._set_checksums(sums)
+        self._schema, self._digests = attrs[_FIELDS], _digests(sums, str(self.path))
+        return self._report()
 
     # ----------------------------------------------------------------------------------------- writing
 
@@ -480,7 +486,7 @@ class EpisodeStore:
             mark[_EPISODE_ATTRS] = listed + [{}] * (self.n_episodes - len(listed)) + [dict(attrs or {})]
         mark[_FIELDS] = self._schema or _schema(values)
         earlier = mark.get(_CHECKSUMS) or {}
-        mark[_CHECKSUMS] = {name: earlier.get(name, "")[: _HEX * self.n_episodes] + checksum(v) for name, v in values.items()}
+        mark[_CHECKSUMS] = {name: earlier.get(name, "")[: _HEX * self.n_episodes] + episode_digests(v, [len(v)]).hex() for name, v in values.items()}
         self._meta.attrs.put(mark)
         if not self.fields:
             for name, v in values.items():
@@ -493,8 +499,7 @@ class EpisodeStore:
         self._commit(end)  # 3. the commit point
         del mark[_PENDING]
         self._meta.attrs.put(mark)
-        self._schema = mark[_FIELDS]
-        self._set_checksums(mark[_CHECKSUMS])
+        self._schema, self._digests = mark[_FIELDS], _digests(mark[_CHECKSUMS], str(self.path))
         return self.n_episodes - 1
 
     def _commit(self, end: int) -> None:
