@@ -142,11 +142,12 @@ def grid_checks(checkpoint: str, src, tgt, n: int = 15) -> tuple[float, float]:
 def decision_latency(make_map, store: str, kcfm: str | None, n: int = 50) -> tuple[float, float | None]:
     """Median seconds per ``act`` of policy transportation and (with a K-CFM checkpoint) the transported K-CFM."""
     from kpflow.data.episode_store import EpisodeStore
-    from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+    from kpflow.data.source_index import SourceIndex
     from kpflow.policies.chunk_transport import TransportPolicy
     from kpflow.policies.kcfm_policy import KCFMPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
     from kpflow.tasks.pusht import PushTEnv, split_config
+    from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 
     env = PushTEnv()
     observations = [env.reset(options={"config": split_config("in_distribution", i, seed=7)})[0] for i in range(n)]

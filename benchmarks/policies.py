@@ -44,12 +44,13 @@ from sklearn.neighbors import NearestNeighbors
 
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, goal_frame, pusht_weights
 from kpflow.utils.io import publish
 
 VARIANTS = [
@@ -120,7 +121,7 @@ def main(argv=None) -> str:
                      for q in query_kps[:50]])  # fmt: skip
     transport = median_ms(TransportPolicy(index, execute=20).act, queries)
 
-    model = KCFM(horizon=20, goal_frame=True)  # the configuration conf/model/kcfm.yaml trains
+    model = KCFM(N_KEYPOINTS, horizon=20, goal_frame=goal_frame())  # the configuration conf/experiment/pusht_kcfm.yaml trains
     model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
     k1, k10, k20 = (KCFMPolicy(model, steps=n, execute=8) for n in (1, 10, 20))
     k1.reset(0), k10.reset(0), k20.reset(0)
@@ -131,7 +132,7 @@ def main(argv=None) -> str:
 
     variants = []
     for label, kwargs in VARIANTS:
-        variant = KCFM(horizon=16, goal_frame=True, **kwargs)
+        variant = KCFM(N_KEYPOINTS, horizon=16, goal_frame=goal_frame(), **kwargs)
         variant.set_normalisation(keypoints[:5000], chunks[:5000, 0])
         policy = KCFMPolicy(variant, steps=10, execute=8)
         history = [dict(q, keypoints_history=np.stack([q["keypoints"]] * policy.n_obs)) for q in queries]

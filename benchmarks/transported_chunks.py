@@ -26,11 +26,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from kpflow.data.episode_store import EpisodeStore  # noqa: E402
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights  # noqa: E402
+from kpflow.data.source_index import SourceIndex  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
 from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
 from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
+from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights  # noqa: E402
 from kpflow.utils.io import publish  # noqa: E402
 
 EXECUTE = 8

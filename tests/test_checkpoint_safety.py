@@ -17,6 +17,7 @@ import torch
 import kpflow
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm import KCFM
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import SafeCheckpointIO, UnsafeCheckpointError, load_checkpoint, read_checkpoint
 from tests.helpers import walk_to_block_store
 
@@ -46,7 +47,7 @@ def kcfm_run(tmp_path_factory):
     walk_to_block_store(tmp / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
     t = trainer(tmp, 2)
-    t.fit(KCFM(horizon=H), datamodule=ChunkDataModule(tmp / "demos.zarr", horizon=H, batch_size=64))
+    t.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(tmp / "demos.zarr", horizon=H, batch_size=64))
     t.save_checkpoint(tmp / "good.ckpt")
     return tmp
 
@@ -72,7 +73,7 @@ def test_planted_payload_is_refused_in_process(kcfm_run, tmp_path):
             load()
     t = trainer(tmp_path, 4, plugins=[SafeCheckpointIO()])
     with pytest.raises(UnsafeCheckpointError, match="was refused"):
-        t.fit(KCFM(horizon=H), datamodule=ChunkDataModule(kcfm_run / "demos.zarr", horizon=H, batch_size=64), ckpt_path=evil)
+        t.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(kcfm_run / "demos.zarr", horizon=H, batch_size=64), ckpt_path=evil)
     assert not marker.exists()
     torch.load(evil, weights_only=False)  # control: the payload is live, an unsafe load does run it
     assert marker.exists()

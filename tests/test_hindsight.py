@@ -111,7 +111,8 @@ def test_human_demonstrations_reach_their_goals_only_in_hindsight(tmp_path):
     import torch
 
     from kpflow.data.pusht_import import import_pusht_replay
-    from kpflow.policies.kcfm import goal_pose
+    from kpflow.maps.affine import fit_affine
+    from kpflow.tasks.pusht.geometry import T_KEYPOINTS
 
     store = import_pusht_replay(PUSHT, tmp_path / "human.zarr", progress=False)
     obs = PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends)
@@ -119,7 +120,8 @@ def test_human_demonstrations_reach_their_goals_only_in_hindsight(tmp_path):
     blocks, goals = store.field("block_pose")[last].astype(np.float64), store.field("goal_pose")[last].astype(np.float64)
     recorded = np.array([coverage(b, g) for b, g in zip(blocks, goals)])
     assert store.n_episodes == 206 and recorded.max() < 0.95
-    rot, origin = goal_pose(torch.from_numpy(obs[last, 12:24].astype(np.float64)))
+    goal_kp = torch.from_numpy(obs[last, 12:24].astype(np.float64))
+    rot, origin = fit_affine(torch.from_numpy(T_KEYPOINTS).expand_as(goal_kp), goal_kp, "rigid")  # the goal T's pose
     angle = torch.atan2(rot[:, 1, 0], rot[:, 0, 0]).numpy()
     reached = [coverage(b, (*o, a)) for b, o, a in zip(blocks, origin.numpy(), angle)]
     np.testing.assert_allclose(reached, 1.0, atol=1e-4)

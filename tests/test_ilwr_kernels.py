@@ -82,3 +82,19 @@ def test_the_torch_path_keeps_what_the_kernels_do_not_cover():
     torch.testing.assert_close(grad, one.jacobian(src).sum(-2), atol=1e-8, rtol=1e-8)
     f32 = ILWRMap().fit(src.float(), tgt.float())  # float32: torch, so a float32 batch equals its sets fitted singly
     assert torch.equal(f32(src.float()), ILWRMap(fused=False).fit(src.float(), tgt.float())(src.float()))
+
+
+@pytest.mark.parametrize("kind", sorted(ilwr_kernels.ALIGN_KINDS))
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_alignment_is_fit_affine(kind, d, seed):
+    """``align`` is the compiled form of :func:`~kpflow.maps.affine.fit_affine` for one pair: the same A and t."""
+    from kpflow.maps.affine import fit_affine
+
+    src, tgt = pair(seed, n=9, d=d)
+    finfo = torch.finfo(torch.float64)
+    a, t, ok = ilwr_kernels.align(src.numpy(), tgt.numpy(), ilwr_kernels.ALIGN_KINDS[kind], finfo.eps, finfo.tiny)
+    want_a, want_t = fit_affine(src[None], tgt[None], kind)
+    assert ok
+    torch.testing.assert_close(torch.from_numpy(a), want_a[0], atol=1e-12, rtol=0)
+    torch.testing.assert_close(torch.from_numpy(t), want_t[0], atol=1e-9, rtol=0)

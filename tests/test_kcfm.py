@@ -10,10 +10,17 @@ import torch
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.policies.kcfm import KCFM, MAX_STEPS, fill_padding, goal_pose, masked_mse
+from kpflow.policies.kcfm import KCFM, MAX_STEPS, fill_padding, masked_mse
 from kpflow.policies.unet1d import ConditionalUnet1D
-from kpflow.tasks.pusht.geometry import observation_keypoints, t_keypoints
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, observation_keypoints
+from kpflow.tasks.pusht.geometry import goal_frame as pusht_goal_frame
 from tests.helpers import walk_to_block_store
+
+
+def pusht_kcfm(goal_frame: bool = False, **kwargs) -> KCFM:
+    """A K-CFM for Push-T's 25 keypoints, in the goal T's frame or the world's."""
+    return KCFM(N_KEYPOINTS, goal_frame=pusht_goal_frame() if goal_frame else None, **kwargs)
+
 
 # ------------------------------------------------------------------------------------------------ U-Net
 
@@ -71,7 +78,7 @@ def _chunk_batch(b: int = 6, h: int = 8, seed: int = 0) -> dict:
 @pytest.mark.parametrize("goal_frame", [False, True])
 def test_padded_actions_do_not_change_the_loss(goal_frame):
     torch.manual_seed(0)
-    model = KCFM(horizon=8, goal_frame=goal_frame)
+    model = pusht_kcfm(goal_frame, horizon=8)
     batch = _chunk_batch()
     model.set_normalisation(batch["obs"].numpy(), batch["actions"][:, 0].numpy())
     assert not batch["mask"].all()
@@ -91,7 +98,7 @@ def test_padded_actions_do_not_change_the_loss(goal_frame):
 
 @pytest.mark.parametrize("goal_frame", [False, True])
 def test_relative_actions_are_offsets_from_the_agent(goal_frame):
-    model = KCFM(horizon=8, goal_frame=goal_frame, relative=True)
+    model = pusht_kcfm(goal_frame, horizon=8, relative=True)
     batch = _chunk_batch()
     kp, actions, mask = batch["obs"].double(), batch["actions"].double(), batch["mask"]
     model.set_normalisation(kp, actions, mask)
@@ -109,17 +116,44 @@ def test_relative_actions_are_offsets_from_the_agent(goal_frame):
     shifted = model.denormalise_actions(x, model.action_frame(moved)).double()
     torch.testing.assert_close(shifted - moved[:, None, -1], actions - kp[:, None, -1], atol=1e-3, rtol=0)
     with pytest.raises(ValueError, match="2-D actions"):
-        KCFM(action_dim=3, relative=True)
+        pusht_kcfm(action_dim=3, relative=True)
 
 
 # ---------------------------------------------------------------------------------------------- goal frame
 
 
 def test_goal_pose_is_exact():
-    for pose in [(256.0, 256.0, math.pi / 4), (-40.0, 700.0, -2.9), (10.0, 20.0, 0.0)]:
-        rot, origin = goal_pose(torch.tensor(t_keypoints(pose), dtype=torch.float64))
-        torch.testing.assert_close(origin, torch.tensor(pose[:2], dtype=torch.float64), atol=1e-9, rtol=0)
-        assert math.atan2(rot[1, 0], rot[0, 0]) == pytest.approx(pose[2], abs=1e-12)
+    """Push-T's goal frame (its goal T's keypoints and body template) fits the goal T's pose exactly."""
+    model = pusht_kcfm(True)
+    poses = [(256.0, 256.0, math.pi / 4), (-40.0, 700.0, -2.9), (10.0, 20.0, 0.0)]
+    kp = torch.tensor(np.stack([observation_keypoints((300.0, 100.0, 1.0), pose, (5.0, 6.0)) for pose in poses]))
+    rot, origin = model.goal_pose(kp)
+    torch.testing.assert_close(origin, torch.tensor(poses, dtype=torch.float64)[:, :2], atol=1e-9, rtol=0)
+    np.testing.assert_allclose(torch.atan2(rot[:, 1, 0], rot[:, 0, 0]).numpy(), [p[2] for p in poses], atol=1e-12, rtol=0)
+
+
+def test_the_goal_frame_names_the_goal_keypoints_and_their_template():
+    good = pusht_goal_frame()
+    for bad, message in (
+        (True, "goal_frame must be None or"),
+        ({"keypoints": good["keypoints"]}, "goal_frame must be None or"),
+        (dict(good, keypoints=[12, 12] + good["keypoints"][2:]), "distinct indices in 0..24"),
+        (dict(good, keypoints=[0, 25] + good["keypoints"][2:]), "distinct indices in 0..24"),
+        (dict(good, keypoints=[0.0] + good["keypoints"][1:]), "must list keypoint indices"),
+        (dict(good, template=good["template"][:-1]), r"must hold 12 finite points \[x, y\]"),
+        (dict(good, template=[[1.0, 2.0]] * 12), "is one point"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            KCFM(N_KEYPOINTS, goal_frame=bad)
+    with pytest.raises(ValueError, match="planar"):
+        KCFM(N_KEYPOINTS, keypoint_dim=3, goal_frame=good)
+    with pytest.raises(ValueError, match="2-D actions"):
+        KCFM(N_KEYPOINTS, action_dim=3, goal_frame=good)
+    # any planar layout: the goal's keypoints anywhere among them, its template in its own frame
+    model = KCFM(4, horizon=4, goal_frame={"keypoints": [3, 1], "template": [[0.0, 0.0], [2.0, 0.0]]})
+    rot, origin = model.goal_pose(torch.tensor([[[9.0, 9.0], [5.0, 7.0], [0.0, 0.0], [5.0, 5.0]]], dtype=torch.float64))
+    torch.testing.assert_close(origin, torch.tensor([[5.0, 5.0]], dtype=torch.float64))  # the goal turned a quarter
+    torch.testing.assert_close(rot, torch.tensor([[[0.0, -1.0], [1.0, 0.0]]], dtype=torch.float64))
 
 
 def _scene_keypoints(n: int, seed: int) -> np.ndarray:
@@ -135,7 +169,7 @@ def _scene_keypoints(n: int, seed: int) -> np.ndarray:
 def test_goal_frame_policy_is_equivariant(goal_frame):
     """Rotating and translating the whole scene rotates and translates the predicted chunk identically (same noise)."""
     torch.manual_seed(0)
-    model = KCFM(horizon=20, goal_frame=goal_frame).eval()
+    model = pusht_kcfm(goal_frame, horizon=20).eval()
     train_kp = _scene_keypoints(64, seed=1)
     model.set_normalisation(train_kp, train_kp[:, -1] + 20.0)  # realistic scales
     kp = _scene_keypoints(4, seed=2)
@@ -156,7 +190,7 @@ def test_goal_frame_policy_is_equivariant(goal_frame):
 
 
 def test_sample_validates_steps_and_keypoints():
-    model = KCFM(horizon=6).eval()
+    model = pusht_kcfm(horizon=6).eval()
     kp = _scene_keypoints(2, seed=0)
     assert model.sample(kp[0], steps=1).shape == (1, 6, 2)  # an unbatched observation gives a batch of one
     out = model.sample(torch.tensor(kp, dtype=torch.float32), steps=MAX_STEPS, generator=torch.Generator().manual_seed(0))
@@ -175,8 +209,6 @@ def test_sample_validates_steps_and_keypoints():
         model.sample(nan)
     with pytest.raises(ValueError, match="array of numbers"):
         model.sample([[1.0, 2.0], [3.0]])
-    with pytest.raises(ValueError, match="goal_frame needs"):
-        KCFM(n_keypoints=10, goal_frame=True)
 
 
 # ------------------------------------------------------------------------------------- training end to end
@@ -202,7 +234,7 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
     path = tmp_path / "demos.zarr"
     walk_to_block_store(path)
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(horizon=H, lr=3e-3)
+    model = pusht_kcfm(horizon=H, lr=3e-3)
     datamodule = ChunkDataModule(path, horizon=H, batch_size=64)
     trainer = _trainer(tmp_path, max_steps=300)
     trainer.fit(model, datamodule=datamodule)
@@ -250,7 +282,7 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
         assert torch.equal(p, loaded.ema_net.state_dict()[name])  # the EMA weights travel in the checkpoint
 
     # resume: global_step continues; the checkpoint's normalisation and EMA are kept and the EMA keeps moving
-    resumed = KCFM(horizon=H, lr=3e-3)
+    resumed = pusht_kcfm(horizon=H, lr=3e-3)
     trainer2 = _trainer(tmp_path, max_steps=310)
     trainer2.fit(resumed, datamodule=ChunkDataModule(path, horizon=H, batch_size=64), ckpt_path=ckpt)
     assert trainer2.global_step == 310

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kpflow.maps import AffineMap, EnsembleMap, FlowMap, GPMap, ILWRMap, MLPMap
+from kpflow.maps.affine import fit_affine
 from kpflow.maps.base import jacobian_autograd
 from tests.helpers import grid, keypoint_pair, rotation
 
@@ -210,6 +211,55 @@ def test_full_affine_recovers_shear():
     torch.testing.assert_close(phi.A[0], a)
     x = grid(2, n=5)
     torch.testing.assert_close(phi.inverse(phi(x)), x)
+
+
+def test_weighted_rigid_fit_is_the_planar_closed_form():
+    """2-D weighted Kabsch in closed form: with weighted centroids and centred x_i, y_i,
+    theta = atan2(sum_i w_i x_i cross y_i, sum_i w_i x_i . y_i), R = R(theta), t = mean_w(T) - R mean_w(S)."""
+    g = torch.Generator().manual_seed(3)
+    src, tgt = torch.rand(7, 2, generator=g, dtype=torch.float64), torch.rand(7, 2, generator=g, dtype=torch.float64)
+    w = torch.rand(7, generator=g, dtype=torch.float64) + 0.1
+    ms, mt = (w[:, None] * src).sum(0) / w.sum(), (w[:, None] * tgt).sum(0) / w.sum()
+    x, y = src - ms, tgt - mt
+    theta = torch.atan2((w * (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0])).sum(), (w[:, None] * x * y).sum())
+    r = torch.stack([torch.stack([theta.cos(), -theta.sin()]), torch.stack([theta.sin(), theta.cos()])])
+    a, t = fit_affine(src[None], tgt[None], "rigid", w)
+    torch.testing.assert_close(a[0], r, atol=1e-12, rtol=0)
+    torch.testing.assert_close(t[0], mt - r @ ms, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e-3, 1.0, 512.0, 1e150])
+def test_planar_rigid_fit_recovers_a_turn_at_any_scale(scale):
+    """The 2-D rigid fit's closed form sums in units of a power of two near the spread: no under- or overflow."""
+    src, _ = keypoint_pair(2)
+    r = rotation(2, 2.5)
+    a, t = fit_affine(scale * src[None], scale * (src @ r.T + 0.25)[None], "rigid")
+    torch.testing.assert_close(a[0], r, atol=1e-12, rtol=0)
+    torch.testing.assert_close(t[0] / scale, torch.full((2,), 0.25, dtype=src.dtype), atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("kind", ["rigid", "similarity", "affine", "translation"])
+@pytest.mark.parametrize("d", [2, 3])
+def test_integer_weights_count_points_and_zero_weights_drop_them(kind, d):
+    g = torch.Generator().manual_seed(d)
+    src, tgt = torch.rand(2, 8, d, generator=g, dtype=torch.float64)
+    counts = torch.tensor([1, 3, 2, 1, 0, 2, 1, 4], dtype=torch.float64)
+    repeated = counts.long()
+    want = fit_affine(src.repeat_interleave(repeated, 0)[None], tgt.repeat_interleave(repeated, 0)[None], kind)
+    for weights in (counts, 0.25 * counts[None]):  # [N] or [B, N]; only their ratios count
+        for got, expected in zip(fit_affine(src[None], tgt[None], kind, weights), want):
+            torch.testing.assert_close(got, expected, atol=1e-12, rtol=0)
+
+
+def test_fit_affine_refuses_weights_that_weigh_nothing():
+    src, tgt = keypoint_pair(2)
+    for bad in (torch.zeros(len(src)), torch.full((len(src),), -1.0), torch.full((len(src),), float("nan"))):
+        with pytest.raises(ValueError, match="point weights must be finite and >= 0"):
+            fit_affine(src[None], tgt[None], "rigid", bad)
+    one = torch.zeros(len(src), dtype=src.dtype)
+    one[0] = 1.0
+    with pytest.raises(ValueError, match="keypoints of positive weight coincide"):
+        fit_affine(src[None], tgt[None], "rigid", one)
 
 
 # ------------------------------------------------------------------ bad input

@@ -10,6 +10,7 @@ from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, goal_frame
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.utils.checkpoint import load_checkpoint, read_checkpoint
 from tests.helpers import walk_to_block_store
@@ -37,7 +38,7 @@ VARIANTS = [
 def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
     lightning.seed_everything(0, verbose=False)
     small = dict(down_dims=[16, 32], d_model=32, n_layers=2, n_heads=2, time_dim=16)
-    model = KCFM(horizon=H, n_obs=n_obs, objective=objective, network=network, lr=3e-3, goal_frame=True, **small)
+    model = KCFM(N_KEYPOINTS, horizon=H, n_obs=n_obs, objective=objective, network=network, lr=3e-3, goal_frame=goal_frame(), **small)
     datamodule = ChunkDataModule(store_path, horizon=H, batch_size=64, n_obs=n_obs, val_fraction=0.0)
     trainer = lightning.Trainer(max_steps=40, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
                                 enable_progress_bar=False, enable_model_summary=False)
@@ -79,15 +80,15 @@ def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
 
 
 def test_history_length_must_match_the_data():
-    model = KCFM(horizon=H, n_obs=2)
+    model = KCFM(N_KEYPOINTS, horizon=H, n_obs=2)
     with pytest.raises(ValueError, match="needs 'history'"):
         model.loss({"obs": torch.zeros(2, 25, 2), "actions": torch.zeros(2, H, 2), "mask": torch.ones(2, H, dtype=torch.bool)})
     with pytest.raises(ValueError, match="keypoints must have shape"):
         model.sample(np.zeros((25, 2)))  # one frame where two are needed
     with pytest.raises(ValueError, match="network must be one of"):
-        KCFM(network="mlp")
+        KCFM(N_KEYPOINTS, network="mlp")
     with pytest.raises(ValueError, match="unknown objective"):
-        KCFM(objective="score")
+        KCFM(N_KEYPOINTS, objective="score")
 
 
 @pytest.mark.parametrize("experiment", ["pusht_kcfm", "pusht_kcfm_gpu"])
@@ -102,5 +103,7 @@ def test_training_experiments_compose_into_a_matching_model(experiment):
     model = instantiate(cfg.model, _convert_="all")
     assert model.hparams.horizon == cfg.data.horizon and model.hparams.n_obs == cfg.data.n_obs
     assert isinstance(model.hparams.down_dims, list)  # plain hparams: the checkpoint loads with weights_only
+    # the task's experiment gives the layout and the goal frame (conf/model/kcfm.yaml has neither)
+    assert model.hparams.n_keypoints == N_KEYPOINTS and model.hparams.goal_frame == goal_frame()
     if experiment == "pusht_kcfm_gpu":
         assert cfg.trainer.accelerator == "gpu" and model.hparams.down_dims == [256, 512, 1024] and model.hparams.n_obs == 2

@@ -92,7 +92,7 @@ def test_two_evaluations_into_one_folder_the_second_is_refused_and_the_first_pri
 
 def train_args(store: Path, folder: Path, seed: int, *extra: str) -> list[str]:
     return [
-        "train.py", "model=kcfm", "data=pusht_expert", "data.n_episodes=2", "data.workers=1", f"data.path={store}",
+        "train.py", "experiment=pusht_kcfm", "data.n_episodes=2", "data.workers=1", f"data.path={store}",
         "data.batch_size=64", "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "logger=none", f"seed={seed}",
         f"hydra.run.dir={folder}", *extra,
     ]  # fmt: skip

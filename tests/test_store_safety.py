@@ -121,7 +121,7 @@ def test_entry_points_refuse_a_planted_store(store, tmp_path, entry):
     if entry == "evaluate":
         cmd = [sys.executable, "evaluate.py", "policy=transport", "split=in_distribution", "n_configs=1", "workers=1", *common]
     else:
-        cmd = [sys.executable, "train.py", "model=kcfm", "data.workers=0", "trainer.max_epochs=1", *common]
+        cmd = [sys.executable, "train.py", "experiment=pusht_kcfm", "data.workers=0", "trainer.max_epochs=1", *common]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr, done.stderr[-2000:]
     assert len(done.stderr.strip().splitlines()) <= 3, done.stderr  # one line, not a traceback

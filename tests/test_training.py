@@ -86,7 +86,7 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     demos = f"data.path={tmp_path / 'demos.zarr'}"
-    train = [sys.executable, "train.py", "model=kcfm", "data=pusht_expert", "data.n_episodes=2", "data.workers=1", demos,
+    train = [sys.executable, "train.py", "experiment=pusht_kcfm", "data.n_episodes=2", "data.workers=1", demos,
              "data.batch_size=64", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
     last = train_then_resume(train, root, tmp_path / "run")
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..tasks.pusht.geometry import PUSHT_BLOCK, PUSHT_GOAL
 from .chunks import ChunkDataModule
 from .collection import check_collection, collect_pusht, collection_attrs
 from .episode_store import EpisodeStore
 from .hindsight import GOALS, HindsightGoals
-from .source_index import PUSHT_BLOCK, PUSHT_GOAL
 
 #: Push-T's goal keypoints (12..23) are where the block's (0..11) belong, in the same order.
 PUSHT_HINDSIGHT = HindsightGoals(object=PUSHT_BLOCK, goal=PUSHT_GOAL)

@@ -18,11 +18,18 @@ import numpy as np
 import shapely
 from tqdm import tqdm
 
-from ..tasks.pusht.geometry import AGENT_RADIUS, N_T_KEYPOINTS, observation_keypoints, t_polygon
+from ..tasks.pusht.geometry import (
+    AGENT_RADIUS,
+    N_T_KEYPOINTS,
+    PUSHT_BLOCK,
+    observation_keypoints,
+    pusht_weights,
+    t_polygon,
+)
 from ..tasks.pusht.scene import SPLITS, sample_config
 from .episode_store import EpisodeStore
 from .pusht_demos import ensure_pusht_demos
-from .source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from .source_index import SourceIndex
 
 
 class PushTPairs:

@@ -1,14 +1,15 @@
 """Demonstrated states and their action chunks, searchable by weighted keypoint distance.
 
 The distance between two keypoint sets ``p, q [K, D]`` is ``d(p, q) = sum_k w_k |p_k - q_k|^2`` with one weight per
-keypoint (Push-T: one for the block's 12, one for the goal's 12, one for the agent). Scaling each keypoint by
-``sqrt(w_k)`` turns it into a squared Euclidean distance between flat feature vectors ``f``, and
-``|f - g|^2 = |f|^2 - 2 f.g + |g|^2`` makes a query one matrix-vector product over all sources (BLAS, float32).
+keypoint (Push-T: one for the block's 12, one for the goal's 12, one for the agent, as
+:func:`kpflow.tasks.pusht.geometry.pusht_weights` gives them). Scaling each keypoint by ``sqrt(w_k)`` turns it into
+a squared Euclidean distance between flat feature vectors ``f``, and ``|f - g|^2 = |f|^2 - 2 f.g + |g|^2`` makes a
+query one matrix-vector product over all sources (BLAS, float32).
 
 With ``reference`` keypoints (Push-T: the block's 12) every set is first moved rigidly so that its reference
-keypoints best match (Kabsch) those of the first source: configurations are then compared by where things are
-relative to the object, whatever the object's pose in the workspace. That is what makes a demonstrated chunk
-transportable to a block somewhere else: the map takes care of the rigid motion.
+keypoints best match (Kabsch: :func:`~kpflow.maps.affine.fit_affine`) those of the first source: configurations are
+then compared by where things are relative to the object, whatever the object's pose in the workspace. That is what
+makes a demonstrated chunk transportable to a block somewhere else: the map takes care of the rigid motion.
 """
 
 from __future__ import annotations
@@ -19,24 +20,12 @@ import numpy as np
 import torch
 
 from ..maps.affine import fit_affine
-from ..tasks.pusht.geometry import N_T_KEYPOINTS
 from ..utils.config_checks import Key
 from ..utils.formats import read_npz
 from ..utils.io import atomic_path
 from .chunks import ChunkDataset
 from .episode_store import EpisodeStore
 from .hindsight import HindsightGoals
-
-PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
-PUSHT_GOAL = tuple(range(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS))  # the goal's, in the block's order
-
-
-def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:
-    """Per-keypoint weights ``[25]`` for Push-T observations: block T (12), goal T (12), agent (1)."""
-    for name, w in (("block", block), ("goal", goal), ("agent", agent)):
-        if not np.isfinite(w) or w < 0:
-            raise ValueError(f"keypoint weight {name} must be finite and >= 0, got {w}")
-    return np.concatenate([np.full(N_T_KEYPOINTS, block), np.full(N_T_KEYPOINTS, goal), [agent]]).astype(np.float32)
 
 
 class SourceIndex:

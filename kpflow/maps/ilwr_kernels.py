@@ -131,8 +131,10 @@ ALIGN_KINDS = {"rigid": 0, "similarity": 1, "translation": 2}
 
 @numba.njit(cache=True)
 def align(source, target, kind, eps, tiny):  # pragma: no cover  (compiled)
-    """:func:`kpflow.maps.affine.fit_affine` for one pair ``[N, D]`` (``kind`` a code of ``ALIGN_KINDS``; the same
-    Umeyama steps in units of the sources' RMS spread): ``(A [D, D], t [D], ok)``. ``ok`` is False where the sources
+    """The compiled form of :func:`kpflow.maps.affine.fit_affine` (unweighted) for one pair ``[N, D]``, the fast path
+    of :class:`~kpflow.maps.affine.AlignedMap` (``kind`` a code of ``ALIGN_KINDS``; the same Umeyama steps in units of
+    the sources' RMS spread, where ``fit_affine`` turns a 2-D rigid fit by the closed-form angle of the same rotation;
+    ``tests/test_ilwr_kernels.py`` checks they agree to rounding): ``(A [D, D], t [D], ok)``. ``ok`` is False where the sources
     coincide or where the rotation is ill-determined (rank of H below D - 1, or a reflection fix between two nearly
     equal singular values: there two SVD implementations may pick different valid rotations); the caller then takes
     the torch path, which raises the error that names the first and decides the second as a batch would."""

@@ -1,7 +1,7 @@
 """K-CFM: keypoint-conditioned generative policy of action chunks.
 
-A policy ``pi(a_{t:t+H} | k_{t-n+1..t})`` that generates a chunk of ``H`` absolute agent targets (px) from the
-last ``n_obs`` observations of the 25 Push-T keypoints ``k`` (block T, goal T, agent; see
+A policy ``pi(a_{t:t+H} | k_{t-n+1..t})`` that generates a chunk of ``H`` actions (e.g. absolute agent targets) from
+the last ``n_obs`` observations of a task's ``K`` keypoints ``k`` (Push-T: 25, block T, goal T and agent,
 :mod:`kpflow.tasks.pusht.geometry`) by denoising Gaussian noise with a conditional network.
 
 The generative objective is injected by name (:mod:`kpflow.policies.objectives`): ``"icfm"`` (conditional flow
@@ -13,14 +13,18 @@ regression target averaged over the real, unpadded steps of each chunk (:func:`m
 The network is injected by name too: the 1-D temporal U-Net with FiLM (:class:`~kpflow.policies.unet1d.ConditionalUnet1D`,
 any widths up to DP's (256, 512, 1024)) or a small transformer
 (:class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`). The condition ``c`` is the ``n_obs`` frames of
-keypoints, each standardised with the same per-coordinate statistics and flattened; with ``goal_frame=True`` every
-frame is first expressed in the frame of the current goal T (then the policy is equivariant to rotating and
-translating the whole scene by construction). Actions are expressed in the *action frame* of the current
-observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a chunk is then the agent's
-offsets from where it stands), and scaled to [-1, 1] per dimension by their training min/max over every step of the
-chunks (as in Diffusion Policy). All statistics live in buffers and an exponential moving average of the weights is
-kept beside them, so a checkpoint is all a deployment needs: ``load_checkpoint(KCFM, path).sample(keypoints)``.
-Hyper-parameters are plain names and numbers: loading a checkpoint never builds anything a file names.
+keypoints, each standardised with the same per-coordinate statistics and flattened. With a ``goal_frame`` (planar
+tasks: which keypoints are the goal's, and their ``template``, where they lie in the goal's own body frame; the task's
+config gives it, e.g. :func:`kpflow.tasks.pusht.geometry.goal_frame`) every frame is first expressed in the frame of
+the current goal, the rigid fit ``(R, p) = argmin_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` of the template
+``k_i`` onto the observed goal keypoints ``g_i`` (:func:`~kpflow.maps.affine.fit_affine`, ``"rigid"``): then the
+policy is equivariant to rotating and translating the whole scene by construction. Actions are expressed in the
+*action frame* of the current observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a
+chunk is then the agent's offsets from where it stands), and scaled to [-1, 1] per dimension by their training
+min/max over every step of the chunks (as in Diffusion Policy). All statistics live in buffers and an exponential
+moving average of the weights is kept beside them, so a checkpoint is all a deployment needs:
+``load_checkpoint(KCFM, path).sample(keypoints)``. Hyper-parameters are plain names, numbers and lists of them:
+loading a checkpoint never builds anything a file names.
 """
 
 from __future__ import annotations
@@ -33,16 +37,15 @@ import lightning
 import numpy as np
 import torch
 
+from kpflow.maps.affine import fit_affine
 from kpflow.policies.checks import INPUT_MARGIN
 from kpflow.policies.objectives import build_objective
 from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
-from kpflow.tasks.pusht.geometry import N_KEYPOINTS, N_T_KEYPOINTS, T_KEYPOINTS
 
 MAX_STEPS = 100  # most network calls :meth:`KCFM.sample` takes (Euler steps of a flow, DDIM steps of a diffusion)
 NETWORKS = ("unet", "transformer")
 LR_SCHEDULES = ("cosine", "constant")
-GOAL_SLICE = slice(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS)  # the goal T's 12 keypoints among the 25
 _MIN_STD = 1e-3  # px: a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
 _MIN_HALF_RANGE = 1e-6  # an action dimension with a smaller range is centred but not scaled
 _BOX_STDS = 3.0  # the box of one keypoint coordinate: its training mean +- this many standard deviations
@@ -77,24 +80,24 @@ def fill_padding(actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 # -------------------------------------------------------------------------------------------- goal frame
 
 
-def goal_pose(goal_keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rigid pose ``(R [..., 2, 2], p [..., 2])`` of a T from its 12 keypoints ``[..., 12, 2]``.
-
-    The 2-D Kabsch (orthogonal Procrustes) fit ``min_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` against the body
-    keypoints ``k_i`` (:data:`~kpflow.tasks.pusht.geometry.T_KEYPOINTS`): with centred ``k~_i``, ``g~_i``,
-    ``theta = atan2(sum_i k~_i x g~_i, sum_i k~_i . g~_i)``, ``R = R(theta)``, ``p = mean(g) - R mean(k)``.
-    Exact for the keypoints of a T at any pose (``p, theta`` are the pose's ``x, y, theta``).
-    """
-    body = torch.as_tensor(T_KEYPOINTS, dtype=goal_keypoints.dtype, device=goal_keypoints.device)
-    kc = body - body.mean(0)
-    g_mean = goal_keypoints.mean(-2)
-    gc = goal_keypoints - g_mean[..., None, :]
-    cross = (kc[:, 0] * gc[..., 1] - kc[:, 1] * gc[..., 0]).sum(-1)
-    dot = (kc * gc).sum((-1, -2))
-    theta = torch.atan2(cross, dot)
-    c, s = theta.cos(), theta.sin()
-    rot = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
-    return rot, g_mean - body.mean(0) @ rot.mT
+def check_goal_frame(goal_frame, n_keypoints: int) -> None:
+    """Raise ``ValueError`` unless ``goal_frame`` is None or ``{"keypoints": [G distinct indices in 0..K-1],
+    "template": [G points [x, y]]}`` with G >= 2, finite coordinates and a template that is not one point (its
+    rotation would be undetermined)."""
+    if goal_frame is None:
+        return
+    form = '{"keypoints": [G indices], "template": [G points [x, y]]}'
+    if not isinstance(goal_frame, dict) or set(goal_frame) != {"keypoints", "template"}:
+        raise ValueError(f"goal_frame must be None or {form} (the goal's keypoints and their body frame); got {goal_frame!r}")
+    index, template = goal_frame["keypoints"], np.asarray(goal_frame["template"], dtype=np.float64)
+    if not (isinstance(index, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool) for i in index)):
+        raise ValueError(f"goal_frame['keypoints'] must list keypoint indices; got {index!r}")
+    if len(index) < 2 or len(set(index)) != len(index) or not all(0 <= i < n_keypoints for i in index):
+        raise ValueError(f"goal_frame['keypoints'] must list at least 2 distinct indices in 0..{n_keypoints - 1}; got {index}")
+    if template.shape != (len(index), 2) or not np.isfinite(template).all():
+        raise ValueError(f"goal_frame['template'] must hold {len(index)} finite points [x, y], one per goal keypoint; got shape {template.shape}")
+    if np.ptp(template, axis=0).max() == 0:
+        raise ValueError("goal_frame['template'] is one point: the goal's rotation would be undetermined")
 
 
 def to_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
@@ -121,15 +124,16 @@ class KCFM(lightning.LightningModule):
     """Keypoint-conditioned generative policy for action chunks (see the module docstring).
 
     Args:
+        n_keypoints: keypoints per observation (the task's: 25 for Push-T).
         horizon: chunk length ``H`` (must match the datamodule's).
         n_obs: observation frames it conditions on, oldest first and ending at the current one (must match the
             datamodule's; Diffusion Policy uses 2).
-        n_keypoints: keypoints per observation (25 for Push-T).
         keypoint_dim: coordinates per keypoint (2 for Push-T, 3 for the robosuite tasks).
         action_dim: size of one action (2: an absolute agent target in px).
-        goal_frame: express keypoints and actions in the frame of the goal T (keypoints 12..23), fitted by
-            :func:`goal_pose`; predictions are mapped back to the world. Needs the Push-T layout (25 keypoints,
-            2-D actions).
+        goal_frame: express keypoints and actions in the frame of the goal (:meth:`goal_pose`):
+            ``{"keypoints": [...], "template": [[x, y], ...]}``, the goal's keypoint indices and where each lies in the
+            goal's body frame (:func:`check_goal_frame`; Push-T's: :func:`kpflow.tasks.pusht.geometry.goal_frame`);
+            predictions are mapped back to the world. Planar: needs 2-D keypoints and actions. None: the world frame.
         relative: predict actions as offsets from the agent, the last keypoint (in the goal's axes with
             ``goal_frame``). Needs 2-D actions.
         objective: ``"icfm"``, ``"otcfm"`` or ``"ddpm"`` (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with
@@ -147,12 +151,12 @@ class KCFM(lightning.LightningModule):
 
     def __init__(
         self,
+        n_keypoints: int,
         horizon: int = 20,
         n_obs: int = 1,
-        n_keypoints: int = N_KEYPOINTS,
         action_dim: int = 2,
         keypoint_dim: int = 2,
-        goal_frame: bool = False,
+        goal_frame: dict | None = None,
         relative: bool = False,
         objective: str = "icfm",
         objective_options: dict | None = None,
@@ -175,12 +179,13 @@ class KCFM(lightning.LightningModule):
             raise ValueError(
                 f"need horizon, n_obs, n_keypoints, action_dim, keypoint_dim >= 1; got {horizon}, {n_obs}, {n_keypoints}, {action_dim}, {keypoint_dim}"
             )
-        if (goal_frame or relative) and keypoint_dim != 2:
-            raise ValueError(f"goal_frame and relative are planar (Push-T): they need keypoint_dim=2; got {keypoint_dim}")
+        check_goal_frame(goal_frame, n_keypoints)
+        if (goal_frame is not None or relative) and keypoint_dim != 2:
+            raise ValueError(f"goal_frame and relative are planar: they need keypoint_dim=2; got {keypoint_dim}")
         if network not in NETWORKS:
             raise ValueError(f"network must be one of {NETWORKS}; got {network!r}")
-        if goal_frame and (n_keypoints != N_KEYPOINTS or action_dim != 2):
-            raise ValueError(f"goal_frame needs the Push-T layout ({N_KEYPOINTS} keypoints, 2-D actions); got {n_keypoints}, {action_dim}")
+        if goal_frame is not None and action_dim != 2:
+            raise ValueError(f"goal_frame maps actions into the goal's plane: it needs 2-D actions; got {action_dim}")
         if relative and action_dim != 2:
             raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
         if lr_schedule not in LR_SCHEDULES:
@@ -232,8 +237,8 @@ class KCFM(lightning.LightningModule):
         frame = self.action_frame(kp)
         if frame is not None:
             act = to_frame(act, *frame)
-        if self.hparams.goal_frame:
-            kp = to_frame(kp, *goal_pose(kp[:, GOAL_SLICE]))
+        if self.hparams.goal_frame is not None:
+            kp = to_frame(kp, *self.goal_pose(kp))
         flat = kp.reshape(len(kp), -1)
         std = flat.std(0, unbiased=False)
         real = act[mask]
@@ -267,9 +272,19 @@ class KCFM(lightning.LightningModule):
         """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
         frame in the current (last) frame's goal frame if ``goal_frame``, else as they are."""
         kp = history.to(torch.float64)
-        if self.hparams.goal_frame:
-            kp = to_frame(kp.flatten(1, 2), *goal_pose(kp[:, -1, GOAL_SLICE])).reshape(kp.shape)
+        if self.hparams.goal_frame is not None:
+            kp = to_frame(kp.flatten(1, 2), *self.goal_pose(kp[:, -1])).reshape(kp.shape)
         return kp
+
+    def goal_pose(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The goal's frame ``(R [B, 2, 2], p [B, 2])`` in keypoint frames ``[B, K, 2]``: the rigid (Kabsch) fit
+        ``min_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` of the ``goal_frame`` template ``k_i`` onto the goal's
+        keypoints ``g_i`` (:func:`~kpflow.maps.affine.fit_affine`). Exact for a goal at any pose (Push-T: ``p, theta``
+        are the goal T's ``x, y, theta``)."""
+        spec = self.hparams.goal_frame
+        goal = keypoints[:, spec["keypoints"]]
+        template = torch.as_tensor(spec["template"], dtype=goal.dtype, device=goal.device)
+        return fit_affine(template.expand_as(goal), goal, "rigid")
 
     def _condition(self, history: torch.Tensor) -> torch.Tensor:
         """Condition ``c [B, n_obs D K]`` (float32) of world keypoint frames ``[B, n_obs, K, D]``: every frame in the
@@ -285,11 +300,11 @@ class KCFM(lightning.LightningModule):
         ``relative`` (else the goal's origin, or 0). None when both are off: actions stay in world coordinates.
         """
         hp = self.hparams
-        if not (hp.goal_frame or hp.relative):
+        if hp.goal_frame is None and not hp.relative:
             return None
         kp = keypoints.to(torch.float64)
-        if hp.goal_frame:
-            rot, origin = goal_pose(kp[:, GOAL_SLICE])
+        if hp.goal_frame is not None:
+            rot, origin = self.goal_pose(kp)
         else:
             rot, origin = torch.eye(2, dtype=kp.dtype, device=kp.device).expand(len(kp), 2, 2), torch.zeros_like(kp[:, 0])
         return rot, kp[:, -1] if hp.relative else origin
@@ -362,6 +377,14 @@ class KCFM(lightning.LightningModule):
         decay = min(self.hparams.ema_decay, (1 + n) / (10 + n))
         for ema, p in zip(self.ema_net.parameters(), self.net.parameters()):
             ema.lerp_(p, 1.0 - decay)
+
+    @staticmethod
+    def complete_state_dict(state: dict) -> dict:
+        """A state dict with the trained network's weights: a release that keeps the EMA network alone (what
+        :meth:`sample` uses; ``python -m kpflow.release --ema-only``) starts the trained one as its copy."""
+        if any(k.startswith("net.") for k in state) or not any(k.startswith("ema_net.") for k in state):
+            return state
+        return {**state, **{"net." + k[len("ema_net.") :]: v for k, v in state.items() if k.startswith("ema_net.")}}
 
     def configure_optimizers(self):
         hp = self.hparams
@@ -440,7 +463,7 @@ class KCFM(lightning.LightningModule):
             return kp
         lo, hi = self.keypoint_box()
         lo_ok, hi_ok = lo - input_margin * (hi - lo), hi + input_margin * (hi - lo)
-        frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame else [])
+        frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame is not None else [])
         for where, x in frames:
             outside = ~((x >= lo_ok) & (x <= hi_ok))  # NaN (a frame that overflowed) counts as outside
             if outside.any():

@@ -1,5 +1,6 @@
-"""What every matcher shares: the result, the weighted Kabsch fit, the initial rotations of the multi-start search
-and the final one-to-one assignment that leaves outliers and missing points unmatched.
+"""What every matcher shares: the result, the rigid fit of one pair (the code base's one rigid fit,
+:func:`~kpflow.maps.affine.fit_affine`, on numpy arrays), the initial rotations of the multi-start search and the
+final one-to-one assignment that leaves outliers and missing points unmatched.
 
 A matcher (one per file: :mod:`.hungarian`, :mod:`.icp`, :mod:`.cpd`, :mod:`.ot`) refines a rigid pose of the
 source onto the target from one initial rotation; :func:`~.match.match_keypoints` runs it from every start, assigns
@@ -16,8 +17,12 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
+from kpflow.maps import ilwr_kernels
+from kpflow.maps.affine import fit_affine
+
 #: ``perm`` entry of a source keypoint with no counterpart in the target (missing there, or too far)
 UNMATCHED = -1
+_F64 = torch.finfo(torch.float64)
 
 
 @dataclass
@@ -41,17 +46,19 @@ class MatchResult:
         return self.perm >= 0
 
 
-def kabsch(s: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The proper rotation R and translation t minimising sum_i w_i |R s_i + t - y_i|^2 (Kabsch 1976, with the
-    reflection fixed by the determinant's sign)."""
-    w = np.full(len(s), 1.0 / len(s)) if weights is None else np.asarray(weights, float) / np.sum(weights)
-    ms, my = w @ s, w @ y
-    h = (s - ms).T @ ((y - my) * w[:, None])
-    u, _, vt = np.linalg.svd(h)
-    fix = np.eye(s.shape[1])
-    fix[-1, -1] = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    rot = vt.T @ fix @ u.T
-    return rot, my - rot @ ms
+def rigid_pose(s: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The proper rotation R and translation t minimising sum_i w_i |R s_i + t - y_i|^2 for one pair ``[N, D]``:
+    ``fit_affine(s, y, "rigid", weights)`` (weighted Kabsch, reflection-safe), in and out as float64 numpy. Without
+    weights its compiled form :func:`~kpflow.maps.ilwr_kernels.align` computes it where that does not decline (a
+    matcher fits hundreds of small pairs)."""
+    s, y = np.ascontiguousarray(s, np.float64), np.ascontiguousarray(y, np.float64)
+    if weights is None:
+        rot, t, ok = ilwr_kernels.align(s, y, ilwr_kernels.ALIGN_KINDS["rigid"], _F64.eps, _F64.tiny)
+        if ok:
+            return rot, t
+    w = None if weights is None else torch.as_tensor(np.asarray(weights, np.float64))
+    rot, t = fit_affine(torch.from_numpy(s)[None], torch.from_numpy(y)[None], "rigid", w)
+    return rot[0].numpy(), t[0].numpy()
 
 
 def initial_rotations(d: int, n_starts: int) -> np.ndarray:

@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 from pycpd import DeformableRegistration, RigidRegistration
 
-from .base import kabsch
+from .base import rigid_pose
 
 
 def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, w: float = 0.2, max_iters: int = 100,
@@ -28,5 +28,5 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, w: fl
         if nonrigid:
             moved = DeformableRegistration(X=(y - centre) / spread, Y=moved, w=w, beta=beta, alpha=lam, max_iterations=max_iters).register()[0]
     moved = moved * spread + centre
-    rot, t = kabsch(s, moved)
+    rot, t = rigid_pose(s, moved)
     return rot, t, moved

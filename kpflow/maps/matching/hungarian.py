@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .base import kabsch
+from .base import rigid_pose
 
 
 def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_iters: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -19,5 +19,5 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_i
         if pairs is not None and np.array_equal(cols, pairs[1]) and np.array_equal(rows, pairs[0]):
             break
         pairs = (rows, cols)
-        rot, t = kabsch(s[rows], y[cols])
+        rot, t = rigid_pose(s[rows], y[cols])
     return rot, t

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .base import kabsch
+from .base import rigid_pose
 
 
 def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_iters: int = 30, max_distance: float | None = None,
@@ -21,7 +21,7 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_i
         keep = dist <= max(max_distance, 2.5 * np.median(dist)) if max_distance is not None else np.ones(len(s), bool)
         if keep.sum() < s.shape[1]:
             break  # too few pairs to fix a pose: keep the last one
-        new_rot, new_t = kabsch(s[keep], y[nearest[keep]])
+        new_rot, new_t = rigid_pose(s[keep], y[nearest[keep]])
         moved = np.abs(new_rot - rot).max() + np.abs(new_t - t).max()
         rot, t = new_rot, new_t
         if moved < tol:

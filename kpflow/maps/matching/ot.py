@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import ot
 
-from .base import kabsch
+from .base import rigid_pose
 
 
 def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, eps: float = 0.02, reg_m: float | None = None,
@@ -37,7 +37,7 @@ def _alternate(s, y, rot, t, a, b, eps, reg_m, max_iters, tol):
         if keep.sum() < s.shape[1]:
             break
         targets = plan[keep] @ y / mass[keep, None]
-        new_rot, new_t = kabsch(s[keep], targets, mass[keep])
+        new_rot, new_t = rigid_pose(s[keep], targets, mass[keep])
         moved = np.abs(new_rot - rot).max() + np.abs(new_t - t).max()
         rot, t = new_rot, new_t
         if moved < tol:

@@ -11,7 +11,9 @@ of its two long edges. The bar comes first, then the stem::
      0 (-60,  0)   1 ( 60,  0)   2 ( 60, 30)   3 (-60, 30)   4 (  0,  0)   5 (  0, 30)    bar, 120 x 30
      6 (-15, 30)   7 ( 15, 30)   8 ( 15,120)   9 (-15,120)  10 (-15, 75)  11 ( 15, 75)    stem, 30 x 90
 
-An observation stacks the block's 12, the goal's 12 and the agent's position: 25 keypoints.
+An observation stacks the block's 12, the goal's 12 and the agent's position: 25 keypoints (:data:`PUSHT_BLOCK`,
+:data:`PUSHT_GOAL`, then the agent). A K-CFM reads it in the goal's frame (:func:`goal_frame`), a source index
+weighs the three groups (:func:`pusht_weights`).
 """
 
 from __future__ import annotations
@@ -43,6 +45,23 @@ N_T_KEYPOINTS = len(T_KEYPOINTS)  # 12
 N_KEYPOINTS = 2 * N_T_KEYPOINTS + 1  # 25
 T_AREA = 120.0 * 30.0 + 30.0 * 90.0  # 6300 px^2
 AGENT_RADIUS = 15.0
+PUSHT_BLOCK = tuple(range(N_T_KEYPOINTS))  # the block's keypoints in a Push-T observation
+PUSHT_GOAL = tuple(range(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS))  # the goal's, in the block's order
+
+
+def pusht_weights(block: float = 1.0, goal: float = 1.0, agent: float = 1.0) -> np.ndarray:
+    """Per-keypoint weights ``[25]`` for Push-T observations: block T (12), goal T (12), agent (1)."""
+    for name, w in (("block", block), ("goal", goal), ("agent", agent)):
+        if not np.isfinite(w) or w < 0:
+            raise ValueError(f"keypoint weight {name} must be finite and >= 0, got {w}")
+    return np.concatenate([np.full(N_T_KEYPOINTS, block), np.full(N_T_KEYPOINTS, goal), [agent]]).astype(np.float32)
+
+
+def goal_frame() -> dict:
+    """The goal T as a K-CFM's goal frame (``KCFM(goal_frame=...)``, :mod:`kpflow.policies.kcfm`): its keypoints in
+    an observation (:data:`PUSHT_GOAL`) and where they lie in the T's body frame (:data:`T_KEYPOINTS`), so the frame
+    fitted to an observed goal is the goal's pose ``(x, y, theta)``."""
+    return {"keypoints": list(PUSHT_GOAL), "template": T_KEYPOINTS.tolist()}
 
 
 def to_world(pose, points: np.ndarray) -> np.ndarray:
