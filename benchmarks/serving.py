@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from kpflow.serving import PolicyClient, PolicyServer, load_deployment  # noqa: E402
+from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.io import publish  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +75,7 @@ def main() -> None:
     parser.add_argument("--out", default=str(ROOT / "outputs" / "benchmarks" / "serving.md"))
     args = parser.parse_args()
     torch.set_num_threads(1)
-    deployment = load_deployment(args.checkpoint, steps=args.steps)
+    deployment = load_deployment(args.checkpoint, PushTTask(), steps=args.steps)
     obs = observations(args.requests)
     in_process(deployment, obs[:10])  # warm-up
     base = in_process(deployment, obs)

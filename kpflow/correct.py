@@ -8,7 +8,7 @@ after each, the policy is evaluated on ``eval_configs`` fixed configurations of 
 (``policy=kcfm policy.checkpoint=...``) is not retrained between rounds: alternate ``correct`` (with
 ``data=pusht_store data.path=<last run>/episodes.zarr``) and ``train.py`` for DAgger rounds. Writes ``episodes.zarr``,
 ``rounds.json``, ``rounds.md`` (dataset size and success per round) and ``rounds.png`` beside the resolved config.
-Train on the result with ``python train.py model=kcfm data=pusht_store data.path=<run>/episodes.zarr``.
+Train on the result with ``python train.py experiment=pusht_kcfm data=pusht_store data.path=<run>/episodes.zarr``.
 """
 
 from __future__ import annotations

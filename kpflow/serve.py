@@ -1,7 +1,7 @@
 """Serve a trained policy: ``python -m kpflow.serve checkpoint=PATH [transport=ilwr] [host=0.0.0.0 port=8000]``.
 
 Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (transported online through a map with
-``transport=...``, its source index read from ``source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
+``transport=...``, its source index read from ``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
 Connect with :class:`~kpflow.serving.client.PolicyClient`.
 
 The config keys, then the host and port (the host must resolve and the port bind), are checked before the model is
@@ -14,7 +14,8 @@ import logging
 
 import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
+from hydra.utils import instantiate
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from kpflow.serving.deployment import TRANSPORT_MAPS, load_deployment
 from kpflow.serving.server import PolicyServer, check_address
@@ -44,12 +45,11 @@ def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)
     check_address(cfg.host, cfg.port)  # before the model is loaded
     torch.set_num_threads(cfg.threads)
-    groups = OmegaConf.to_container(cfg.keypoint_groups) if cfg.keypoint_groups is not None else None
-    fit_on = OmegaConf.to_container(cfg.fit_on) if cfg.fit_on is not None else None
+    fit_on = OmegaConf.to_container(cfg.fit_on) if isinstance(cfg.fit_on, ListConfig) else cfg.fit_on
     choice = OmegaConf.to_container(cfg.source)
     deployment = load_deployment(
-        cfg.checkpoint, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, groups, fit_on, choice, cfg.reach,
-        cfg.turn_deg, cfg.input_margin,
+        cfg.checkpoint, instantiate(cfg.task), cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
+        cfg.reach, cfg.turn_deg, cfg.input_margin,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])

@@ -122,7 +122,8 @@ def test_data_options_build_datamodules(name, store, tmp_path):
 
 @pytest.mark.parametrize("name", sorted(ENTRIES["model"]))
 def test_model_options_build_lightning_modules(name, tmp_path):
-    data = ["data=pusht_expert"] if name == "kcfm" else []  # K-CFM's horizon and history come from the Push-T data
+    # K-CFM's horizon and history come from the Push-T data, its keypoints from the task (its experiment sets them)
+    data = ["data=pusht_expert", "model.n_keypoints=25"] if name == "kcfm" else []
     cfg = compose_config("train", [f"model={name}", "logger=none", *data], tmp_path)
     model = instantiate(cfg.model, _convert_="all")
     assert isinstance(model, lightning.LightningModule) and sum(p.numel() for p in model.parameters()) > 0
@@ -154,7 +155,7 @@ def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "generate"))
 def test_generation_tasks_and_transports_build_from_the_generate_config(name, tmp_path):
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     cfg = compose_config("generate", [f"task={name}"], tmp_path)
     task = instantiate(cfg.task)

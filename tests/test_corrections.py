@@ -6,10 +6,11 @@ import pytest
 from kpflow.data.collection import collect_pusht
 from kpflow.data.corrections import CONFIG_OFFSET, collect_corrections, corrected_episode
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.demonstrator import PushTExpert
+from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.rollout import RECORDED_FIELDS
 
 

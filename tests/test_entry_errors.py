@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpflow.policies.pusht_build import check_checkpoint_fits
-from kpflow.tasks.base import PolicyLayout
+from kpflow.policies.base import PolicyLayout
+from kpflow.policies.factory import check_checkpoint_fits
+from kpflow.tasks.pusht.task import PushTTask
 from tests.helpers import train_learned_map
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +49,7 @@ def test_the_task_layouts_policies_are_checked_against():
     }  # fmt: skip
     check_checkpoint_fits("suite.ckpt", {"n_keypoints": 16, "keypoint_dim": 3, "action_dim": 10}, SuiteTask("square"))
     with pytest.raises(ValueError, match="suite.ckpt is a policy for 16 keypoints in 3-D and 10-D actions, but pusht shows 25 keypoints in 2-D"):
-        check_checkpoint_fits("suite.ckpt", {"n_keypoints": 16, "keypoint_dim": 3, "action_dim": 10})  # None: Push-T
+        check_checkpoint_fits("suite.ckpt", {"n_keypoints": 16, "keypoint_dim": 3, "action_dim": 10}, PushTTask())
 
 
 @pytest.mark.parametrize("checkpoint, message", [
@@ -67,7 +68,7 @@ def four_point_pairs(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.n
 
 
 @pytest.mark.parametrize("where, args, use", [
-    ("pusht", TRANSPORT, "Push-T's transport (fit_on=block_agent) fits it on 13 keypoints in 2-D"),
+    ("pusht", TRANSPORT, "policy transportation (fit_on=['objects', 'robot']) fits it on 13 keypoints in 2-D"),
     ("frames", ["experiment=frames", "logger=none", "experiment.n_configs=2"], "the frames task fits it on 10 keypoints in 2-D"),
 ])  # fmt: skip
 def test_a_learned_map_of_other_keypoints_is_refused_naming_both_layouts(tmp_path, where, args, use):

@@ -65,7 +65,7 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     run = tmp_path / "run"
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    assert cfg["policy"]["_target_"] == "kpflow.policies.pusht_build.nearest" and cfg["split"] == "all"
+    assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["split"] == "all"
     results = json.loads((run / "results.json").read_text())
     assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(results["trials"]) == 6
     for s in results["summary"]:
@@ -116,4 +116,4 @@ def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     assert (run / "eval_round1" / "results.json").exists()
     assert "| 1 | 2 |" in (run / "rounds.md").read_text() and (run / "rounds.png").stat().st_size > 0
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    assert cfg["policy"]["_target_"] == "kpflow.policies.pusht_build.nearest" and cfg["rounds"] == 2
+    assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["rounds"] == 2

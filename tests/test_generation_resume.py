@@ -35,7 +35,7 @@ def test_an_attempt_is_the_same_in_a_fresh_generator_and_after_other_attempts():
     """Before, robosuite drew Lift's cube side from an unseeded generator whenever a worker built its simulator: the
     same attempt differed by 0.15 in the state and 2 pi in an action's rotation vector between two generators."""
     from kpflow.eval.generation import Generator
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.suite.task import SuiteTask
 
     task, families = SuiteTask("lift"), {"mimicgen": SegmentTransport(None, in_hand=False)}
@@ -161,7 +161,7 @@ def journal_lines(run: Path) -> int:
 def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_results(tmp_path):
     from kpflow.eval.generation import generate
     from kpflow.maps import AffineMap
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.suite.task import SuiteTask
 
     n, variants, names = 4, ["wide"], ["mimicgen", "rigid"]

@@ -13,7 +13,7 @@ LAYERS = [
     {"maps"},
     {"transport", "rotations"},
     {"vision"},
-    {"tasks"},
+    {"tasks", "policies.base"},  # the policy contract sits beside the task contract: tasks declare their layout with it
     {"data"},
     {"policies"},
     {"eval", "serving"},
@@ -47,6 +47,8 @@ def imports(path: Path) -> set[str]:
 
 def layer(module: str) -> str:
     parts = module.split(".")
+    if parts[1:3] == ["policies", "base"]:
+        return "policies.base"
     return parts[1] if len(parts) > 1 else "__init__"
 
 

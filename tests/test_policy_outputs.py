@@ -14,23 +14,31 @@ import torch
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
 from kpflow.policies.checks import INPUT_MARGIN, check_actions
+from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment
-from kpflow.serving.deployment import source_index_path
 from kpflow.tasks.pusht.env import PushTEnv
-from kpflow.tasks.pusht.geometry import observation_keypoints
+from kpflow.tasks.pusht.geometry import (
+    N_KEYPOINTS,
+    PUSHT_BLOCK,
+    PUSHT_GOAL,
+    goal_frame,
+    observation_keypoints,
+    pusht_weights,
+)
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
+from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.checkpoint import load_checkpoint
 from tests.helpers import StandStill, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
-RELEASED = sorted((ROOT / "release").glob("*.ckpt"))
+RELEASED = sorted((ROOT / "release").glob("pusht_*.ckpt"))
 STANDARD = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 H = 8
 FAR = "far outside the range this K-CFM was trained on"
@@ -53,7 +61,7 @@ def tiny(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(KCFM(horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
+    trainer.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
     good = root / "good" / "kcfm.ckpt"
     good.parent.mkdir()
     trainer.save_checkpoint(good)
@@ -97,7 +105,7 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
     assert not calls
     assert policies[0].act(scene()).shape == (4, 2) and len(calls) == 2  # an ordinary scene runs the network (2 steps)
     released = KCFMPolicy.from_checkpoint(STANDARD, steps=2)
-    assert released.model.hparams.goal_frame
+    assert released.model.hparams.goal_frame == goal_frame()
     with pytest.raises(ValueError, match=f"{FAR}: keypoint 0 at"):
         released.act(HUGE)  # in its goal's frame this scene is ordinary: the world check refuses it
     # every coordinate within the widened box in the world, but the agent 7920 px from the goal in the goal's frame
@@ -159,7 +167,7 @@ def test_served_policies_reply_with_an_error_naming_the_cause(tiny):
     good, overflow, _ = tiny
     for path, transport, obs, match in ((good, None, HUGE, FAR), (good, "ilwr", HUGE, FAR),
                                         (overflow, None, scene(), NOT_FINITE), (overflow, "rigid", scene(), NOT_FINITE)):  # fmt: skip
-        deployment = load_deployment(path, transport, steps=2, execute=4)
+        deployment = load_deployment(path, PushTTask(), transport, steps=2, execute=4)
         with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
             with pytest.raises(PolicyServerError, match=match):
                 client.act(obs)
@@ -169,7 +177,7 @@ def test_served_policies_reply_with_an_error_naming_the_cause(tiny):
             else:
                 with pytest.raises(PolicyServerError, match=NOT_FINITE):
                     client.act(scene())
-    deployment = load_deployment(good, steps=2, execute=4, input_margin=None)
+    deployment = load_deployment(good, PushTTask(), steps=2, execute=4, input_margin=None)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         with pytest.raises(PolicyServerError, match=NOT_FINITE):  # no range check: the output check still holds
             client.act(HUGE)

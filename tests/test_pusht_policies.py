@@ -6,12 +6,13 @@ import pytest
 from kpflow.data.chunks import ChunkDataset
 from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap
+from kpflow.policies.base import Policy
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.nearest import NearestNeighbourPolicy
-from kpflow.tasks.base import Policy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.rollout import run_episode
 
 
@@ -277,11 +278,14 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
 
 
 def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos):
-    """fit_on=block_agent: the goal does not bend the map. A source whose goal coincides with its block (the end of a
+    """fit_on=[objects, robot] (the block and the agent): the goal does not bend the map. A source whose goal coincides with its block (the end of a
     demonstration read in hindsight) cannot be fitted with the goal at all; without the goal the chunk moves rigidly
     with the block when the agent moves with it, and wherever the goal is."""
     from kpflow.data.pusht_demos import PUSHT_HINDSIGHT
-    from kpflow.policies.pusht_build import FIT_ON, fit_on_indices
+    from kpflow.policies.factory import fit_on_indices
+    from kpflow.tasks.pusht.task import PushTTask
+
+    layout = PushTTask.policy_layout
 
     index = SourceIndex.from_store(demos, horizon=20, reference=PUSHT_BLOCK, hindsight=PUSHT_HINDSIGHT)
     end = demos.episode_ends[0] - 1  # the first demonstration's last step: goal keypoints == block keypoints
@@ -292,13 +296,13 @@ def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos)
     rot, shift = np.array([[c, -s], [s, c]]), np.array([25.0, 40.0])
     target = source @ rot.T + shift
     target[12:24] = source[12:24] + (4.0, -3.0)  # the goal somewhere else: not where the block went
-    fitted = TransportPolicy(one, execute=20, fit_on=fit_on_indices("block_agent"))
+    fitted = TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, ["objects", "robot"]))
     np.testing.assert_allclose(fitted.act({"keypoints": target}), chunk @ rot.T + shift, atol=1e-6)
     with pytest.raises(ValueError, match="duplicate source keypoints"):
-        TransportPolicy(one, execute=20, fit_on=fit_on_indices("all")).act({"keypoints": target})
-    assert FIT_ON["all"] is None and FIT_ON["block_agent"] == (*range(12), 24)
+        TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, "all")).act({"keypoints": target})
+    assert fit_on_indices(layout, "all") is None and fit_on_indices(layout, ["block", "agent"]) == (*range(12), 24)
     for bad in ([], [0, 0], [25]):
         with pytest.raises(ValueError, match="fit_on"):
             TransportPolicy(one, fit_on=bad)
-    with pytest.raises(ValueError, match="unknown fit_on"):
-        fit_on_indices("goal")
+    with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
+        fit_on_indices(layout, ["hand"])

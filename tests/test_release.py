@@ -13,16 +13,18 @@ from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm import KCFM
 from kpflow.release import KEEP, main, release
 from kpflow.tasks.pusht import PushTEnv, split_config, standard_config
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from tests.helpers import walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
-RELEASED = sorted((ROOT / "release").glob("*.ckpt"))
+RELEASED = sorted((ROOT / "release").glob("pusht_*.ckpt"))
+SUITE_RELEASED = sorted((ROOT / "release").glob("suite_*_kcfm.ckpt"))
 
 
 def test_release_keeps_weights_and_config_only(tmp_path):
     walk_to_block_store(tmp_path / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(horizon=8, down_dims=[16, 32], time_dim=16)
+    model = KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16)
     trainer = lightning.Trainer(max_steps=5, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
                                 enable_progress_bar=False, enable_model_summary=False)
     trainer.fit(model, datamodule=ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0))
@@ -43,7 +45,7 @@ def test_release_keeps_weights_and_config_only(tmp_path):
 
 @pytest.mark.skipif(not RELEASED, reason="no released checkpoints under release/")
 def test_released_checkpoints_load_and_act_on_cpu():
-    assert sum(p.stat().st_size for p in RELEASED) <= 25e6  # 25 MB at most in all
+    assert sum(p.stat().st_size for p in (ROOT / "release").rglob("*") if p.is_file()) <= 60e6  # 60 MB at most in all
     env = PushTEnv()
     for path in RELEASED:
         policy = load_policy(path)
@@ -54,6 +56,29 @@ def test_released_checkpoints_load_and_act_on_cpu():
         chunk = policy.act(obs)
         assert chunk.shape == (policy.execute, 2) and np.isfinite(chunk).all()
         assert np.abs(chunk - obs["agent_pos"]).max() < 200  # targets near the agent: it acts, not noise
+
+
+@pytest.mark.skipif(not SUITE_RELEASED, reason="no released robosuite policies under release/")
+def test_released_suite_policies_keep_one_copy_of_the_weights_and_their_source_index():
+    """release/suite_<task>_kcfm.ckpt: the EMA network alone, the task's layout, the source index beside it, searched
+    as the task's transporting policies search (robot weighted 4, relative to the objects)."""
+    from kpflow.data.source_index import SourceIndex
+    from kpflow.policies.factory import source_index_path
+    from kpflow.tasks.suite.task import SuiteTask
+
+    for path in SUITE_RELEASED:
+        task = SuiteTask(path.stem.split("_")[1])
+        state = torch.load(path, weights_only=True)["state_dict"]
+        assert any(k.startswith("ema_net.") for k in state) and not any(k.startswith("net.") for k in state)
+        policy = load_policy(path)
+        assert (policy.model.hparams.n_keypoints, policy.model.hparams.keypoint_dim, policy.model.hparams.action_dim) == task.policy_layout.shape
+        index = SourceIndex.load(source_index_path(path))
+        assert index.keypoints.shape[1:] == (task.policy_layout.n_keypoints, 3) and len(index) > 1000
+        assert index.reference == list(task.policy_layout.indices("objects"))
+        np.testing.assert_array_equal(index.weights, task.policy_layout.weights({"robot": 4.0}))
+        policy.reset(0)
+        chunk = policy.act({"keypoints_history": np.stack([index.keypoints[0]] * policy.n_obs).astype(np.float64)})
+        assert chunk.shape == (policy.execute, 10) and np.isfinite(chunk).all()
 
 
 STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"

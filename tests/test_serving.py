@@ -19,19 +19,21 @@ import pytest
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
+from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment
-from kpflow.serving.deployment import source_index_path
 from kpflow.serving.server import HARD_LIMIT
 from kpflow.serving.wire import WireError, pack, unpack
 from kpflow.tasks.pusht.env import PushTEnv
-from kpflow.tasks.pusht.geometry import observation_keypoints
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, PUSHT_GOAL, observation_keypoints, pusht_weights
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
+from kpflow.tasks.pusht.task import PushTTask
+from kpflow.tasks.suite.task import SuiteTask
 from tests.helpers import walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +47,7 @@ def observation(seed: int) -> dict:
 
 @pytest.fixture(scope="module")
 def released():
-    return load_deployment(RELEASED, steps=4)
+    return load_deployment(RELEASED, PushTTask(), steps=4)
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +65,7 @@ def tiny_run(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=20, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(KCFM(horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
+    trainer.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
     trainer.save_checkpoint(root / "kcfm.ckpt")
     index = SourceIndex.from_store(EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
     return root / "kcfm.ckpt", index
@@ -244,13 +246,13 @@ def test_graceful_shutdown_finishes_requests_then_says_going_away(released):
 def test_transported_policy_is_served_with_its_source_index(tiny_run):
     checkpoint, index = tiny_run
     with pytest.raises(FileNotFoundError, match="source_index.npz"):
-        load_deployment(checkpoint, transport="ilwr")
+        load_deployment(checkpoint, PushTTask(), transport="ilwr")
     index.save(source_index_path(checkpoint))
     loaded = SourceIndex.load(source_index_path(checkpoint))
     for a, b in ((loaded.keypoints, index.keypoints), (loaded.chunks, index.chunks), (loaded.weights, index.weights)):
         np.testing.assert_array_equal(a, b)
     assert loaded.reference == index.reference
-    deployment = load_deployment(checkpoint, transport="ilwr", steps=4)
+    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4)
     assert deployment.metadata.policy == "transported_kcfm/ilwr"
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
@@ -259,7 +261,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
     # the evaluated configuration (conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
-    deployment = load_deployment(checkpoint, transport="ilwr", steps=4, fit_on=fit_on, choice=choice)
+    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), local.reset(2)
@@ -267,7 +269,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
             np.testing.assert_array_equal(client.act(obs), local.act(obs))
         assert local.source.stuck_count == 1
     # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
-    deployment = load_deployment(checkpoint, transport="ilwr", steps=4, fit_on=fit_on, choice=choice, reach=60, turn_deg=30)
+    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4, fit_on=["block", "agent"], choice=choice, reach=60, turn_deg=30)
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
     limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
@@ -277,15 +279,15 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         served = client.act(far)
         np.testing.assert_array_equal(served, limited.act(far))
         assert not np.array_equal(served, local.act(far))  # the goal, 180 px off and turned 2.2 rad, was moved
-    with pytest.raises(ValueError, match="fit_on"):
-        load_deployment(checkpoint, transport="ilwr", fit_on=[99])
+    with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
+        load_deployment(checkpoint, PushTTask(), transport="ilwr", fit_on=["hand"])
     with pytest.raises(ValueError, match="transport must be"):
-        load_deployment(checkpoint, transport="spline")
+        load_deployment(checkpoint, PushTTask(), transport="spline")
 
 
 def test_kcfm_within_reach_is_served_as_it_acts_in_process():
     """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
-    deployment = load_deployment(RELEASED, steps=4, reach=60)
+    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60)
     assert deployment.metadata.policy == "kcfm/reach=60"
     local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
     plain = KCFMPolicy.from_checkpoint(RELEASED, steps=4)
@@ -295,19 +297,17 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
         assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
-    with pytest.raises(ValueError, match="reach apply to Push-T's keypoints"):
-        load_deployment(RELEASED, reach=60, keypoint_groups={"block": 12, "goal": 12, "robot": 1})
-    with pytest.raises(ValueError, match="reach and turn_deg apply to Push-T's keypoints"):
-        load_deployment(RELEASED, reach=60, turn_deg=30, keypoint_groups={"keypoints": 25})
+    with pytest.raises(ValueError, match="is a policy for 25 keypoints in 2-D and 2-D actions, but lift shows 11 keypoints in 3-D"):
+        load_deployment(RELEASED, SuiteTask("lift"), reach=60)
     with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
-        load_deployment(RELEASED, reach=0)
+        load_deployment(RELEASED, PushTTask(), reach=0)
     with pytest.raises(ValueError, match="turn_deg must be a positive finite number or None"):
-        load_deployment(RELEASED, turn_deg=-1)
+        load_deployment(RELEASED, PushTTask(), turn_deg=-1)
 
 
 def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
     """``turn_deg`` with ``reach`` serves what SubgoalPolicy with both returns in process."""
-    deployment = load_deployment(RELEASED, steps=4, reach=60, turn_deg=30)
+    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60, turn_deg=30)
     assert deployment.metadata.policy == "kcfm/reach=60/turn_deg=30"
     local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     reach_only = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)

@@ -5,12 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from kpflow.data.source_index import PUSHT_BLOCK, PUSHT_GOAL
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift, subgoal_turn
 from kpflow.tasks.pusht import PushTEnv, split_config
-from kpflow.tasks.pusht.geometry import observation_keypoints
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, PUSHT_GOAL, goal_frame, observation_keypoints
 from kpflow.tasks.pusht.rollout import run_episode
 
 
@@ -78,7 +77,7 @@ def test_turn_then_reach_on_every_frame():
 def _model(n_obs: int) -> KCFM:
     torch.manual_seed(0)
     rng = np.random.default_rng(1)
-    model = KCFM(horizon=8, n_obs=n_obs, goal_frame=True, down_dims=[16, 32]).eval()
+    model = KCFM(N_KEYPOINTS, horizon=8, n_obs=n_obs, goal_frame=goal_frame(), down_dims=[16, 32]).eval()
     train = np.stack([observation_keypoints((*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256.0, 256.0, 0.8),
                                             rng.uniform(50, 450, 2)) for _ in range(32)])
     model.set_normalisation(train, train[:, -1:] + rng.normal(0.0, 20.0, (32, 8, 2)))

@@ -2,6 +2,7 @@
 real robosuite 1.5 environments with the Panda's parallel-jaw gripper, headless on the CPU."""
 
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -16,6 +17,8 @@ from kpflow.tasks.suite.keypoints import object_keypoints, reduced_yaw
 from kpflow.tasks.suite.scene import Scene
 from kpflow.tasks.suite.specs import TASKS, task_spec
 from kpflow.tasks.suite.task import SuiteTask
+
+ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.slow
 
@@ -102,7 +105,7 @@ def test_symmetric_keypoints_turn_the_gripper_least():
 
 @pytest.mark.parametrize("family", ["mimicgen", "ilwr", "gp"])
 def test_transport_into_the_source_scene_reproduces_the_source(worlds, family):
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family], in_hand=family != "mimicgen")
     task, env, segments, *_ = worlds["square"]
@@ -131,7 +134,7 @@ def test_the_source_distance_is_mimicgens_pose_measure_and_the_keypoints_see_sym
     from functools import partial
 
     from kpflow.maps import AffineMap
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import SegmentStart
 
     def start(pos, yaw):
@@ -152,7 +155,7 @@ def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seed
 
     from kpflow.eval.generation import Generator
     from kpflow.maps import AffineMap
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     task, env, segments, *_ = worlds["square"]
 
@@ -179,7 +182,7 @@ def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
     from dataclasses import replace
 
     from kpflow.eval.generation import Generator
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     task, env, segments, *_ = worlds["square"]
     pick, place = segments
@@ -200,7 +203,7 @@ def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
 def generated(tmp_path_factory):
     """Two generation attempts per family on lift's d0 scenes, written like a CLI run."""
     from kpflow.eval.generation import generate
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     out = tmp_path_factory.mktemp("generated")
     families = {"mimicgen": SegmentTransport(None, in_hand=False), "gp": SegmentTransport(GPMap)}
@@ -235,7 +238,7 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
 
 def test_generation_refuses_an_earlier_runs_folder_unless_resumed_with_its_settings(generated):
     from kpflow.eval.generation import generate
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     out, _ = generated
     before = (out / "results.json").read_text()
@@ -282,17 +285,27 @@ def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def _rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` of the rigid fit (``fit_affine(..., "rigid")``) of one pair ``[N, 3]``, as numpy."""
+    import torch
+
+    from kpflow.maps.affine import fit_affine
+
+    rot, t = fit_affine(torch.as_tensor(source[None]), torch.as_tensor(target[None]), "rigid")
+    return rot[0].numpy(), t[0].numpy()
+
+
 def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
     from functools import partial
 
     from kpflow.maps import AffineMap
-    from kpflow.policies.segment_transport import SegmentTransport, rigid_fit
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import Segment, SegmentStart
 
     rng = np.random.default_rng(0)
     held = rng.normal(size=(5, 3)) * 0.05  # the held object's keypoints in the source's hand frame
     turn, shift = Rotation.from_rotvec([0.1, -0.2, 2.5]).as_matrix(), np.array([0.02, -0.01, 0.03])
-    r, t = rigid_fit(held, held @ turn.T + shift)  # closed form: Kabsch recovers the motion exactly
+    r, t = _rigid(held, held @ turn.T + shift)  # closed form: Kabsch recovers the motion exactly
     np.testing.assert_allclose(r, turn, atol=1e-12)
     np.testing.assert_allclose(t, shift, atol=1e-12)
     n = 6
@@ -319,7 +332,7 @@ def test_the_six_dimensional_rotation_round_trips():
 
 
 def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_its_centre():
-    from kpflow.policies.segment_transport import in_hand_path, rigid_fit, turn_ramp
+    from kpflow.tasks.arm.segment_transport import in_hand_path, turn_ramp
 
     phases = np.array(["carry"] * 5 + ["lower"] * 3)
     np.testing.assert_allclose(turn_ramp(phases), [0, 0.25, 0.5, 0.75, 1, 1, 1, 1])
@@ -327,8 +340,8 @@ def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_it
     ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])
     held = ring + [0.0, 0.01, 0.02]  # in the source's hand frame
     now = ring @ Rotation.from_rotvec([0, 0, 0.3]).as_matrix().T + [0.01, 0.0, 0.02]
-    nearest = rigid_fit(held, now)
-    chosen = rigid_fit(held, now[[0, 2, 3, 4, 1]])  # the same ring in the next order: a quarter turn more
+    nearest = _rigid(held, now)
+    chosen = _rigid(held, now[[0, 2, 3, 4, 1]])  # the same ring in the next order: a quarter turn more
     ramp = np.linspace(0, 1, 7)
     rots, shifts = in_hand_path(nearest, chosen, held.mean(0), ramp)
     np.testing.assert_allclose(rots[0], nearest[0], atol=1e-12)
@@ -366,7 +379,7 @@ def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_
     from functools import partial
 
     from kpflow.maps import AffineMap
-    from kpflow.policies.segment_transport import SegmentTransport
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import Segment, SegmentStart
 
     ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])
@@ -386,3 +399,55 @@ def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_
     np.testing.assert_allclose(ends, [0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2, np.pi / 2, np.pi / 2, np.pi / 2], atol=1e-9)
     centre = lambda rot, pos: np.einsum("tij,j->ti", rot, held.mean(0)) + pos  # noqa: E731
     np.testing.assert_allclose(centre(carried.rotations, carried.positions), centre(rotations, positions), atol=1e-9)
+
+
+def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_episode_runs(generated, tmp_path):
+    """evaluate's configs (experiment=suite_policy) build the K-CFM, the transported K-CFM (its source index from the
+    training store, or saved beside the checkpoint), policy transportation and nearest neighbour for a robosuite task
+    through the one builder (kpflow.policies.factory); the transported K-CFM drives the arm in a far scene."""
+    import lightning
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from kpflow.data.chunks import ChunkDataModule
+    from kpflow.policies.chunk_transport import TransportPolicy
+    from kpflow.policies.kcfm import KCFM
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.nearest import NearestNeighbourPolicy
+    from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
+    from kpflow.release import release, release_source_index
+    from kpflow.tasks.suite.rollout import run_policy_episode
+
+    out, _ = generated
+    store = out / "d0" / "gp" / "episodes.zarr"
+    data = ChunkDataModule(store, horizon=16, obs_key="keypoints", action_key="ee_target", val_fraction=0.0, batch_size=64, n_obs=2)
+    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32))
+    trainer = lightning.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                                enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
+    trainer.fit(model, datamodule=data)
+    trainer.save_checkpoint(tmp_path / "last.ckpt")
+    released = release(tmp_path / "last.ckpt", tmp_path / "suite_lift_kcfm.ckpt", ema_only=True)
+    release_source_index(released, "lift", store, 200)
+    obs = {"keypoints_history": data.train_dataloader().dataset[0]["history"].numpy().astype(np.float64)}
+    full, ema = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt"), KCFMPolicy.from_checkpoint(released)
+    np.testing.assert_array_equal(full.act(obs), ema.act(obs))  # sampling uses the EMA network: the release acts the same
+    common = ["experiment=suite_policy", "task=lift"]
+    expected = {
+        "kcfm": (KCFMPolicy, [f"policy.checkpoint={released}"]),
+        "transported_kcfm": (TransportedKCFMPolicy, [f"policy.checkpoint={released}"]),  # the index beside it
+        "transported_kcfm ": (TransportedKCFMPolicy, [f"policy.checkpoint={tmp_path / 'last.ckpt'}", "data=suite_store", f"data.path={store}"]),
+        "transport": (TransportPolicy, ["data=suite_store", f"data.path={store}"]),
+        "nearest": (NearestNeighbourPolicy, ["data=suite_store", f"data.path={store}"]),
+    }
+    policies = {}
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        for name, (cls, args) in expected.items():
+            cfg = compose("evaluate", overrides=[*common, f"policy={name.strip()}", *args])
+            policies[name] = instantiate(cfg.policy)
+            assert isinstance(policies[name], cls), name
+    transported = policies["transported_kcfm"]
+    assert transported.fit_on.tolist() == list(range(8)) and transported.robot.tolist() == [8, 9, 10] and transported.rotation
+    task = SuiteTask("lift")
+    env = task.make_env()
+    episode = run_policy_episode(env, transported, task.sample_scene(env, "far", 0, seed=20_000), max_steps=16)
+    assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None

@@ -13,12 +13,13 @@ import torch
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.source_index import PUSHT_BLOCK, SourceIndex, pusht_weights
+from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
+from kpflow.policies.base import Policy
 from kpflow.policies.kcfm import KCFM, MAX_STEPS
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-from kpflow.tasks.base import Policy
+from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, pusht_weights
 from tests.helpers import walk_to_block_store
 
 H = 8
@@ -47,7 +48,7 @@ def index(store_path):
 def untrained(index):
     """A world-frame K-CFM with random weights and the data's normalisation: not equivariant by itself."""
     torch.manual_seed(0)
-    model = KCFM(horizon=H).eval()
+    model = KCFM(N_KEYPOINTS, horizon=H).eval()
     model.set_normalisation(index.keypoints, index.chunks[:, 0])
     return model
 
@@ -57,7 +58,7 @@ def trained(store_path, tmp_path_factory):
     """A tiny world-frame K-CFM trained for 250 steps on all episodes, and its checkpoint."""
     root = tmp_path_factory.mktemp("kcfm_run")
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(horizon=H, lr=3e-3)
+    model = KCFM(N_KEYPOINTS, horizon=H, lr=3e-3)
     trainer = lightning.Trainer(
         max_steps=250,
         accelerator="cpu",
@@ -246,14 +247,15 @@ def test_the_kcfm_sees_the_source_scene_with_the_robot_pulled_back(untrained, in
 def test_built_with_reach_and_turn_it_searches_and_acts_on_the_shown_goal(trained, store_path):
     """``policy.reach`` / ``policy.turn_deg`` wrap the transported K-CFM in :class:`SubgoalPolicy`: the source search
     and the K-CFM see the goal moved within reach and turn, so it acts exactly as the plain policy on that observation."""
-    from kpflow.policies.pusht_build import transported_kcfm
+    from kpflow.policies.factory import transported_kcfm
     from kpflow.policies.subgoal import SubgoalPolicy
     from kpflow.tasks.pusht.geometry import observation_keypoints
+    from kpflow.tasks.pusht.task import PushTTask
 
     _, ckpt = trained
     demos = ChunkDataModule(store_path, horizon=H)
-    wrapped = transported_kcfm(str(ckpt), demos, weights={"agent": 4.0}, reach=60.0, turn_deg=20.0)
-    plain = transported_kcfm(str(ckpt), demos, weights={"agent": 4.0})
+    wrapped = transported_kcfm(str(ckpt), demos, PushTTask(), weights={"agent": 4.0}, frame="block", fit_on=["block", "agent"], reach=60.0, turn_deg=20.0)
+    plain = transported_kcfm(str(ckpt), demos, PushTTask(), weights={"agent": 4.0}, frame="block", fit_on=["block", "agent"])
     assert isinstance(wrapped, SubgoalPolicy) and isinstance(wrapped.policy, TransportedKCFMPolicy)
     assert isinstance(plain, TransportedKCFMPolicy)
     obs = _obs(observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0)))  # goal 180 px off, turned 2.2 rad

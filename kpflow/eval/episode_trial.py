@@ -16,7 +16,8 @@ import time
 
 import numpy as np
 
-from kpflow.tasks.base import Policy, TrialResult
+from kpflow.policies.base import Policy
+from kpflow.tasks.base import TrialResult
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import SPLITS, STANDARD_FIRST_SEED
 from kpflow.tasks.pusht.task import PushTTask

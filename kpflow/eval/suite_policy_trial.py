@@ -7,7 +7,8 @@ generated ones (``seed``) use. Success is robosuite's own check within ``max_ste
 
 from __future__ import annotations
 
-from kpflow.tasks.base import Policy, TrialResult
+from kpflow.policies.base import Policy
+from kpflow.tasks.base import TrialResult
 from kpflow.tasks.suite.rollout import run_policy_episode
 from kpflow.tasks.suite.task import SuiteTask
 

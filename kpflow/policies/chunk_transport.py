@@ -1,8 +1,11 @@
 """Policy transportation: a near demonstrated chunk, carried into the current scene by a keypoint map.
 
 With ``S`` the chosen source's keypoints and ``T`` the observed ones, fit ``phi`` with ``phi(S) ~= T`` and execute
-``phi(a_1), ..., phi(a_H)`` for the source's chunk of absolute targets ``a`` (the paper's offline transport applied
-to one chunk at a time).
+the source's chunk of absolute targets carried through ``phi`` (the paper's offline transport applied to one chunk at
+a time, :func:`transport_chunk`): each target position ``p -> phi(p)``; where the actions hold a 6-D rotation after
+the position (the robosuite tasks' end-effector targets, :class:`~.base.PolicyLayout` ``rotation``), ``R ->
+polar(J(p)) R`` with ``J`` phi's Jacobian (:func:`kpflow.transport.transport_orientations`); anything after that (a
+gripper command) is kept.
 
 Which keypoints the map is fitted on (``fit_on``; all by default). In Push-T, fitting the block and the agent
 alone (``fit_on=block_agent`` in ``conf/policy/transport.yaml``) carries the chunk rigidly with the block
@@ -27,6 +30,9 @@ import torch
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from ..rotations import matrix_to_rot6d, rot6d_to_matrix
+from ..transport import transport_orientations
+from .base import PolicyLayout
 from .source_choice import SourceChoice
 
 
@@ -37,6 +43,33 @@ def fitted_keypoints(fit_on: Sequence[int] | None, k: int) -> slice | np.ndarray
     if not (len(fit_on) >= 1 and len(set(fit_on)) == len(fit_on) and all(0 <= i < k for i in fit_on)):
         raise ValueError(f"fit_on must list distinct keypoint indices in 0..{k - 1}, got {fit_on!r}")
     return np.asarray(fit_on, np.int64)
+
+
+def transport_chunk(phi: TransportMap, chunk: np.ndarray, dim: int, rotation: bool = False) -> np.ndarray:
+    """A chunk of absolute targets ``[H, A]`` carried through ``phi`` (module docstring): columns ``:dim`` are
+    positions (``phi(p)``), then with ``rotation`` a 6-D rotation (``polar(J(p)) R``), the rest is kept (float64)."""
+    chunk = np.asarray(chunk, np.float64)
+    out = chunk.copy()
+    x = torch.from_numpy(np.ascontiguousarray(chunk[:, :dim]))
+    with torch.no_grad():
+        out[:, :dim] = phi(x).to(torch.float64).numpy()
+        if rotation:
+            rot = torch.from_numpy(rot6d_to_matrix(chunk[:, dim : dim + 6]))
+            out[:, dim : dim + 6] = matrix_to_rot6d(transport_orientations(phi, x, rot).numpy())
+    return out
+
+
+def layout_or_default(layout: PolicyLayout | None, k: int) -> tuple[np.ndarray, bool]:
+    """The robot's keypoint indices and whether actions carry a rotation: from ``layout``, or (None) the last of the
+    ``k`` keypoints and plain position targets (Push-T's agent)."""
+    if layout is None:
+        return np.array([k - 1]), False
+    if layout.n_keypoints != k:
+        raise ValueError(f"the layout names {layout.n_keypoints} keypoints; the source index holds {k}")
+    robot = layout.indices("robot")
+    if not robot:
+        raise ValueError("the layout names no robot keypoints (role 'robot')")
+    return np.asarray(robot), layout.rotation
 
 
 def clip_steps(start: np.ndarray, targets: np.ndarray, max_step: float) -> np.ndarray:
@@ -57,6 +90,7 @@ class TransportPolicy:
         execute: how many of the chunk's targets :meth:`act` returns.
         max_step_px: clip every executed step to this many px per axis (None: no clipping).
         fit_on: indices of the keypoints the map is fitted on (None: all).
+        layout: the task's :class:`~.base.PolicyLayout` (whether actions carry a rotation); None: position targets.
         choice: :class:`SourceChoice`'s options (``candidates``, ``temperature``, ``stuck_decisions``, ``stuck_px``,
             ``stuck_candidates``).
     """
@@ -68,6 +102,7 @@ class TransportPolicy:
         execute: int = 20,
         max_step_px: float | None = None,
         fit_on: Sequence[int] | None = None,
+        layout: PolicyLayout | None = None,
         **choice,
     ):
         if not 1 <= execute <= index.chunks.shape[1]:
@@ -77,6 +112,7 @@ class TransportPolicy:
         self.source = SourceChoice(index, **choice)
         self.fit_on = fitted_keypoints(fit_on, index.keypoints.shape[1])
         self.index, self.make_map, self.execute, self.max_step_px = index, make_map, execute, max_step_px
+        self.rotation = layout_or_default(layout, index.keypoints.shape[1])[1]
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
 
@@ -90,10 +126,8 @@ class TransportPolicy:
         i = self.source.choose(target)
         source = self.index.keypoints[i].astype(np.float64)
         phi = self.make_map().fit(torch.from_numpy(source[self.fit_on]), torch.from_numpy(target[self.fit_on]))
-        chunk = torch.from_numpy(self.index.chunks[i, : self.execute].astype(np.float64))
         self.last_source, self.last_map = i, phi
-        with torch.no_grad():
-            moved = phi(chunk).numpy()
+        moved = transport_chunk(phi, self.index.chunks[i, : self.execute], source.shape[1], self.rotation)
         if self.max_step_px is not None:
             moved = clip_steps(np.asarray(obs["agent_pos"], np.float64), moved, self.max_step_px)
         return moved

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..maps.validation import check_positive
-from ..tasks.base import Policy
+from .base import Policy
 from .checks import check_actions
 
 
@@ -84,6 +84,7 @@ class SubgoalPolicy:
             raise ValueError(f"turn_deg needs the goal's keypoints in the object's order; got {len(object)} and {len(goal)}")
         self.policy, self.object, self.goal = policy, tuple(object), tuple(goal)
         self.n_obs = int(getattr(policy, "n_obs", 1))  # the observation history the rollout must hand over
+        self.execute = getattr(policy, "execute", None)
 
     def reset(self, seed: int | None = None) -> None:
         self.policy.reset(seed)

@@ -1,16 +1,21 @@
 """Online transport of a K-CFM policy (the paper's Eq. 5): ``a = phi(f(phi^-1(x)))``.
 
-At every decision, with ``T`` the observed keypoints and ``x`` the robot's state (the agent, T's last keypoint):
+At every decision, with ``T`` the observed keypoints and ``x`` the robot's state (its keypoints: the task's
+:class:`~.base.PolicyLayout` role ``robot``; without a layout the last keypoint, Push-T's agent):
 
 1. ``S``: a configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data), the nearest or
    drawn among the nearest, with stuck detection (:class:`~.source_choice.SourceChoice`);
 2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default), on the keypoints ``fit_on`` (all by
    default; Push-T: the block and the agent, see :mod:`.chunk_transport`);
-3. ``phi^-1(x)``: the robot pulled back into the source scene. The K-CFM's input is ``S`` with its agent replaced
+3. ``phi^-1(x)``: the robot pulled back into the source scene. The K-CFM's input is ``S`` with its robot replaced
    by ``phi^-1(x)`` (``pull_back="agent"``): a scene it was trained on, exactly, with the robot where the map puts
-   it. ``pull_back="all"`` pulls all 25 observed keypoints back instead;
+   it. ``pull_back="all"`` pulls every observed keypoint back instead. A K-CFM with an observation history
+   (``n_obs > 1``) sees each earlier frame ``T_j`` as the current input moved by ``phi^-1(T_j) - phi^-1(T)``, the
+   motion since then pulled back (for ``pull_back="all"`` that is ``phi^-1(T_j)`` itself);
 4. ``f``: the K-CFM samples a chunk of absolute targets there;
-5. ``phi``: the chunk is pushed forward into the observed scene.
+5. ``phi``: the chunk is pushed forward into the observed scene: positions by ``phi``, a 6-D rotation (the
+   robosuite tasks' end-effector targets) by the polar factor of phi's Jacobian, the gripper as it is
+   (:func:`~.chunk_transport.transport_chunk`).
 
 This addresses the failure modes of its two ingredients:
 
@@ -46,8 +51,9 @@ import torch
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
+from .base import PolicyLayout
 from .checks import INPUT_MARGIN, check_actions
-from .chunk_transport import fitted_keypoints
+from .chunk_transport import fitted_keypoints, layout_or_default, transport_chunk
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
 from .source_choice import SourceChoice
@@ -70,6 +76,8 @@ class TransportedKCFMPolicy:
         fit_on: indices of the keypoints the map is fitted on (None: all).
         input_margin: how far outside the K-CFM's training keypoints an observation may lie
             (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`); None: no range check.
+        layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation);
+            None: the last keypoint is the robot and actions are position targets (Push-T).
         choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
 
     After :meth:`act`, ``last_source`` (index of ``S``), ``last_map`` (``phi``) and ``last_pullback``
@@ -86,14 +94,15 @@ class TransportedKCFMPolicy:
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
+        layout: PolicyLayout | None = None,
         **choice,
     ) -> None:
         self.policy = KCFMPolicy(model, steps, execute, input_margin)  # validates steps, execute and input_margin
-        if self.policy.n_obs != 1:
-            raise ValueError(f"online transport pulls back one observation: it needs a K-CFM with n_obs=1; this one has n_obs={self.policy.n_obs}")
-        k = int(model.hparams.n_keypoints)
-        if index.keypoints.shape[1:] != (k, 2):
-            raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, 2)")
+        self.n_obs = self.policy.n_obs
+        k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
+        if index.keypoints.shape[1:] != (k, d):
+            raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, {d})")
+        self.robot, self.rotation = layout_or_default(layout, k)
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
@@ -113,11 +122,12 @@ class TransportedKCFMPolicy:
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
+        layout: PolicyLayout | None = None,
         **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, **choice)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, **choice)
 
     @property
     def model(self) -> KCFM:
@@ -138,14 +148,22 @@ class TransportedKCFMPolicy:
         self.last_source, self.last_map, self.last_pullback = None, None, None
 
     def act(self, obs: dict) -> np.ndarray:
-        """The first ``execute`` actions ``[execute, 2]`` (float64, px) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``.
+        """The first ``execute`` actions ``[execute, A]`` (float64) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``
+        (and ``obs["keypoints_history"] [n_obs, K, D]`` for a K-CFM with an observation history).
 
         Raises:
             ValueError: an observation of the wrong shape, not finite or far outside the K-CFM's training data;
                 actions that came out NaN or inf.
         """
-        self.model.check_in_range(obs["keypoints"], self.policy.input_margin)  # shape, finite, within range
-        target = np.asarray(obs["keypoints"], dtype=np.float64)
+        if self.n_obs == 1:
+            self.model.check_in_range(obs["keypoints"], self.policy.input_margin)  # shape, finite, within range
+            frames = [np.asarray(obs["keypoints"], dtype=np.float64)]
+        elif "keypoints_history" not in obs:
+            raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, D]")
+        else:
+            self.model.check_in_range(obs["keypoints_history"], self.policy.input_margin)
+            frames = list(np.asarray(obs["keypoints_history"], dtype=np.float64))
+        target = frames[-1]
         i = self.source.choose(target)
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
@@ -155,9 +173,11 @@ class TransportedKCFMPolicy:
                 pullback = phi.inverse(target_t).to(torch.float64)
             else:
                 pullback = source_t.clone()
-                pullback[-1] = phi.inverse(target_t[-1:])[0]
-        chunk = self.policy.act({"keypoints": pullback})
-        with torch.no_grad():
-            out = phi(torch.from_numpy(chunk)).to(torch.float64).numpy()
+                pullback[self.robot] = phi.inverse(target_t[self.robot]).to(torch.float64)
+            if self.n_obs > 1:
+                back = phi.inverse(torch.from_numpy(np.stack(frames))).to(torch.float64)  # [n_obs, K, D]
+                pullback = pullback + (back - back[-1])
+        chunk = self.policy.act({"keypoints" if self.n_obs == 1 else "keypoints_history": pullback.numpy()})
+        out = transport_chunk(phi, chunk, target.shape[1], self.rotation)
         self.last_source, self.last_map, self.last_pullback = i, phi, pullback.numpy()
         return check_actions(out, "the transported K-CFM")

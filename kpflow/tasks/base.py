@@ -3,7 +3,8 @@
 Every task folder under ``kpflow/tasks/`` has the same files: ``env.py`` (the simulator), ``scene.py`` (what a scene
 is and the seeded sampler for a condition and index), ``keypoints.py`` (observing the keypoints), ``demonstrator.py``
 (the scripted demonstration and success with a failure reason) and ``task.py``, which puts them behind one class.
-Push-T's closed-loop episodes talk to a :class:`Policy`; the robosuite tasks (:class:`ArmTask`) transport one
+Closed-loop episodes talk to a :class:`~kpflow.policies.base.Policy` (whose layout a task declares,
+:class:`~kpflow.policies.base.PolicyLayout`); the robosuite tasks (:class:`ArmTask`) transport one
 recorded demonstration per scene, so their data is a :class:`Trajectory` of end-effector poses and an
 :class:`Execution` record of how the arm followed it.
 
@@ -15,31 +16,9 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable
 
 import numpy as np
-
-
-@runtime_checkable
-class Policy(Protocol):
-    """A closed-loop policy: ``reset(seed)`` and ``act(obs) -> action chunk [H, A]``."""
-
-    def reset(self, seed: int | None = None) -> None:
-        """Start a new episode (``seed`` makes stochastic policies reproducible)."""
-
-    def act(self, obs: dict) -> np.ndarray:
-        """An action chunk ``[H, A]`` for the observation; the caller executes it and asks again."""
-
-
-@dataclass(frozen=True)
-class PolicyLayout:
-    """What a task's learned policies observe and return: ``n_keypoints`` keypoints in ``keypoint_dim``-D, actions of
-    ``action_dim`` values. A task declares it (``task.policy_layout``); a checkpoint's is checked against it before the
-    policy is run on that task."""
-
-    n_keypoints: int
-    keypoint_dim: int
-    action_dim: int
 
 
 @dataclass(frozen=True)

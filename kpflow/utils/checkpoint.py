@@ -107,14 +107,16 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     """
     checkpoint = read_checkpoint(path, map_location)
     hparams = checkpoint.get("hyper_parameters", {})
+    complete = getattr(cls, "complete_state_dict", None)  # a released file may hold part of the weights (kpflow.release)
+    state = complete(checkpoint["state_dict"]) if complete else checkpoint["state_dict"]
     try:
         with torch.device("meta"):  # shapes only, no storage: whatever size the hyper-parameters ask for costs nothing
             skeleton = cls(**hparams)
-        problems = shape_mismatches(skeleton.state_dict(), checkpoint["state_dict"])
+        problems = shape_mismatches(skeleton.state_dict(), state)
         if not problems:
             model = cls(**hparams)
             model.on_load_checkpoint(checkpoint)
-            model.load_state_dict(checkpoint["state_dict"])
+            model.load_state_dict(state)
     except (TypeError, RuntimeError, ValueError) as e:
         raise ValueError(f"{path} is not a readable {cls.__name__} checkpoint ({type(e).__name__}: {e})") from e
     if problems:

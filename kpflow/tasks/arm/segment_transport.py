@@ -13,8 +13,8 @@ keypoints (the object picked, or the goal of a place), the grip site, and the he
   (:mod:`kpflow.tasks.suite.keypoints`) make phi turn by the least rotation that looks the same.
 
 With ``in_hand`` (and a held object), the carried poses are corrected for how the object sits in the jaws now
-compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch, scipy's ``Rotation.align_vectors``) taking the
-held object's keypoints in the source's hand frame to those in the hand frame now, is undone on the right of every
+compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch: :func:`~kpflow.maps.affine.fit_affine`) taking
+the held object's keypoints in the source's hand frame to those in the hand frame now, is undone on the right of every
 pose, ``R'' = R' R_A^T`` and ``x'' = x' - R'' t_A``, so the held object (not the hand) follows the source's path.
 Of the orders the object's symmetry allows (a square nut's ring: four ways to sit on the peg), the one whose path
 the task's ``path_cost`` rates best is taken (for the Panda: a turn within the last joint's range, ending nearest
@@ -38,18 +38,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
+from kpflow.maps.affine import fit_affine
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
 from kpflow.tasks.base import Segment, SegmentStart, Trajectory
 from kpflow.transport import transport_trajectory
-
-
-def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, t)`` minimising ``sum |R s_i + t - t_i|^2`` over corresponding points ``[N, 3]`` (Kabsch)."""
-    ms, mt = source.mean(0), target.mean(0)
-    rot, _ = Rotation.align_vectors(target - mt, source - ms)
-    r = rot.as_matrix()
-    return r, mt - r @ ms
 
 
 def turn_ramp(phases: np.ndarray) -> np.ndarray:
@@ -95,7 +88,7 @@ class SegmentTransport:
             turn = r_n @ r_s.T
         else:
             kp_s, kp_n = (np.concatenate(list(start.keypoints.values())) for start in (source, now))
-            turn, _ = rigid_fit(kp_s, kp_n)
+            turn = fit_affine(*(torch.as_tensor(kp[None], dtype=torch.float64) for kp in (kp_s, kp_n)), "rigid")[0][0].numpy()
             p_s, p_n = kp_s.mean(0), kp_n.mean(0)
         return float(np.linalg.norm(p_n - p_s) + Rotation.from_matrix(turn).magnitude())
 
@@ -121,7 +114,9 @@ class SegmentTransport:
         positions, rotations, std = self._moved(source, now)
         if self.in_hand and source.start.in_hand is not None and now.in_hand is not None:
             held = source.start.in_hand[0]
-            fits = [rigid_fit(held, keypoints) for keypoints in now.in_hand]
+            orders = torch.as_tensor(now.in_hand, dtype=torch.float64)  # [S, M, 3]: the held keypoints in each order
+            rots, shifts = fit_affine(torch.as_tensor(held, dtype=torch.float64).expand_as(orders), orders, "rigid")
+            fits = list(zip(rots.numpy(), shifts.numpy()))
             ramp = turn_ramp(source.trajectory.phases)
             candidates = []
             for k, (r_a, t_a) in enumerate(fits):

@@ -5,11 +5,12 @@ recorded in the Diffusion Policy convention. Evaluation runs it as it is, correc
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+
+from kpflow.policies.base import ClosedLoop
 
 from .env import PushTEnv
 from .scene import Config
@@ -51,21 +52,13 @@ class Override(Protocol):
         """``step`` was taken; ``info`` is the env's after it."""
 
 
-def _policy_action(policy, obs: dict, history: deque, chunk: list) -> np.ndarray:
-    """The next action of the policy's current chunk, asking it for a new chunk when that one ran out."""
-    if not chunk:
-        seen = dict(obs, keypoints_history=np.stack(history)) if history.maxlen > 1 else obs
-        chunk.extend(np.atleast_2d(np.asarray(policy.act(seen), dtype=np.float64)))
-    return chunk.pop(0)
-
-
-def _next_action(policy, override: Override | None, step: int, obs: dict, history: deque, chunk: list) -> tuple[np.ndarray, bool]:
+def _next_action(loop: ClosedLoop, override: Override | None, step: int, obs: dict) -> tuple[np.ndarray, bool]:
     """The override's action if it takes this step (the policy's pending chunk is then dropped: it starts afresh
     when it gets control back), else the policy's; and whether the override took it."""
     action = None if override is None else override.act(step, obs)
     if action is None:
-        return _policy_action(policy, obs, history, chunk), False
-    chunk.clear()
+        return loop.action(obs), False
+    loop.drop()
     return np.asarray(action, dtype=np.float64), True
 
 
@@ -82,10 +75,8 @@ def run_episode(
 ) -> EpisodeResult:
     """Reset ``env`` to ``config`` and run ``policy`` until success or ``max_steps`` steps.
 
-    ``policy`` has ``reset(seed)`` and ``act(obs)`` returning one target ``[2]`` or a chunk ``[H, 2]``; a chunk is
-    executed open loop and the policy is asked again when it runs out. A policy with ``n_obs > 1`` (observation
-    history) also gets ``obs["keypoints_history"] [n_obs, K, 2]``: the keypoints of the last ``n_obs`` steps, oldest
-    first, the first observation repeated before the episode's start (as its training data pads). The episode ends
+    ``policy`` has ``reset(seed)`` and ``act(obs)`` returning one target ``[2]`` or a chunk ``[H, 2]``, run through
+    :class:`~kpflow.policies.base.ClosedLoop` (the observation history and the action queue). The episode ends
     on ``env``'s success (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were
     first reached. With an ``override`` (:class:`Override`: the expert's corrections), ``overridden`` marks the
     steps it took. A policy may end the episode early by raising :class:`StopEpisode` (``steps`` then counts the
@@ -96,21 +87,19 @@ def run_episode(
     if render and env.render_mode != "rgb_array":
         raise ValueError(f"render=True needs an env made with render_mode='rgb_array', not {env.render_mode!r}")
     obs, info = env.reset(options={"config": config})
-    policy.reset(seed)
+    loop = ClosedLoop(policy)
+    loop.reset(seed)
     if override is not None:
         override.start(env, obs, info, seed)
     log = {k: [] for k in (*RECORDED_FIELDS, "action")} if record else None
     frames = [env.render()] if render else None
     first = {th: None for th in thresholds}
-    best, chunk, terminated, overridden = info["coverage"], [], False, []
-    n_obs = int(getattr(policy, "n_obs", 1))
-    history = deque([obs["keypoints"]] * n_obs, maxlen=n_obs)
+    best, terminated, overridden = info["coverage"], False, []
     start, steps = time.perf_counter(), 0
     for step in range(max_steps):
-        if step:
-            history.append(obs["keypoints"])
+        loop.observe(obs)
         try:
-            action, took_over = _next_action(policy, override, step, obs, history, chunk)
+            action, took_over = _next_action(loop, override, step, obs)
         except StopEpisode:
             break
         overridden.append(took_over)

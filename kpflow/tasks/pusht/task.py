@@ -2,16 +2,17 @@
 the scripted demonstrator. Keypoints are the env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success
 its ``info["is_success"]``.
 
-Push-T is closed loop (a :class:`~kpflow.tasks.base.Policy` acts on every observation): one trial is one
+Push-T is closed loop (a :class:`~kpflow.policies.base.Policy` acts on every observation): one trial is one
 :func:`~kpflow.tasks.pusht.rollout.run_episode` (:class:`~kpflow.eval.episode_trial.EpisodeTrial`).
 """
 
 from __future__ import annotations
 
-from ..base import PolicyLayout
+from kpflow.policies.base import PolicyLayout
+
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
-from .geometry import N_KEYPOINTS
+from .geometry import N_KEYPOINTS, N_T_KEYPOINTS
 from .scene import Config, split_config, standard_config
 
 
@@ -21,7 +22,11 @@ class PushTTask:
     name = "pusht"
     conditions = ENV_SPLITS
     #: what its learned policies observe and return: 12 block, 12 goal and the agent's keypoints (px); agent targets
-    policy_layout = PolicyLayout(N_KEYPOINTS, 2, 2)
+    policy_layout = PolicyLayout(
+        N_KEYPOINTS, 2, 2,
+        groups={"block": tuple(range(N_T_KEYPOINTS)), "goal": tuple(range(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS)), "agent": (N_KEYPOINTS - 1,)},
+        roles={"objects": ("block",), "goals": ("goal",), "robot": ("agent",)},
+    )  # fmt: skip
 
     def make_env(self, condition: str = "in_distribution", **kwargs) -> PushTEnv:
         """The env of ``condition``'s workspace (``kwargs``: :class:`~.env.PushTEnv`'s options)."""

@@ -88,6 +88,9 @@ class SuiteEnv:
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
         self.home_pose = self.ee_pose()
+        #: every geom of each object, with its size and bounds as built (a scene's scales are applied to these)
+        self._object_geoms = {name: np.flatnonzero(model.geom_bodyid == b) for name, b in self.object_body.items()}
+        self.geom_home = (model.geom_size.copy(), model.geom_rbound.copy(), model.geom_aabb.copy())
         self._gripper = OPEN
         self.last_action = np.zeros(7)  # the last action sent to robosuite
 
@@ -103,6 +106,7 @@ class SuiteEnv:
         for name, body in self.fixture_body.items():
             model.body_pos[body] = self.fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
         self.spec.move_fixtures(env, {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()})
+        self._scale_objects(getattr(scene, "scales", {}))
         for name, (pos, quat) in scene.objects.items():
             data.set_joint_qpos(self.object_joint[name], np.concatenate([pos, quat]))
         data.qpos[self._arm_qpos] = self._home_qpos
@@ -112,6 +116,23 @@ class SuiteEnv:
         home_pos, home_rot = self.home_pose
         for _ in range(SETTLE_STEPS):
             self.command(home_pos, home_rot, OPEN)
+
+    def _scale_objects(self, scales: dict) -> None:
+        """Every object's geometry as built, scaled by ``scales`` (name -> factor; 1 when absent): sizes, bounding
+        spheres and boxes of all its geoms (collision and visual), so contacts and renders see the new size."""
+        model = self.sim.model
+        size, rbound, aabb = self.geom_home
+        for name, geoms in self._object_geoms.items():
+            scale = float(scales.get(name, 1.0))
+            model.geom_size[geoms] = size[geoms] * scale
+            model.geom_rbound[geoms] = rbound[geoms] * scale
+            model.geom_aabb[geoms] = aabb[geoms] * scale
+
+    def home_half_height(self, name: str) -> float:
+        """Half the height of object ``name`` as built: how far its centre stands above the table."""
+        from .keypoints import CAN_HALF_HEIGHT, cube_half
+
+        return cube_half(self, name, home=True) if self.spec.kinds[name] == "cube" else CAN_HALF_HEIGHT
 
     # ------------------------------------------------------------------------------------------ state
     def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpflow.policies.base import PolicyLayout
 from kpflow.tasks.arm.motion import yaw_of
-from kpflow.tasks.base import PolicyLayout
 
 from .specs import TaskSpec
 
@@ -95,12 +95,13 @@ def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, 
     return object_keypoints(kind, pos, rot, reference_yaw, half)
 
 
-def cube_half(env, name: str) -> float:
-    """Half side (m) of cube ``name``, from its collision geom."""
+def cube_half(env, name: str, home: bool = False) -> float:
+    """Half side (m) of cube ``name`` now (as the scene scaled it), from its collision geom; ``home``: as built."""
     model = env.sim.model
     body = env.object_body[name]
     geoms = [g for g in np.flatnonzero(model.geom_bodyid == body) if model.geom_contype[g]]
-    return float(model.geom_size[geoms[0]][0])
+    sizes = env.geom_home[0] if home else model.geom_size
+    return float(sizes[geoms[0]][0])
 
 
 def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float) -> np.ndarray:
@@ -122,11 +123,18 @@ GRIPPER_KEYPOINTS = 3
 
 
 def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
-    """The shape of :func:`policy_keypoints` for ``spec`` (the objects' keypoints counted on a unit pose, then the
-    grip site and the finger pads, all 3-D) with actions of ``action_dim`` values."""
+    """The layout of :func:`policy_keypoints` for ``spec``: the object picked (role ``objects``, named as in the
+    task), its goal (``goals``: the target's keypoints, where the task has one) and ``gripper`` (``robot``: the grip
+    site and the finger pads), all 3-D (counted on a unit pose); actions of ``action_dim`` values: position, 6-D
+    rotation, gripper."""
     names = [spec.grasp] + ([spec.target] if spec.target else [])
-    n = sum(len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0)) for name in names) + GRIPPER_KEYPOINTS
-    return PolicyLayout(n, 3, action_dim)
+    groups, start = {}, 0
+    for name in names:
+        n = len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0))
+        groups[name], start = tuple(range(start, start + n)), start + n
+    groups["gripper"] = tuple(range(start, start + GRIPPER_KEYPOINTS))
+    roles = {"objects": (spec.grasp,), "goals": (spec.target,) if spec.target else (), "robot": ("gripper",)}
+    return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True)
 
 
 def policy_keypoints(env, spec: TaskSpec) -> np.ndarray:

@@ -3,7 +3,9 @@ by robosuite's own placement initializers.
 
 ``d0`` draws with the initializer the environment ships with; ``wide`` with robosuite ``UniformRandomSampler``s
 over the wider ranges of :mod:`.specs` (and uniform fixture offsets, redrawn until every object is
-``fixture_clearance`` from them). Both are seeded: scene ``index`` of a variant for ``seed`` comes from
+``fixture_clearance`` from them); ``far`` likewise over the far ranges, mirrored across the table's long axis
+(``y -> -y``) with probability 1/2; ``resized`` as ``d0``, with each resized object scaled by a factor drawn
+uniformly in the task's range and raised so that it stands on the table. All are seeded: scene ``index`` of a variant for ``seed`` comes from
 ``numpy.random.default_rng([seed, variant id, index])``, handed to every sampler, so a scene is the same for every
 map family and worker.
 """
@@ -17,18 +19,19 @@ from robosuite.utils.placement_samplers import UniformRandomSampler
 
 from .specs import TaskSpec
 
-VARIANTS = ("d0", "wide")
-_VARIANT_IDS = {"d0": 0, "wide": 1}
+_VARIANT_IDS = {"d0": 0, "wide": 1, "far": 2, "resized": 3}
 _MAX_DRAWS = 1000
 
 
 @dataclass(frozen=True)
 class Scene:
-    """One scene: ``objects`` (name -> (position [3], quaternion (w, x, y, z) [4]) of its free joint) and
-    ``fixture_offsets`` (fixture name -> its displacement [3] from where robosuite puts it)."""
+    """One scene: ``objects`` (name -> (position [3], quaternion (w, x, y, z) [4]) of its free joint),
+    ``fixture_offsets`` (fixture name -> its displacement [3] from where robosuite puts it) and ``scales`` (object
+    name -> the factor its geometry is scaled by; 1 when absent)."""
 
     objects: dict[str, tuple[tuple[float, ...], tuple[float, ...]]]
     fixture_offsets: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    scales: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         for name, (pos, quat) in self.objects.items():
@@ -36,17 +39,21 @@ class Scene:
                 raise ValueError(f"object {name!r} needs a finite position [3] and quaternion [4]; got {pos!r}, {quat!r}")
             if not abs(np.linalg.norm(quat) - 1.0) < 1e-6:
                 raise ValueError(f"object {name!r}'s quaternion is not a unit quaternion: {quat!r}")
+        for name, scale in self.scales.items():
+            if name not in self.objects or not (np.isfinite(scale) and 0.1 <= scale <= 10):
+                raise ValueError(f"scale {scale!r} of {name!r}: scales are factors in 0.1..10 of the scene's objects {sorted(self.objects)}")
 
     def as_dict(self) -> dict:
         return {
             "objects": {k: {"pos": list(p), "quat": list(q)} for k, (p, q) in self.objects.items()},
             "fixture_offsets": {k: list(v) for k, v in self.fixture_offsets.items()},
+            **({"scales": dict(self.scales)} if self.scales else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
         objects = {k: (tuple(v["pos"]), tuple(v["quat"])) for k, v in d["objects"].items()}
-        return cls(objects, {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()})
+        return cls(objects, {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()}, dict(d.get("scales", {})))
 
 
 def _seed_samplers(sampler, rng) -> None:
@@ -60,8 +67,29 @@ def _mujoco_objects(env) -> dict[str, object]:
     return {obj.joints[0]: obj for obj in env.model.mujoco_objects if obj.joints}
 
 
-def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict]:
-    """One draw of object poses (joint name -> (pos, quat)) and fixture offsets."""
+def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = False) -> None:
+    """Redraw the objects of ``ranges`` (name -> :class:`~.specs.WideRange`) in ``placed``, each clear of those drawn
+    before it; ``mirror``: with ``y -> -y``."""
+    objects = _mujoco_objects(env)
+    for name in ranges:
+        del placed[spec.object_joints[name]]
+    fixtures = None
+    for name, wide in ranges.items():
+        obj = objects[spec.object_joints[name]]
+        y = (-wide.y[1], -wide.y[0]) if mirror else wide.y
+        sampler = UniformRandomSampler(
+            f"{name}_placed", mujoco_objects=[obj], x_range=wide.x, y_range=y, rotation=wide.rotation,
+            ensure_object_boundary_in_range=False, ensure_valid_placement=True,
+            reference_pos=np.array(env.table_offset), z_offset=0.01, rng=rng,
+        )  # fmt: skip
+        drawn = sampler.sample(fixtures=fixtures)
+        fixtures = {**(fixtures or {}), **drawn}
+        pos, quat, _ = drawn[obj.name]
+        placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
+
+
+def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict, dict]:
+    """One draw of object poses (joint name -> (pos, quat)), fixture offsets and object scales."""
     offsets = {}
     if variant == "wide":
         offsets = {f: (float(rng.uniform(*xr)), float(rng.uniform(*yr)), 0.0) for f, (xr, yr) in spec.wide_fixtures.items()}
@@ -72,22 +100,13 @@ def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict]:
         if obj.joints:  # not the visual markers, which have no joint
             placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
     if variant == "wide" and spec.wide_objects:
-        objects = _mujoco_objects(env)
-        for name in spec.wide_objects:
-            del placed[spec.object_joints[name]]
-        fixtures = None
-        for name, wide in spec.wide_objects.items():
-            obj = objects[spec.object_joints[name]]
-            sampler = UniformRandomSampler(
-                f"{name}_wide", mujoco_objects=[obj], x_range=wide.x, y_range=wide.y, rotation=wide.rotation,
-                ensure_object_boundary_in_range=False, ensure_valid_placement=True,
-                reference_pos=np.array(env.table_offset), z_offset=0.01, rng=rng,
-            )  # fmt: skip
-            drawn = sampler.sample(fixtures=fixtures)
-            fixtures = {**(fixtures or {}), **drawn}
-            pos, quat, _ = drawn[obj.name]
-            placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
-    return placed, offsets
+        _place(spec, env, spec.wide_objects, placed, rng)
+    if variant == "far":
+        _place(spec, env, spec.far_objects, placed, rng, mirror=bool(rng.random() < 0.5))
+    scales = {}
+    if variant == "resized":
+        scales = {name: float(rng.uniform(*spec.resize)) for name in spec.resize_objects}
+    return placed, offsets, scales
 
 
 def _clear(spec: TaskSpec, fixture_home: dict, placed: dict, offsets: dict) -> bool:
@@ -105,16 +124,19 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
     """Scene ``index`` of ``variant`` for ``seed`` (module docstring), drawn with the placement initializers of
     ``env`` (a :class:`~.env.SuiteEnv`); the same whatever scene ``env`` was last reset to (fixtures are measured
     from where robosuite puts them, not from where the last scene moved them)."""
-    if variant not in VARIANTS:
-        raise ValueError(f"unknown variant {variant!r}; choose one of {VARIANTS}")
+    if variant not in spec.variants:
+        raise ValueError(f"unknown variant {variant!r} of {spec.name}; choose one of {spec.variants}")
     if index < 0:
         raise ValueError(f"index must be >= 0, got {index}")
     rng = np.random.default_rng([seed, _VARIANT_IDS[variant], index])
     for _ in range(_MAX_DRAWS):
-        placed, offsets = _draw(spec, env.env, variant, rng)
+        placed, offsets, scales = _draw(spec, env.env, variant, rng)
         if _clear(spec, env.fixture_home, placed, offsets):
             break
     else:
         raise RuntimeError(f"{spec.name}/{variant}: no scene with the fixtures {spec.fixture_clearance} m clear in {_MAX_DRAWS} draws")
+    for name, scale in scales.items():  # stand a resized object on the table: its centre moves with its half height
+        pos = placed[spec.object_joints[name]][0]
+        pos[2] += (scale - 1.0) * env.home_half_height(name)
     objects = {name: (tuple(map(float, placed[j][0])), tuple(map(float, placed[j][1]))) for name, j in spec.object_joints.items()}
-    return Scene(objects, offsets)
+    return Scene(objects, offsets, scales)

@@ -14,6 +14,16 @@ Variants (:mod:`.scene`): ``d0`` is robosuite's placement initializer as it ship
 | stack | both cubes x, y in +-0.08 m, any yaw | +-0.20 m (MimicGen's Stack D1) |
 | can | the can anywhere in bin 1, any yaw | the same, and the target bin moved by x in [-0.15, 0], y in [-0.03, 0.05] m (towards the robot: its far quarter is at the Panda's reach already) |
 | square | nut x in [-0.115, -0.11], y in [0.11, 0.225], any yaw | nut x in +-0.115, y in +-0.255 and the square peg anywhere in x in [-0.1, 0.3], y in [-0.2, 0.2] (MimicGen's Square D1), kept 0.13 m from the nut |
+
+Two harder variants where the task allows them: ``far`` puts the objects outside every range above (the
+``far_objects`` ranges, mirrored across the table's long axis with probability 1/2: ``y -> -y``); ``resized``
+draws the shipped placement and scales each of ``resize_objects`` by a factor drawn uniformly in ``resize``
+(:class:`~.scene.Scene` ``scales``):
+
+| task | far | resized |
+|---|---|---|
+| lift | the cube at x in +-0.2, y in [0.15, 0.25] (or mirrored): beyond the wide square, at the table's side | the cube 0.7-1.4 times its size |
+| stack | cube A at x in +-0.15, y in [0.2, 0.28], cube B at y in [-0.28, -0.2] (or mirrored): on opposite sides, 0.4-0.56 m apart (d0: at most 0.23) | both cubes 0.7-1.4 times their size, each its own factor |
 """
 
 from __future__ import annotations
@@ -57,6 +67,11 @@ class TaskSpec:
     env_kwargs: dict = field(default_factory=dict)
     #: after fixtures moved: ``(env, name -> body position)``, to update what robosuite caches about them
     move_fixtures: Callable = lambda env, positions: None
+    #: the ``far`` variant's placement (none: the task has no far variant)
+    far_objects: dict[str, WideRange] = field(default_factory=dict)
+    #: the ``resized`` variant: these objects scaled by a factor in ``resize`` (none: no resized variant)
+    resize_objects: tuple[str, ...] = ()
+    resize: tuple[float, float] = (0.7, 1.4)
 
     @property
     def grasp_kind(self) -> str:
@@ -65,6 +80,11 @@ class TaskSpec:
     @property
     def hand_kind(self) -> str:
         return self.hand_kinds.get(self.grasp, self.kinds[self.grasp])
+
+    @property
+    def variants(self) -> tuple[str, ...]:
+        """The scene variants this task has (:mod:`.scene`)."""
+        return ("d0", "wide") + (("far",) if self.far_objects else ()) + (("resized",) if self.resize_objects else ())
 
     @property
     def segments(self) -> tuple[str, ...]:
@@ -80,11 +100,14 @@ TASKS: dict[str, TaskSpec] = {
     "lift": TaskSpec(
         "lift", "Lift", {"cube": "cube_main"}, {"cube": "cube_joint0"}, {"cube": "cube"}, grasp="cube",
         wide_objects={"cube": WideRange((-0.15, 0.15), (-0.15, 0.15))},
+        far_objects={"cube": WideRange((-0.2, 0.2), (0.15, 0.25))}, resize_objects=("cube",),
     ),
     "stack": TaskSpec(
         "stack", "Stack", {"cubeA": "cubeA_main", "cubeB": "cubeB_main"}, {"cubeA": "cubeA_joint0", "cubeB": "cubeB_joint0"},
         {"cubeA": "cube", "cubeB": "cube"}, grasp="cubeA", target="cubeB",
         wide_objects={"cubeA": WideRange((-0.2, 0.2), (-0.2, 0.2)), "cubeB": WideRange((-0.2, 0.2), (-0.2, 0.2))},
+        far_objects={"cubeA": WideRange((-0.15, 0.15), (0.2, 0.28)), "cubeB": WideRange((-0.15, 0.15), (-0.28, -0.2))},
+        resize_objects=("cubeA", "cubeB"),
     ),
     "can": TaskSpec(
         "can", "PickPlaceCan", {"can": "Can_main"}, {"can": "Can_joint0"}, {"can": "can", "bin": "bin"}, grasp="can",

@@ -3,7 +3,7 @@ segment, what is observed at a segment's start, and running a segment.
 
 A source demonstration is a list of :class:`~kpflow.tasks.base.Segment`: each holds the commanded trajectory and
 what the scene looked like when it began (every object's pose, the keypoints that the segment depends on, the grip
-site), so a generator (:mod:`kpflow.policies.segment_transport`) can carry it into a new scene once that segment's
+site), so a generator (:mod:`kpflow.tasks.arm.segment_transport`) can carry it into a new scene once that segment's
 start is reached there.
 """
 
@@ -21,7 +21,7 @@ from .demonstrator import path_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
 from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, policy_layout, scene_keypoints
 from .rollout import ACTION_DIM
-from .scene import VARIANTS, Scene, sample_scene
+from .scene import Scene, sample_scene
 from .specs import task_spec
 
 TRACKING_LIMIT = 0.03  # m between the commanded and the measured grip site at a segment's end: the arm did not get there
@@ -50,7 +50,7 @@ class SuiteTask:
     def __init__(self, name: str = "lift"):
         self.spec = task_spec(name)
         self.name = self.spec.name
-        self.variants = VARIANTS
+        self.variants = self.spec.variants
         self.policy_layout = policy_layout(self.spec, ACTION_DIM)  #: what its learned policies observe and return
 
     def make_env(self, render: bool = False) -> SuiteEnv:
