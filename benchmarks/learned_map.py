@@ -6,7 +6,7 @@ Run::
         [--store data/pusht_expert_200.zarr] [--pairs 200] [--out PATH] [--quick]
 
 (``python benchmarks/maps.py --learned CKPT`` appends the same tables to the maps benchmark.) The pairs come from
-:class:`kpflow.data.pusht_pairs.PushTPairs` with seeds the training never uses (``1000 + kind``), one kind at a time:
+:class:`kpflow.tasks.pusht.pairs.PushTPairs` with seeds the training never uses (``1000 + kind``), one kind at a time:
 resets of each split (``in_distribution`` in the 512-px workspace; ``robot_ood`` and ``object_ood`` in the 1024-px
 one) and jittered demonstration steps. The source is one of the 5 nearest demonstrated steps, as the policies draw
 it. All maps run in float64 on tensors made before the clock starts.
@@ -44,8 +44,8 @@ import torch
 
 torch.set_num_threads(1)
 
-from kpflow.data.pusht_pairs import PushTPairs  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap, LearnedMap  # noqa: E402
+from kpflow.tasks.pusht.pairs import PushTPairs  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 
 KINDS = {  # name: PushTPairs options

@@ -42,7 +42,6 @@ import numpy as np
 import torch
 from sklearn.neighbors import NearestNeighbors
 
-from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.policies.chunk_transport import TransportPolicy
@@ -50,6 +49,7 @@ from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, goal_frame, pusht_weights
 from kpflow.utils.io import publish
 

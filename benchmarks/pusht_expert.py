@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from kpflow.data.collection import collect_pusht
+from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.tasks.pusht.rollout import run_episode

@@ -8,7 +8,7 @@ Run::
 script says so and exits with status 0. The markdown table is printed and written atomically to ``--out`` (default
 ``outputs/benchmarks/pusht_replay.md``). The full dataset (206 episodes, 25,650 steps) takes about a minute.
 
-Method (:func:`kpflow.data.pusht_import.replay_errors`): the agent's velocity is reconstructed by running its PD
+Method (:func:`kpflow.tasks.pusht.replay_import.replay_errors`): the agent's velocity is reconstructed by running its PD
 law from rest at each episode's first state (the error of the reconstructed agent positions is the first column);
 then from every recorded step ``t`` the recorded agent and block are set in the simulator, ``h`` recorded actions
 are applied, and the block is compared with the recorded step ``t + h`` (position in px, wrapped angle in degrees).
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import pymunk
 
-from kpflow.data.pusht_import import replay_errors
+from kpflow.tasks.pusht.replay_import import replay_errors
 from kpflow.utils.io import write_text
 
 REPO = Path(__file__).resolve().parents[1]

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.pusht_import import import_pusht_replay
+from kpflow.tasks.pusht.replay_import import import_pusht_replay
 from kpflow.utils.io import publish
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from kpflow.data.collection import collect_pusht
+from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command

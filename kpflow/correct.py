@@ -2,7 +2,7 @@
 
 Copies the demonstrations (``data``) into the run's output folder, then grows that copy round by round with the
 scripted expert's takeovers where the policy (``policy``, rebuilt from the grown store each round) gets stuck or
-leaves the training region (:func:`~kpflow.data.corrections.collect_corrections`). Before the first round and
+leaves the training region (:func:`~kpflow.tasks.pusht.corrections.collect_corrections`). Before the first round and
 after each, the policy is evaluated on ``eval_configs`` fixed configurations of ``split`` (those of
 ``evaluate.py``, disjoint from the corrected ones). A learned policy
 (``policy=kcfm policy.checkpoint=...``) is not retrained between rounds: alternate ``correct`` (with
@@ -21,13 +21,13 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from kpflow.data.corrections import collect_corrections
 from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
-from kpflow.data.pusht_demos import ensure_pusht_demos
 from kpflow.eval import plots
 from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import cell_summary, run_trials
+from kpflow.tasks.pusht.corrections import collect_corrections
+from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command

@@ -104,13 +104,13 @@ def write_replay_buffer(path: Path, n_episodes: int, length: int = 20) -> None:
 
 
 def test_killed_overwriting_import_keeps_the_old_store_and_the_next_import_cleans_up(tmp_path):
-    from kpflow.data.pusht_import import import_pusht_replay
+    from kpflow.tasks.pusht.replay_import import import_pusht_replay
 
     source, dest = tmp_path / "buffer.zarr", tmp_path / "demos.zarr"
     write_replay_buffer(source, 1500)
     old = import_pusht_replay(source, dest, max_episodes=3, progress=False)
     old_ends = old.episode_ends
-    cmd = [sys.executable, "-m", "kpflow.data.pusht_import", str(source), str(dest), "--overwrite", "--no-progress"]
+    cmd = [sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(dest), "--overwrite", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
     kill_when(proc, lambda: any((t / "meta" / "episode_ends").exists() for t in tmp_path.glob(".demos.zarr.*.tmp.zarr")), after=0.3)
     leftovers = list(tmp_path.glob(".demos.zarr.*.tmp.zarr"))

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from kpflow.data.collection import collect_pusht
-from kpflow.data.corrections import CONFIG_OFFSET, collect_corrections, corrected_episode
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.collection import collect_pusht
+from kpflow.tasks.pusht.corrections import CONFIG_OFFSET, collect_corrections, corrected_episode
 from kpflow.tasks.pusht.demonstrator import PushTExpert
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.rollout import RECORDED_FIELDS
@@ -129,7 +129,7 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
 
 def test_takeover_is_an_override_of_the_one_episode_loop():
     """The expert's takeovers run through run_episode: the overridden steps are exactly the recorded segments."""
-    from kpflow.data.corrections import Takeover, _segments
+    from kpflow.tasks.pusht.corrections import Takeover, _segments
     from kpflow.tasks.pusht.rollout import run_episode
 
     config = split_config("in_distribution", 4)

@@ -82,7 +82,7 @@ def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
         "split=in_distribution", "n_configs=2", "workers=1", "logger=none", "data.n_episodes=2", "data.workers=1",
         f"data.path={tmp_path / 'demos.zarr'}", "experiment.trial.max_steps=30", "experiment.videos=0", f"hydra.sweep.dir={tmp_path / 'sweep'}",
     ]  # fmt: skip
-    from kpflow.data.collection import collect_pusht
+    from kpflow.tasks.pusht.collection import collect_pusht
 
     collect_pusht(tmp_path / "demos.zarr", 2, workers=1, progress=False)  # both jobs then read the same store
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)

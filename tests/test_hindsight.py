@@ -9,8 +9,8 @@ import pytest
 from kpflow.data.chunks import ChunkDataset
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import HindsightGoals, fragment_episodes
-from kpflow.data.pusht_demos import PUSHT_HINDSIGHT, pusht_hindsight
 from kpflow.data.source_index import SourceIndex
+from kpflow.tasks.pusht.demos import PUSHT_HINDSIGHT, pusht_hindsight
 from kpflow.tasks.pusht.geometry import coverage
 from tests.helpers import compose_config
 
@@ -110,9 +110,9 @@ def test_human_demonstrations_reach_their_goals_only_in_hindsight(tmp_path):
         pytest.skip(f"standard Push-T dataset not found at {PUSHT}")
     import torch
 
-    from kpflow.data.pusht_import import import_pusht_replay
     from kpflow.maps.affine import fit_affine
     from kpflow.tasks.pusht.geometry import T_KEYPOINTS
+    from kpflow.tasks.pusht.replay_import import import_pusht_replay
 
     store = import_pusht_replay(PUSHT, tmp_path / "human.zarr", progress=False)
     obs = PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends)

@@ -13,8 +13,8 @@ LAYERS = [
     {"maps"},
     {"transport", "rotations"},
     {"vision"},
+    {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
     {"tasks", "policies.base"},  # the policy contract sits beside the task contract: tasks declare their layout with it
-    {"data"},
     {"policies"},
     {"eval", "serving"},
     {"collect", "correct", "generate", "serve", "teleop", "release", "verify", "__init__"},  # command-line tools and the package's front door

@@ -10,9 +10,9 @@ import pytest
 import shapely
 import yaml
 
-from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.demonstrator import CONTACTS, NORMALS, PushTExpert
 from kpflow.tasks.pusht.geometry import AGENT_RADIUS, N_KEYPOINTS, OUTLINE, to_world
 from kpflow.tasks.pusht.rollout import run_episode

@@ -14,7 +14,9 @@ import shapely
 import zarr
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.pusht_import import (
+from kpflow.tasks.pusht.geometry import AGENT_RADIUS, observation_keypoints, t_polygon
+from kpflow.tasks.pusht.physics import PushTPhysics
+from kpflow.tasks.pusht.replay_import import (
     FIELDS,
     agent_velocities,
     import_pusht_replay,
@@ -22,8 +24,6 @@ from kpflow.data.pusht_import import (
     read_pusht_replay,
     replay_errors,
 )
-from kpflow.tasks.pusht.geometry import AGENT_RADIUS, observation_keypoints, t_polygon
-from kpflow.tasks.pusht.physics import PushTPhysics
 from kpflow.tasks.pusht.scene import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES
 

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from kpflow.data.chunks import ChunkDataset
-from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap
@@ -12,6 +11,7 @@ from kpflow.policies.base import Policy
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
+from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.rollout import run_episode
 
@@ -125,7 +125,7 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from kpflow.data.pusht_demos import ensure_pusht_demos
+    from kpflow.tasks.pusht.demos import ensure_pusht_demos
 
     path = str(demos.path)
     n = len(demos)
@@ -281,8 +281,8 @@ def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos)
     """fit_on=[objects, robot] (the block and the agent): the goal does not bend the map. A source whose goal coincides with its block (the end of a
     demonstration read in hindsight) cannot be fitted with the goal at all; without the goal the chunk moves rigidly
     with the block when the agent moves with it, and wherever the goal is."""
-    from kpflow.data.pusht_demos import PUSHT_HINDSIGHT
     from kpflow.policies.factory import fit_on_indices
+    from kpflow.tasks.pusht.demos import PUSHT_HINDSIGHT
     from kpflow.tasks.pusht.task import PushTTask
 
     layout = PushTTask.policy_layout

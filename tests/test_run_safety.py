@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from kpflow.data.collection import collect_pusht
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.pusht_demos import ensure_pusht_demos
+from kpflow.tasks.pusht.collection import collect_pusht
+from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.utils.config_checks import TRAINER_KEYS, Key, check_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,7 +161,7 @@ def test_collection_refuses_another_collections_store_without_touching_it(tmp_pa
 
 COLLECT = """
 import sys
-from kpflow.data.pusht_demos import ensure_pusht_demos
+from kpflow.tasks.pusht.demos import ensure_pusht_demos
 ensure_pusht_demos(sys.argv[1], 4, workers=1)
 """
 

@@ -24,9 +24,9 @@ from numcodecs import Blosc
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import export_lerobot, import_lerobot
-from kpflow.data.pusht_import import import_pusht_replay
 from kpflow.data.source_index import SourceIndex
 from kpflow.data.zarr_checks import MAX_CHUNK_BYTES, UnsafeStoreError
+from kpflow.tasks.pusht.replay_import import import_pusht_replay
 from kpflow.utils.formats import read_npz, read_yaml
 from tests.helpers import walk_to_block_store
 
@@ -105,7 +105,7 @@ def test_pusht_importer_refuses_a_planted_replay_buffer(tmp_path):
     plant_pickle(source / "data/state", marker, "<f4")
     with pytest.raises(UnsafeStoreError, match="filters"):
         import_pusht_replay(source, tmp_path / "dest", progress=False)
-    done = subprocess.run([sys.executable, "-m", "kpflow.data.pusht_import", str(source), str(tmp_path / "dest2"), "--no-progress"],
+    done = subprocess.run([sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(tmp_path / "dest2"), "--no-progress"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr and len(done.stderr.splitlines()) == 2, done.stderr
     assert not marker.exists() and not (tmp_path / "dest").exists() and not (tmp_path / "dest2").exists()

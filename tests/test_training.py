@@ -55,8 +55,8 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
 
 
 def test_bad_data_config_is_a_clear_error():
-    from kpflow.data.transported_demos import TransportedDemosDataModule
     from kpflow.maps import ILWRMap
+    from kpflow.tasks.frames.transported_demos import TransportedDemosDataModule
 
     with pytest.raises(ValueError, match="target must index"):
         TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)

@@ -15,7 +15,7 @@ which is hindsight experience replay's "final" strategy (Andrychowicz et al. 201
 goal keypoints of the observation. Actions are unchanged: they are what was done, and it led exactly there.
 
 A fragment of a longer episode is a choice: an expert takeover stored by interactive corrections
-(:mod:`kpflow.data.corrections`, attrs ``source="correction"``) stops after a few dozen steps wherever the block then
+(:mod:`kpflow.tasks.pusht.corrections`, attrs ``source="correction"``) stops after a few dozen steps wherever the block then
 is, and the rest of its episode, done by the policy, carried on towards the recorded goal. For learning it keeps
 its recorded goal (:meth:`HindsightGoals.relabel`'s ``fragments``): relabelled, the takeovers that make up most of a corrected store say "stop
 here", and K-CFM trained on the 35-demonstration Table 1 store fell from 60 / 58 / 6% to 22 / 14 / 0%. A source

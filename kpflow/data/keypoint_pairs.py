@@ -1,7 +1,7 @@
 """Keypoint pairs for training the learned map (:class:`~kpflow.maps.map_module.MapModule`): a LightningDataModule.
 
 A task's *pair sampler* (``sampler(n, rng) -> (source, target)``, arrays ``[n, N, D]``; Push-T's is
-:class:`~kpflow.data.pusht_pairs.PushTPairs`) draws the pairs. For each pair this module adds ``n_queries`` query
+:class:`~kpflow.tasks.pusht.pairs.PushTPairs`) draws the pairs. For each pair this module adds ``n_queries`` query
 points, half near the source keypoints (Gaussian, ``jitter`` times the source's RMS spread) and half uniform over
 the sources' bounding box widened by half its size, and where a reference map fitted on the pair carries them
 (:class:`~kpflow.maps.ilwr.ILWRMap`, batched): the distillation targets of the loss. The pairs are drawn once, in

@@ -21,13 +21,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from kpflow.data.transported_demos import transport_into
 from kpflow.eval import metrics, plots
 from kpflow.maps.base import TransportMap
 from kpflow.maps.learned import check_map_factory
 from kpflow.policies.euler_rollout import euler_rollout
 from kpflow.policies.vector_field import GPVectorField
 from kpflow.tasks.frames.task import LASA_MOVES, FramesTask
+from kpflow.tasks.frames.transported_demos import transport_into
 from kpflow.transport import transport_trajectory
 from kpflow.utils.io import save_figure, write_json, write_text
 

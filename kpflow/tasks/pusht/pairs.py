@@ -18,7 +18,10 @@ import numpy as np
 import shapely
 from tqdm import tqdm
 
-from ..tasks.pusht.geometry import (
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.source_index import SourceIndex
+from kpflow.tasks.pusht.demos import ensure_pusht_demos
+from kpflow.tasks.pusht.geometry import (
     AGENT_RADIUS,
     N_T_KEYPOINTS,
     PUSHT_BLOCK,
@@ -26,10 +29,7 @@ from ..tasks.pusht.geometry import (
     pusht_weights,
     t_polygon,
 )
-from ..tasks.pusht.scene import SPLITS, sample_config
-from .episode_store import EpisodeStore
-from .pusht_demos import ensure_pusht_demos
-from .source_index import SourceIndex
+from kpflow.tasks.pusht.scene import SPLITS, sample_config
 
 
 class PushTPairs:

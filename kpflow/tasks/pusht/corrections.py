@@ -14,12 +14,12 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
-from ..tasks.pusht.demonstrator import PushTExpert
-from ..tasks.pusht.env import PushTEnv
-from ..tasks.pusht.rollout import run_episode
-from ..tasks.pusht.scene import Config, split_config
-from ..tasks.pusht.task import PushTTask
-from .episode_store import EpisodeStore
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.tasks.pusht.demonstrator import PushTExpert
+from kpflow.tasks.pusht.env import PushTEnv
+from kpflow.tasks.pusht.rollout import run_episode
+from kpflow.tasks.pusht.scene import Config, split_config
+from kpflow.tasks.pusht.task import PushTTask
 
 #: Correction round ``r`` uses configuration indices ``CONFIG_OFFSET * (r + 1) + e``: never a demonstration's
 #: (those count up from 0) and never another round's.

@@ -8,7 +8,7 @@ episode has the standard fixed goal :data:`~kpflow.tasks.pusht.scene.FIXED_GOAL`
 
 Run::
 
-    python -m kpflow.data.pusht_import SOURCE DEST [--max-episodes N] [--overwrite]
+    python -m kpflow.tasks.pusht.replay_import SOURCE DEST [--max-episodes N] [--overwrite]
 
 Replay (:func:`replay_errors`). The agent is a kinematic body driven by a PD law of its own position, velocity and
 the actions only, so its velocity at every step is reconstructed exactly by running that law from rest at the
@@ -312,7 +312,7 @@ def replay_errors(
 @command
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m kpflow.data.pusht_import",
+        prog="python -m kpflow.tasks.pusht.replay_import",
         description="Import a standard Push-T replay buffer (pusht_cchi_v7_replay.zarr) into a kpflow episode store.",
     )
     ap.add_argument("source", type=Path, help="standard replay buffer (zarr v2 folder)")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..tasks.frames.frames import scene_keypoints
-from ..tasks.frames.scene import random_frames
+from kpflow.tasks.frames.frames import scene_keypoints
+from kpflow.tasks.frames.scene import random_frames
 
 
 class FramesPairs:

@@ -7,11 +7,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..tasks.pusht.geometry import PUSHT_BLOCK, PUSHT_GOAL
-from .chunks import ChunkDataModule
-from .collection import check_collection, collect_pusht, collection_attrs
-from .episode_store import EpisodeStore
-from .hindsight import GOALS, HindsightGoals
+from kpflow.data.chunks import ChunkDataModule
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.data.hindsight import GOALS, HindsightGoals
+from kpflow.tasks.pusht.collection import check_collection, collect_pusht, collection_attrs
+from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, PUSHT_GOAL
 
 #: Push-T's goal keypoints (12..23) are where the block's (0..11) belong, in the same order.
 PUSHT_HINDSIGHT = HindsightGoals(object=PUSHT_BLOCK, goal=PUSHT_GOAL)
@@ -46,7 +46,7 @@ def ensure_pusht_demos(
         if not (path / "meta" / "episode_ends").exists():
             raise FileNotFoundError(
                 f"no episode store at {path}: with n_episodes=null the store must exist (collect it with "
-                "python -m kpflow.collect, or import the human dataset with python -m kpflow.data.pusht_import SRC DEST)"
+                "python -m kpflow.collect, or import the human dataset with python -m kpflow.tasks.pusht.replay_import SRC DEST)"
             )
         return EpisodeStore(path)
     want = collection_attrs(n_episodes, split, goal, seed, max_steps, False)

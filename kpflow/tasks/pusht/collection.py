@@ -9,13 +9,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..tasks.pusht.env import PushTEnv
-from ..tasks.pusht.rollout import EpisodeResult, run_episode
-from ..tasks.pusht.scene import GOAL_MODES, SPLITS, split_config
-from ..tasks.pusht.task import PushTTask
-from ..utils.config_checks import Key
-from ..utils.video import write_video
-from .episode_store import EpisodeStore
+from kpflow.data.episode_store import EpisodeStore
+from kpflow.tasks.pusht.env import PushTEnv
+from kpflow.tasks.pusht.rollout import EpisodeResult, run_episode
+from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS, split_config
+from kpflow.tasks.pusht.task import PushTTask
+from kpflow.utils.config_checks import Key
+from kpflow.utils.video import write_video
 
 
 def expert_episode(
