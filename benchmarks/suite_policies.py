@@ -8,8 +8,10 @@ Run::
     python benchmarks/suite_policies.py --task lift --checkpoint release/suite_lift_kcfm.ckpt [--reps 200] [--out PATH]
 
 Queries: the keypoints (and the frame before) of every k-th step of the released source index, moved rigidly by a
-seeded random turn and shift so that no query is a source. Medians over ``--reps`` decisions after warm-up; the
-markdown table is printed and written atomically to ``--out`` (default ``outputs/benchmarks/suite_policies.md``).
+seeded random turn and shift so that no query is a source. Medians over ``--reps`` decisions after warm-up; then the
+transported K-CFM's stages timed one by one on the same queries (source search, ILWR fit, pull-back of both frames,
+the K-CFM's sampling, push-forward of the chunk). The markdown tables are printed and written atomically to
+``--out`` (default ``outputs/benchmarks/suite_policies.md``).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import torch
 
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
-from kpflow.policies.chunk_transport import TransportPolicy
+from kpflow.policies.chunk_transport import TransportPolicy, transport_chunk
 from kpflow.policies.factory import make_kcfm, make_transported_kcfm, source_index_path
 from kpflow.policies.kcfm import KCFM
 from kpflow.tasks.suite.task import SuiteTask
@@ -46,6 +48,38 @@ def median_ms(policy, queries: list[dict], warmup: int = 5) -> float:
         policy.act(q)
         times.append(time.perf_counter() - start)
     return 1e3 * float(np.median(times))
+
+
+def median_of(fn, items: list, warmup: int = 5) -> float:
+    for item in items[:warmup]:
+        fn(item)
+    times = []
+    for item in items:
+        start = time.perf_counter()
+        fn(item)
+        times.append(time.perf_counter() - start)
+    return 1e3 * float(np.median(times))
+
+
+def stage_rows(model: KCFM, index: SourceIndex, layout, qs: list[dict]) -> list[str]:
+    """The transported K-CFM's stages on ``qs``, each timed alone (median ms), as markdown rows."""
+    fit = list(layout.indices("objects", "goals"))
+    policy = make_transported_kcfm(model, index, layout, ILWRMap, fit_on=fit)
+    prepared = []  # (query, source index, fitted map, pulled-back history, chunk): each stage's inputs
+    for q in qs:
+        policy.act(q)
+        frames = torch.from_numpy(q["keypoints_history"])
+        chunk = model.sample(policy.last_pullback[None] if model.hparams.n_obs == 1 else frames.numpy()[None], steps=10)[0].numpy()
+        prepared.append((q, policy.last_source, policy.last_map, frames, chunk))
+    source = [torch.from_numpy(index.keypoints[i].astype(np.float64)) for _, i, *_ in prepared]
+    stages = [
+        ("source search (weighted nearest of every training step)", lambda p: policy.source.choose(p[0]["keypoints"])),
+        ("ILWR fit on the objects' keypoints", lambda p: ILWRMap().fit(source[0][fit], torch.from_numpy(p[0]["keypoints"])[fit])),
+        ("pull-back of both observation frames (phi^-1)", lambda p: p[2].inverse(p[3])),
+        ("K-CFM, 10 Euler steps", lambda p: model.sample(p[3].numpy()[None] if model.hparams.n_obs > 1 else p[3].numpy()[-1:], steps=10)),
+        ("push-forward of the chunk (positions, polar(J) rotations)", lambda p: transport_chunk(p[2], p[4], 3, True)),
+    ]
+    return [f"| {name} | {median_of(fn, prepared):.2f} |" for name, fn in stages]
 
 
 def queries(index: SourceIndex, n: int, seed: int = 0) -> list[dict]:
@@ -86,6 +120,8 @@ def main() -> str:
         ms = median_ms(policy, qs)
         base = base or ms
         lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} |")
+    lines += ["", "Stages of the transported K-CFM (ILWR), each timed alone on the same queries", "",
+              "| stage | median ms |", "|---|---|", *stage_rows(model, index, layout, qs)]  # fmt: skip
     lines += ["", f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread."]
     return publish(args.out, lines)
 

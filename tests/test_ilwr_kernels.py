@@ -29,6 +29,17 @@ def test_fused_fit_and_forward_equal_the_torch_path(seed, d):
     torch.testing.assert_close(fused.inverse(fused(x)), x, atol=1e-7, rtol=0)  # the inverse still undoes it
 
 
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("d", [2, 3])
+def test_the_fused_inverse_and_jacobian_equal_the_torch_path(seed, d):
+    src, tgt = pair(seed, d=d)
+    fused, plain = ILWRMap().fit(src, tgt), ILWRMap(fused=False).fit(src, tgt)
+    y = grid(d, lo=-100.0, hi=600.0, n=7)
+    torch.testing.assert_close(fused.inverse(y), plain.inverse(y), atol=1e-9, rtol=0)
+    torch.testing.assert_close(fused(fused.inverse(y)), y, atol=1e-9, rtol=0)
+    torch.testing.assert_close(fused.jacobian(y), plain.jacobian(y), atol=1e-9, rtol=1e-9)
+
+
 def test_early_stopping_and_other_settings_agree():
     src, tgt = keypoint_pair(2)
     settings = ({"tol": 1e-3}, {"n_steps": 5, "beta": 0.5}, {"n_rho": 4, "alignment": "none"},

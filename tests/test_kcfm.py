@@ -186,6 +186,36 @@ def test_goal_frame_policy_is_equivariant(goal_frame):
         assert gap > 1.0  # measured ~1400 px: the world-frame model is not equivariant: the check above has teeth
 
 
+def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
+    """With ``origin`` (a gripper's keypoint), translating the whole 3-D scene translates the chunk's positions by the
+    same vector and leaves its other values (rotation, gripper) as they were (same noise); the range check is made
+    relative to the origin, so the scene moved far from the training data is still accepted."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    k, d, a = 6, 3, 10
+    train_kp = rng.uniform(-0.3, 0.3, (64, k, d))
+    chunks = np.concatenate([train_kp[:, None, -3] + rng.normal(0, 0.05, (64, 8, d)), rng.normal(0, 1, (64, 8, a - d))], -1)
+    model = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a, origin=-3).eval()
+    model.set_normalisation(train_kp, chunks)
+    kp, shift = train_kp[:4], np.array([20.0, -15.0, 7.0])  # moved far outside the training box
+    pred = model.sample(kp, steps=5, generator=torch.Generator().manual_seed(3)).double().numpy()
+    moved = model.sample(kp + shift, steps=5, generator=torch.Generator().manual_seed(3)).double().numpy()
+    np.testing.assert_allclose(moved[..., :d], pred[..., :d] + shift, atol=1e-5)
+    np.testing.assert_allclose(moved[..., d:], pred[..., d:], atol=1e-6)
+    world = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a).eval()
+    world.set_normalisation(train_kp, chunks)
+    model.check_in_range(kp + shift)
+    with pytest.raises(ValueError, match="far outside the range"):
+        world.check_in_range(kp + shift)  # the world-frame model refuses what the origin-relative one accepts
+    bad = kp.copy()
+    bad[0, 0] += 500.0
+    with pytest.raises(ValueError, match="relative to keypoint -3"):
+        model.check_in_range(bad)
+    for kwargs, message in (({"origin": 6}, "keypoint index"), ({"origin": True}, "keypoint index"), ({"origin": 0, "relative": True}, "without goal_frame")):
+        with pytest.raises(ValueError, match=message):
+            KCFM(k, keypoint_dim=2, action_dim=2, **kwargs)
+
+
 # ------------------------------------------------------------------------------------------- input checks
 
 

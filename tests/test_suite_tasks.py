@@ -77,6 +77,48 @@ def test_scenes_are_seeded_and_the_wide_variant_is_wider(worlds):
     assert Scene.from_dict(a.as_dict()).as_dict() == a.as_dict()
 
 
+def _outside(value: float, lo: float, hi: float) -> bool:
+    return value < lo - 1e-9 or value > hi + 1e-9
+
+
+def test_far_scenes_leave_every_generated_range_and_resized_ones_scale_the_objects(worlds):
+    """``far``: each task's object or fixture outside the d0 and wide ranges (the peg also turned, in the model and
+    in its keypoints); ``resized``: the cubes scaled within the range, standing on the table."""
+    lift, lenv, *_ = worlds["lift"]
+    for i in range(10):
+        x, y, _ = lift.sample_scene(lenv, "far", i).objects["cube"][0]
+        assert _outside(y, -0.15, 0.15)  # the wide square's side
+    can, cenv, *_ = worlds["can"]
+    wide_x = cenv.fixture_home["bin"][0] + np.array(can.spec.wide_fixtures["bin"][0])
+    for i in range(10):
+        scene = can.sample_scene(cenv, "far", i)
+        assert _outside(cenv.fixture_home["bin"][0] + scene.fixture_offsets["bin"][0], *wide_x)
+    square, senv, *_ = worlds["square"]
+    for i in range(10):
+        scene = square.sample_scene(senv, "far", i)
+        nut_x = scene.objects["nut"][0][0]
+        assert _outside(nut_x, -0.115, 0.115)
+        senv.reset_to(scene)
+        peg_pos, peg_rot = senv.object_pose("peg")
+        assert abs(peg_pos[1]) >= 0.2 - 1e-6 and np.sign(peg_pos[1]) != np.sign(senv.object_pose("nut")[0][1])
+        turn = scene.fixture_yaws["peg"]
+        assert np.radians(20) - 1e-6 <= abs(turn) <= np.radians(45) + 1e-6
+        np.testing.assert_allclose(peg_rot, Rotation.from_euler("z", turn).as_matrix(), atol=1e-9)
+        keypoints = object_keypoints("peg", peg_pos, peg_rot)
+        edge = keypoints[3] - keypoints[2]  # two top corners: the edge turns with the peg, modulo the square's symmetry
+        angle = np.arctan2(edge[1], edge[0])
+        assert abs(((angle - turn + np.pi / 4) % (np.pi / 2)) - np.pi / 4) < 1e-6
+    stack, kenv, *_ = worlds["stack"]
+    scene = stack.sample_scene(kenv, "resized", 0)
+    assert set(scene.scales) == {"cubeA", "cubeB"} and all(0.7 <= s <= 1.4 for s in scene.scales.values())
+    kenv.reset_to(scene)
+    for name, scale in scene.scales.items():
+        half = kenv.home_half_height(name) * scale
+        assert abs(kenv.object_pose(name)[0][2] - (kenv.env.table_offset[2] + half)) < 2e-3
+    assert Scene.from_dict(square.sample_scene(senv, "far", 0).as_dict()).fixture_yaws == square.sample_scene(senv, "far", 0).fixture_yaws
+    assert stack.spec.variants == ("d0", "wide", "far", "resized") and square.spec.variants == ("d0", "wide", "far")
+
+
 def test_bad_scenes_tasks_and_variants_are_refused_by_name(worlds):
     with pytest.raises(ValueError, match="quaternion"):
         Scene({"cube": ((0.0, 0.0, 0.8), (2.0, 0.0, 0.0, 0.0))})

@@ -89,11 +89,12 @@ class SourceIndex:
         return cls(keypoints, chunks, weights, reference)
 
     def save(self, path: str | Path) -> Path:
-        """Write the index to ``path`` (``.npz``: keypoints, chunks, weights and the reference, no pickled objects),
-        atomically; :meth:`load` reads it back."""
+        """Write the index to ``path`` (compressed ``.npz``: keypoints, chunks, weights and the reference, no pickled
+        objects; a store's keypoints repeat from step to step, so it is about a third of their bytes), atomically;
+        :meth:`load` reads it back."""
         reference = np.asarray([] if self.reference is None else self.reference, np.int64)
         with atomic_path(path) as tmp:
-            np.savez(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference)
+            np.savez_compressed(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference)
         return Path(path)
 
     @classmethod

@@ -146,10 +146,19 @@ class ILWRMap(AlignedMap):
         return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
     def _inverse(self, y: torch.Tensor) -> torch.Tensor:
+        if self._fused(y) and not any(p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2)):
+            x = ilwr_kernels.invert_steps(y[0].numpy(), self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(),
+                                          self.inverse_iters, INVERSE_TOL, MIN_EXPONENT)  # fmt: skip
+            return self.alignment._inverse(torch.from_numpy(x)[None])
         x = invert_steps(y, self.centres, self.vectors, self.neg_rho2, self.inverse_iters)
         return self.alignment._inverse(x)
 
     def _jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        if self._fused(x) and not any(p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)):
+            al = self.alignment
+            jac = ilwr_kernels.jacobian(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy(), self.centres[0].numpy(), self.vectors[0].numpy(),
+                                        self.neg_rho2[0].numpy(), MIN_EXPONENT)  # fmt: skip
+            return torch.from_numpy(jac)[None]
         b, m, d = x.shape
         jac = self.alignment.A[:, None].expand(b, m, d, d)
         x = self.alignment._forward(x)

@@ -18,7 +18,10 @@ tasks: which keypoints are the goal's, and their ``template``, where they lie in
 config gives it, e.g. :func:`kpflow.tasks.pusht.geometry.goal_frame`) every frame is first expressed in the frame of
 the current goal, the rigid fit ``(R, p) = argmin_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` of the template
 ``k_i`` onto the observed goal keypoints ``g_i`` (:func:`~kpflow.maps.affine.fit_affine`, ``"rigid"``): then the
-policy is equivariant to rotating and translating the whole scene by construction. Actions are expressed in the
+policy is equivariant to rotating and translating the whole scene by construction. With an ``origin`` (any dimension:
+the index of the robot's keypoint, e.g. a gripper's grip site) every frame is instead translated by minus that keypoint
+of the current frame, ``k_i - k_o``, and the actions' positions (their first ``D`` values) are predicted as offsets
+from it: the policy is invariant to translating the whole scene by construction. Actions are expressed in the
 *action frame* of the current observation: the goal's (``goal_frame``), moved to the agent (``relative=True``: a
 chunk is then the agent's offsets from where it stands), and scaled to [-1, 1] per dimension by their training
 min/max over every step of the chunks (as in Diffusion Policy). All statistics live in buffers and an exponential
@@ -100,14 +103,40 @@ def check_goal_frame(goal_frame, n_keypoints: int) -> None:
         raise ValueError("goal_frame['template'] is one point: the goal's rotation would be undetermined")
 
 
+def check_frames(goal_frame, relative: bool, origin, n_keypoints: int, keypoint_dim: int, action_dim: int) -> None:
+    """Raise ``ValueError`` unless the frames keypoints and actions are expressed in fit the layout: ``goal_frame``
+    (:func:`check_goal_frame`) and ``relative`` are planar; ``origin`` is a keypoint index, alone, with actions that
+    start with a position."""
+    check_goal_frame(goal_frame, n_keypoints)
+    if (goal_frame is not None or relative) and keypoint_dim != 2:
+        raise ValueError(f"goal_frame and relative are planar: they need keypoint_dim=2; got {keypoint_dim}")
+    if goal_frame is not None and action_dim != 2:
+        raise ValueError(f"goal_frame maps actions into the goal's plane: it needs 2-D actions; got {action_dim}")
+    if relative and action_dim != 2:
+        raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
+    if origin is None:
+        return
+    if isinstance(origin, bool) or not isinstance(origin, (int, np.integer)) or not -n_keypoints <= origin < n_keypoints:
+        raise ValueError(f"origin must be a keypoint index in [-{n_keypoints}, {n_keypoints}); got {origin!r}")
+    if goal_frame is not None or relative:
+        raise ValueError("origin translates keypoints and actions to one keypoint: use it without goal_frame and relative")
+    if action_dim < keypoint_dim:
+        raise ValueError(f"origin needs actions that start with a position of keypoint_dim={keypoint_dim} values; got action_dim={action_dim}")
+
+
 def to_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """World points ``[B, N, 2]`` into the frame ``(R [B, 2, 2], p [B, 2])``: ``R^T (x - p)`` (like ``geometry.to_body``)."""
-    return (points - origin[:, None]) @ rot
+    """World points ``[B, N, D]`` into the frame ``(R [B, D, D], p [B, D])``: ``R^T (x - p)`` (like
+    ``geometry.to_body``); rows with more than ``D`` values (an action's rotation, gripper) keep the rest as they are."""
+    d = rot.shape[-1]
+    moved = (points[..., :d] - origin[:, None]) @ rot
+    return moved if points.shape[-1] == d else torch.cat([moved, points[..., d:]], -1)
 
 
 def from_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """Frame points ``[B, N, 2]`` back to the world: ``R q + p`` (the inverse of :func:`to_frame`)."""
-    return points @ rot.mT + origin[:, None]
+    """Frame points ``[B, N, D(+)]`` back to the world: ``R q + p`` (the inverse of :func:`to_frame`)."""
+    d = rot.shape[-1]
+    moved = points[..., :d] @ rot.mT + origin[:, None]
+    return moved if points.shape[-1] == d else torch.cat([moved, points[..., d:]], -1)
 
 
 def _float64(x) -> torch.Tensor:
@@ -136,6 +165,9 @@ class KCFM(lightning.LightningModule):
             predictions are mapped back to the world. Planar: needs 2-D keypoints and actions. None: the world frame.
         relative: predict actions as offsets from the agent, the last keypoint (in the goal's axes with
             ``goal_frame``). Needs 2-D actions.
+        origin: the index of the keypoint (negative: from the end) that keypoints and the actions' positions (their
+            first ``keypoint_dim`` values) are taken relative to, in any dimension (module docstring). None: off.
+            Not with ``goal_frame`` or ``relative``.
         objective: ``"icfm"``, ``"otcfm"`` or ``"ddpm"`` (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with
             ``objective_options`` (e.g. ``{"train_steps": 100}`` for ``"ddpm"``).
         network: ``"unet"`` or ``"transformer"``.
@@ -158,6 +190,7 @@ class KCFM(lightning.LightningModule):
         keypoint_dim: int = 2,
         goal_frame: dict | None = None,
         relative: bool = False,
+        origin: int | None = None,
         objective: str = "icfm",
         objective_options: dict | None = None,
         network: str = "unet",
@@ -179,15 +212,9 @@ class KCFM(lightning.LightningModule):
             raise ValueError(
                 f"need horizon, n_obs, n_keypoints, action_dim, keypoint_dim >= 1; got {horizon}, {n_obs}, {n_keypoints}, {action_dim}, {keypoint_dim}"
             )
-        check_goal_frame(goal_frame, n_keypoints)
-        if (goal_frame is not None or relative) and keypoint_dim != 2:
-            raise ValueError(f"goal_frame and relative are planar: they need keypoint_dim=2; got {keypoint_dim}")
+        check_frames(goal_frame, relative, origin, n_keypoints, keypoint_dim, action_dim)
         if network not in NETWORKS:
             raise ValueError(f"network must be one of {NETWORKS}; got {network!r}")
-        if goal_frame is not None and action_dim != 2:
-            raise ValueError(f"goal_frame maps actions into the goal's plane: it needs 2-D actions; got {action_dim}")
-        if relative and action_dim != 2:
-            raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}; got {lr_schedule!r}")
         if not 0.0 <= ema_decay < 1.0:
@@ -237,8 +264,7 @@ class KCFM(lightning.LightningModule):
         frame = self.action_frame(kp)
         if frame is not None:
             act = to_frame(act, *frame)
-        if self.hparams.goal_frame is not None:
-            kp = to_frame(kp, *self.goal_pose(kp))
+        kp = self._stats_frame(kp[:, None])[:, 0]
         flat = kp.reshape(len(kp), -1)
         std = flat.std(0, unbiased=False)
         real = act[mask]
@@ -270,10 +296,13 @@ class KCFM(lightning.LightningModule):
 
     def _stats_frame(self, history: torch.Tensor) -> torch.Tensor:
         """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
-        frame in the current (last) frame's goal frame if ``goal_frame``, else as they are."""
+        frame in the current (last) frame's goal frame if ``goal_frame``, relative to the current frame's ``origin``
+        keypoint if one is set, else as they are."""
         kp = history.to(torch.float64)
         if self.hparams.goal_frame is not None:
             kp = to_frame(kp.flatten(1, 2), *self.goal_pose(kp[:, -1])).reshape(kp.shape)
+        elif self.hparams.get("origin") is not None:
+            kp = kp - kp[:, -1, self.hparams.origin][:, None, None]
         return kp
 
     def goal_pose(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -297,12 +326,16 @@ class KCFM(lightning.LightningModule):
         """The rigid frame ``(R [B, 2, 2], p [B, 2])`` that actions are predicted in, for keypoints ``[B, K, 2]``.
 
         ``R`` is the goal's rotation with ``goal_frame`` (else the identity), ``p`` the agent (the last keypoint) with
-        ``relative`` (else the goal's origin, or 0). None when both are off: actions stay in world coordinates.
+        ``relative`` (else the goal's origin, or 0). With ``origin``: ``(I [B, D, D], the origin keypoint)``, applied
+        to the actions' first ``D`` values. None when all are off: actions stay in world coordinates.
         """
         hp = self.hparams
+        kp = keypoints.to(torch.float64)
+        if hp.get("origin") is not None:
+            d = hp.keypoint_dim
+            return torch.eye(d, dtype=kp.dtype, device=kp.device).expand(len(kp), d, d), kp[:, hp.origin]
         if hp.goal_frame is None and not hp.relative:
             return None
-        kp = keypoints.to(torch.float64)
         if hp.goal_frame is not None:
             rot, origin = self.goal_pose(kp)
         else:
@@ -463,7 +496,10 @@ class KCFM(lightning.LightningModule):
             return kp
         lo, hi = self.keypoint_box()
         lo_ok, hi_ok = lo - input_margin * (hi - lo), hi + input_margin * (hi - lo)
-        frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame is not None else [])
+        if self.hparams.get("origin") is not None:  # statistics relative to a keypoint say nothing of the world
+            frames = [(f" relative to keypoint {self.hparams.origin}", self._stats_frame(kp))]
+        else:
+            frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame is not None else [])
         for where, x in frames:
             outside = ~((x >= lo_ok) & (x <= hi_ok))  # NaN (a frame that overflowed) counts as outside
             if outside.any():

@@ -168,14 +168,14 @@ class TransportedKCFMPolicy:
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
         phi = self.make_map().fit(source_t[self.fit_on], target_t[self.fit_on])
-        with torch.no_grad():
+        with torch.no_grad():  # one inverse for every frame: the last one is the current observation
+            back = phi.inverse(torch.from_numpy(np.stack(frames))).to(torch.float64)  # [n_obs, K, D]
             if self.pull_back == "all":
-                pullback = phi.inverse(target_t).to(torch.float64)
+                pullback = back[-1]
             else:
                 pullback = source_t.clone()
-                pullback[self.robot] = phi.inverse(target_t[self.robot]).to(torch.float64)
+                pullback[self.robot] = back[-1][self.robot]
             if self.n_obs > 1:
-                back = phi.inverse(torch.from_numpy(np.stack(frames))).to(torch.float64)  # [n_obs, K, D]
                 pullback = pullback + (back - back[-1])
         chunk = self.policy.act({"keypoints" if self.n_obs == 1 else "keypoints_history": pullback.numpy()})
         out = transport_chunk(phi, chunk, target.shape[1], self.rotation)

@@ -84,6 +84,7 @@ class SuiteEnv:
         self.fixture_body = {name: model.body_name2id(body) for name, body in spec.fixture_bodies.items()}
         #: where robosuite puts each fixture (a scene's offsets are from here; the model's copy moves with the scene)
         self.fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
+        self._fixture_home_quat = {name: model.body_quat[b].copy() for name, b in self.fixture_body.items()}
         self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
@@ -105,6 +106,9 @@ class SuiteEnv:
         env.reset()
         for name, body in self.fixture_body.items():
             model.body_pos[body] = self.fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
+            yaw = getattr(scene, "fixture_yaws", {}).get(name, 0.0)
+            built = Rotation.from_quat(self._fixture_home_quat[name], scalar_first=True)
+            model.body_quat[body] = (Rotation.from_euler("z", yaw) * built).as_quat(scalar_first=True)
         self.spec.move_fixtures(env, {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()})
         self._scale_objects(getattr(scene, "scales", {}))
         for name, (pos, quat) in scene.objects.items():

@@ -4,7 +4,7 @@ by robosuite's own placement initializers.
 ``d0`` draws with the initializer the environment ships with; ``wide`` with robosuite ``UniformRandomSampler``s
 over the wider ranges of :mod:`.specs` (and uniform fixture offsets, redrawn until every object is
 ``fixture_clearance`` from them); ``far`` likewise over the far ranges, mirrored across the table's long axis
-(``y -> -y``) with probability 1/2; ``resized`` as ``d0``, with each resized object scaled by a factor drawn
+(``y -> -y``) with probability 1/2 where the task allows, its fixtures at drawn world positions and yaws; ``resized`` as ``d0``, with each resized object scaled by a factor drawn
 uniformly in the task's range and raised so that it stands on the table. All are seeded: scene ``index`` of a variant for ``seed`` comes from
 ``numpy.random.default_rng([seed, variant id, index])``, handed to every sampler, so a scene is the same for every
 map family and worker.
@@ -26,12 +26,14 @@ _MAX_DRAWS = 1000
 @dataclass(frozen=True)
 class Scene:
     """One scene: ``objects`` (name -> (position [3], quaternion (w, x, y, z) [4]) of its free joint),
-    ``fixture_offsets`` (fixture name -> its displacement [3] from where robosuite puts it) and ``scales`` (object
-    name -> the factor its geometry is scaled by; 1 when absent)."""
+    ``fixture_offsets`` (fixture name -> its displacement [3] from where robosuite puts it), ``fixture_yaws``
+    (fixture name -> its turn about the vertical (rad) from how robosuite builds it; 0 when absent) and ``scales``
+    (object name -> the factor its geometry is scaled by; 1 when absent)."""
 
     objects: dict[str, tuple[tuple[float, ...], tuple[float, ...]]]
     fixture_offsets: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     scales: dict[str, float] = field(default_factory=dict)
+    fixture_yaws: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         for name, (pos, quat) in self.objects.items():
@@ -42,18 +44,23 @@ class Scene:
         for name, scale in self.scales.items():
             if name not in self.objects or not (np.isfinite(scale) and 0.1 <= scale <= 10):
                 raise ValueError(f"scale {scale!r} of {name!r}: scales are factors in 0.1..10 of the scene's objects {sorted(self.objects)}")
+        for name, yaw in self.fixture_yaws.items():
+            if not np.isfinite(yaw):
+                raise ValueError(f"fixture {name!r}'s yaw must be finite, got {yaw!r}")
 
     def as_dict(self) -> dict:
         return {
             "objects": {k: {"pos": list(p), "quat": list(q)} for k, (p, q) in self.objects.items()},
             "fixture_offsets": {k: list(v) for k, v in self.fixture_offsets.items()},
             **({"scales": dict(self.scales)} if self.scales else {}),
+            **({"fixture_yaws": dict(self.fixture_yaws)} if self.fixture_yaws else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
         objects = {k: (tuple(v["pos"]), tuple(v["quat"])) for k, v in d["objects"].items()}
-        return cls(objects, {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()}, dict(d.get("scales", {})))
+        offsets = {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()}
+        return cls(objects, offsets, dict(d.get("scales", {})), dict(d.get("fixture_yaws", {})))
 
 
 def _seed_samplers(sampler, rng) -> None:
@@ -88,9 +95,21 @@ def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = 
         placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
 
 
-def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict, dict]:
-    """One draw of object poses (joint name -> (pos, quat)), fixture offsets and object scales."""
-    offsets = {}
+def _far_fixtures(spec: TaskSpec, fixture_home: dict, rng, mirror: bool) -> tuple[dict, dict]:
+    """The far variant's fixture offsets (from ``fixture_home``, world positions) and yaws, ``mirror``: ``y -> -y``."""
+    offsets, yaws = {}, {}
+    for name, far in spec.far_fixtures.items():
+        x, y = float(rng.uniform(*far.x)), float(rng.uniform(*far.y))
+        y = -y if mirror else y
+        offsets[name] = (x - float(fixture_home[name][0]), y - float(fixture_home[name][1]), 0.0)
+        if far.rotation is not None:
+            yaws[name] = float(rng.uniform(*far.rotation)) * (-1.0 if mirror else 1.0)
+    return offsets, yaws
+
+
+def _draw(spec: TaskSpec, env, fixture_home: dict, variant: str, rng) -> tuple[dict, dict, dict, dict]:
+    """One draw of object poses (joint name -> (pos, quat)), fixture offsets and yaws, and object scales."""
+    offsets, yaws = {}, {}
     if variant == "wide":
         offsets = {f: (float(rng.uniform(*xr)), float(rng.uniform(*yr)), 0.0) for f, (xr, yr) in spec.wide_fixtures.items()}
     placed = {}
@@ -102,11 +121,14 @@ def _draw(spec: TaskSpec, env, variant: str, rng) -> tuple[dict, dict, dict]:
     if variant == "wide" and spec.wide_objects:
         _place(spec, env, spec.wide_objects, placed, rng)
     if variant == "far":
-        _place(spec, env, spec.far_objects, placed, rng, mirror=bool(rng.random() < 0.5))
+        mirror = spec.far_mirror and bool(rng.random() < 0.5)
+        if spec.far_objects:
+            _place(spec, env, spec.far_objects, placed, rng, mirror=mirror)
+        offsets, yaws = _far_fixtures(spec, fixture_home, rng, mirror)
     scales = {}
     if variant == "resized":
         scales = {name: float(rng.uniform(*spec.resize)) for name in spec.resize_objects}
-    return placed, offsets, scales
+    return placed, offsets, yaws, scales
 
 
 def _clear(spec: TaskSpec, fixture_home: dict, placed: dict, offsets: dict) -> bool:
@@ -130,7 +152,7 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
         raise ValueError(f"index must be >= 0, got {index}")
     rng = np.random.default_rng([seed, _VARIANT_IDS[variant], index])
     for _ in range(_MAX_DRAWS):
-        placed, offsets, scales = _draw(spec, env.env, variant, rng)
+        placed, offsets, yaws, scales = _draw(spec, env.env, env.fixture_home, variant, rng)
         if _clear(spec, env.fixture_home, placed, offsets):
             break
     else:
@@ -139,4 +161,4 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
         pos = placed[spec.object_joints[name]][0]
         pos[2] += (scale - 1.0) * env.home_half_height(name)
     objects = {name: (tuple(map(float, placed[j][0])), tuple(map(float, placed[j][1]))) for name, j in spec.object_joints.items()}
-    return Scene(objects, offsets, scales)
+    return Scene(objects, offsets, scales, yaws)

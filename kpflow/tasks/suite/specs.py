@@ -15,8 +15,9 @@ Variants (:mod:`.scene`): ``d0`` is robosuite's placement initializer as it ship
 | can | the can anywhere in bin 1, any yaw | the same, and the target bin moved by x in [-0.15, 0], y in [-0.03, 0.05] m (towards the robot: its far quarter is at the Panda's reach already) |
 | square | nut x in [-0.115, -0.11], y in [0.11, 0.225], any yaw | nut x in +-0.115, y in +-0.255 and the square peg anywhere in x in [-0.1, 0.3], y in [-0.2, 0.2] (MimicGen's Square D1), kept 0.13 m from the nut |
 
-Two harder variants where the task allows them: ``far`` puts the objects outside every range above (the
-``far_objects`` ranges, mirrored across the table's long axis with probability 1/2: ``y -> -y``); ``resized``
+Two harder variants where the task allows them: ``far`` puts the objects and fixtures outside every range above
+(the ``far_objects`` ranges and the ``far_fixtures``' world positions and yaws, mirrored across the table's long
+axis with probability 1/2 where ``far_mirror``: ``y -> -y``); ``resized``
 draws the shipped placement and scales each of ``resize_objects`` by a factor drawn uniformly in ``resize``
 (:class:`~.scene.Scene` ``scales``):
 
@@ -24,6 +25,8 @@ draws the shipped placement and scales each of ``resize_objects`` by a factor dr
 |---|---|---|
 | lift | the cube at x in +-0.2, y in [0.15, 0.25] (or mirrored): beyond the wide square, at the table's side | the cube 0.7-1.4 times its size |
 | stack | cube A at x in +-0.15, y in [0.2, 0.28], cube B at y in [-0.28, -0.2] (or mirrored): on opposite sides, 0.4-0.56 m apart (d0: at most 0.23) | both cubes 0.7-1.4 times their size, each its own factor |
+| can | the can in bin 1 as shipped; the target bin's centre at x in [-0.22, -0.08], y in [0.26, 0.3] (shipped: (0.1, 0.28); wide: x >= -0.05): nearer the robot than any generated scene | - (a can's size sets its grasp) |
+| square | the nut at x in [-0.2, -0.13], y in [0, 0.2] (wide: x >= -0.115), the peg at x in [0, 0.15], y in [-0.28, -0.2] (wide: y in +-0.2) and **turned** by 20-45 degrees (every generated peg stands as built), or all mirrored: nut and peg on swapped sides | - (the nut must fit the peg) |
 """
 
 from __future__ import annotations
@@ -69,6 +72,10 @@ class TaskSpec:
     move_fixtures: Callable = lambda env, positions: None
     #: the ``far`` variant's placement (none: the task has no far variant)
     far_objects: dict[str, WideRange] = field(default_factory=dict)
+    #: the ``far`` variant's fixtures: fixture -> the world x, y ranges of its position and its yaw range (None: as built)
+    far_fixtures: dict[str, WideRange] = field(default_factory=dict)
+    #: whether ``far`` mirrors its draw across the table's long axis (``y -> -y``) with probability 1/2
+    far_mirror: bool = True
     #: the ``resized`` variant: these objects scaled by a factor in ``resize`` (none: no resized variant)
     resize_objects: tuple[str, ...] = ()
     resize: tuple[float, float] = (0.7, 1.4)
@@ -84,7 +91,8 @@ class TaskSpec:
     @property
     def variants(self) -> tuple[str, ...]:
         """The scene variants this task has (:mod:`.scene`)."""
-        return ("d0", "wide") + (("far",) if self.far_objects else ()) + (("resized",) if self.resize_objects else ())
+        far = self.far_objects or self.far_fixtures
+        return ("d0", "wide") + (("far",) if far else ()) + (("resized",) if self.resize_objects else ())
 
     @property
     def segments(self) -> tuple[str, ...]:
@@ -112,7 +120,7 @@ TASKS: dict[str, TaskSpec] = {
     "can": TaskSpec(
         "can", "PickPlaceCan", {"can": "Can_main"}, {"can": "Can_joint0"}, {"can": "can", "bin": "bin"}, grasp="can",
         target="bin", fixture_bodies={"bin": "bin2"}, wide_fixtures={"bin": ((-0.15, 0.0), (-0.03, 0.05))},
-        move_fixtures=_move_bin,
+        move_fixtures=_move_bin, far_fixtures={"bin": WideRange((-0.22, -0.08), (0.26, 0.3))}, far_mirror=False,
     ),
     "square": TaskSpec(
         "square", "NutAssemblySquare", {"nut": "SquareNut_main"}, {"nut": "SquareNut_joint0"}, {"nut": "nut", "peg": "peg"},
@@ -120,6 +128,8 @@ TASKS: dict[str, TaskSpec] = {
         wide_objects={"nut": WideRange((-0.115, 0.115), (-0.255, 0.255))},
         wide_fixtures={"peg": ((-0.33, 0.07), (-0.30, 0.10))},  # peg1 ships at (0.23, 0.10): x in [-0.1, 0.3], y in [-0.2, 0.2]
         fixture_clearance=0.13,
+        far_objects={"nut": WideRange((-0.2, -0.13), (0.0, 0.2))},
+        far_fixtures={"peg": WideRange((0.0, 0.15), (-0.28, -0.2), (np.pi / 9, np.pi / 4))},
     ),
 }  # fmt: skip
 
