@@ -24,10 +24,10 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 import argparse
 import datetime
 import platform
-import time
 
 import numpy as np
 import torch
+from policies import median_ms  # benchmarks/policies.py: median ms of fn over inputs after warm-up
 
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
@@ -37,28 +37,6 @@ from kpflow.policies.kcfm import KCFM
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.checkpoint import load_checkpoint
 from kpflow.utils.io import publish
-
-
-def median_ms(policy, queries: list[dict], warmup: int = 5) -> float:
-    for q in queries[:warmup]:
-        policy.act(q)
-    times = []
-    for q in queries:
-        start = time.perf_counter()
-        policy.act(q)
-        times.append(time.perf_counter() - start)
-    return 1e3 * float(np.median(times))
-
-
-def median_of(fn, items: list, warmup: int = 5) -> float:
-    for item in items[:warmup]:
-        fn(item)
-    times = []
-    for item in items:
-        start = time.perf_counter()
-        fn(item)
-        times.append(time.perf_counter() - start)
-    return 1e3 * float(np.median(times))
 
 
 def stage_rows(model: KCFM, index: SourceIndex, layout, qs: list[dict]) -> list[str]:
@@ -79,7 +57,7 @@ def stage_rows(model: KCFM, index: SourceIndex, layout, qs: list[dict]) -> list[
         ("K-CFM, 10 Euler steps", lambda p: model.sample(p[3].numpy()[None] if model.hparams.n_obs > 1 else p[3].numpy()[-1:], steps=10)),
         ("push-forward of the chunk (positions, polar(J) rotations)", lambda p: transport_chunk(p[2], p[4], 3, True)),
     ]
-    return [f"| {name} | {median_of(fn, prepared):.2f} |" for name, fn in stages]
+    return [f"| {name} | {median_ms(fn, prepared):.2f} |" for name, fn in stages]
 
 
 def queries(index: SourceIndex, n: int, seed: int = 0) -> list[dict]:
@@ -117,7 +95,7 @@ def main() -> str:
     lines = [f"Decision latency on {args.task} ({len(index)} sources, {args.reps} decisions, one thread)", "",
              "| policy | median ms per decision | ratio to the K-CFM |", "|---|---|---|"]  # fmt: skip
     for name, policy in rows:
-        ms = median_ms(policy, qs)
+        ms = median_ms(policy.act, qs)
         base = base or ms
         lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} |")
     lines += ["", "Stages of the transported K-CFM (ILWR), each timed alone on the same queries", "",
