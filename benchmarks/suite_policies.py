@@ -43,19 +43,20 @@ def stage_rows(model: KCFM, index: SourceIndex, layout, qs: list[dict]) -> list[
     """The transported K-CFM's stages on ``qs``, each timed alone (median ms), as markdown rows."""
     fit = list(layout.indices("objects", "goals"))
     policy = make_transported_kcfm(model, index, layout, ILWRMap, fit_on=fit)
-    prepared = []  # (query, source index, fitted map, pulled-back history, chunk): each stage's inputs
+    steps = 10
+    prepared = []  # per query, each stage's inputs: (query, its source's keypoints, the fitted map, both frames, a chunk)
     for q in qs:
         policy.act(q)
         frames = torch.from_numpy(q["keypoints_history"])
-        chunk = model.sample(policy.last_pullback[None] if model.hparams.n_obs == 1 else frames.numpy()[None], steps=10)[0].numpy()
-        prepared.append((q, policy.last_source, policy.last_map, frames, chunk))
-    source = [torch.from_numpy(index.keypoints[i].astype(np.float64)) for _, i, *_ in prepared]
+        condition = frames.numpy()[None] if model.hparams.n_obs > 1 else frames.numpy()[-1:]  # the K-CFM's input shape
+        source = torch.from_numpy(index.keypoints[policy.last_source].astype(np.float64))
+        prepared.append((q, source, policy.last_map, frames, condition, model.sample(condition, steps=steps)[0].numpy()))
     stages = [
         ("source search (weighted nearest of every training step)", lambda p: policy.source.choose(p[0]["keypoints"])),
-        ("ILWR fit on the objects' keypoints", lambda p: ILWRMap().fit(source[0][fit], torch.from_numpy(p[0]["keypoints"])[fit])),
+        ("ILWR fit on the objects' keypoints", lambda p: ILWRMap().fit(p[1][fit], torch.from_numpy(p[0]["keypoints"])[fit])),
         ("pull-back of both observation frames (phi^-1)", lambda p: p[2].inverse(p[3])),
-        ("K-CFM, 10 Euler steps", lambda p: model.sample(p[3].numpy()[None] if model.hparams.n_obs > 1 else p[3].numpy()[-1:], steps=10)),
-        ("push-forward of the chunk (positions, polar(J) rotations)", lambda p: transport_chunk(p[2], p[4], 3, True)),
+        (f"K-CFM, {steps} Euler steps", lambda p: model.sample(p[4], steps=steps)),
+        ("push-forward of the chunk (positions, polar(J) rotations)", lambda p: transport_chunk(p[2], p[5], 3, True)),
     ]
     return [f"| {name} | {median_ms(fn, prepared):.2f} |" for name, fn in stages]
 
