@@ -187,16 +187,24 @@ class EpisodeStore:
             raise ValueError(f"{self.path} is not an episode store: it is a file, not a zarr directory")
         if mode == "r" and not self.path.exists():
             raise FileNotFoundError(f"no episode store at {self.path}")
-        is_group = (self.path / ".zgroup").is_file()
-        if not is_group and (mode == "r" or any(p.name != LOCK_NAME for p in (self.path.iterdir() if self.path.exists() else ()))):
-            raise ValueError(f"{self.path} is not an episode store: not a zarr group (no .zgroup)")
+        if mode == "r" or not (self.path / LOCK_NAME).exists():  # a folder no writer has touched: refuse it untouched
+            self._check_group()
         if mode == "a":
             self._lock = _acquire(self.path, wait)
         try:
+            if mode == "a":  # another writer may have been creating the store: look again, holding the lock
+                self._check_group()
             self._open()
         except BaseException:
             self.close()
             raise
+
+    def _check_group(self) -> None:
+        """Raise ``ValueError`` unless ``path`` is a zarr group, or (mode ``"a"``) nothing but a lock file or nothing."""
+        if (self.path / ".zgroup").is_file():
+            return
+        if self.mode == "r" or any(p.name != LOCK_NAME for p in (self.path.iterdir() if self.path.exists() else ())):
+            raise ValueError(f"{self.path} is not an episode store: not a zarr group (no .zgroup)")
 
     def _open(self) -> None:
         where = str(self.path)
