@@ -7,7 +7,7 @@ export OMP_NUM_THREADS ?= 1
 export MPLBACKEND ?= Agg
 export WANDB_MODE ?= offline
 
-.PHONY: venv osmesa demo test test-fast lint bench clean
+.PHONY: venv osmesa demo test test-fast lint docs bench clean
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 venv: $(STAMP)
@@ -20,19 +20,24 @@ osmesa:
 	    { $(SUDO) apt-get update -q >/dev/null 2>&1 && $(SUDO) apt-get install -y -q --no-install-recommends libosmesa6 >/dev/null 2>&1; }; } || \
 	  echo "libosmesa6 could not be installed: MuJoCo will render through EGL"; }
 
-# torch first, pinned exactly (the local CPU wheel); then the package and its pinned dependencies; then torchcfm
-# without its declared dependencies (they would replace torch and numpy; see pyproject.toml).
-$(STAMP): pyproject.toml
+# torch first, on its own: TORCH=cpu (default) takes the CPU wheel; TORCH=cu128 (or another CUDA tag) takes PyTorch's
+# CUDA wheel of the same version from download.pytorch.org (docs/install.md). Then the package with the exact versions
+# of constraints.txt (pyproject.toml declares ranges); then torchcfm without its declared dependencies (they would
+# replace torch and numpy; see pyproject.toml).
+TORCH ?= cpu
+TORCH_VERSION := $(shell sed -n 's/^torch==//p' constraints.txt)
+TORCH_INDEX := $(if $(filter cpu,$(TORCH)),,--index-url https://download.pytorch.org/whl/$(TORCH))
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip==24.3.1
-	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[test]'
-	$(BIN)/python -m pip install -q --no-deps torchcfm==1.0.7
-	$(BIN)/python -c "import torch, numpy; assert torch.__version__ == '2.13.0+cpu' and numpy.__version__ == '1.26.4', (torch.__version__, numpy.__version__)"
+	$(BIN)/python -m pip install -q torch==$(TORCH_VERSION) $(TORCH_INDEX)
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
+	$(BIN)/python -m pip install -q --no-deps -c constraints.txt torchcfm
+	$(BIN)/python -c "import torch, numpy; assert torch.__version__.startswith('$(TORCH_VERSION)+$(TORCH)') and numpy.__version__ == '1.26.4', (torch.__version__, numpy.__version__)"
 	touch $(STAMP)
 
 demo: $(STAMP) osmesa
-	$(BIN)/python evaluate.py experiment=pusht_demo
+	$(BIN)/kpflow-evaluate experiment=pusht_demo
 
 # ruff (pyflakes, import order, complexity; see pyproject.toml), then every test, on 2 worker processes (one test
 # file per worker, so a file's module fixtures such as the MuJoCo scenes are built once). `make test-fast` leaves
@@ -46,6 +51,10 @@ test: lint osmesa
 test-fast: lint
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
+# The documentation site into site/ (mkdocs-material; the test suite builds it with --strict too).
+docs: $(STAMP)
+	$(BIN)/mkdocs build --strict
+
 bench: $(STAMP)
 	$(BIN)/python benchmarks/maps.py
 	$(BIN)/python benchmarks/pusht_env.py
@@ -54,4 +63,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/metrics.py
 
 clean:
-	rm -rf $(VENV) outputs multirun
+	rm -rf $(VENV) outputs multirun site

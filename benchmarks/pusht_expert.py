@@ -9,7 +9,7 @@ training region, object outside it) the expert runs on the first ``--n`` seeded 
 (:func:`kpflow.tasks.pusht.scene.make_split`, seed 0) with a step limit of 600 (in distribution) or 1200 (OOD).
 An episode succeeds when coverage reaches 0.95; the 0.85 column counts episodes that reached 0.85 within the limit
 (the threshold the paper's authors used). Seconds per episode are measured inside the worker process, one thread
-each. Then ``python -m kpflow.collect``'s function collects ``--collect`` demonstrations with ``--workers``
+each. Then ``kpflow-collect``'s function collects ``--collect`` demonstrations with ``--workers``
 processes and the wall time is reported. The markdown table is printed and written atomically to ``--out`` (default
 ``outputs/benchmarks/pusht_expert.md``). The full run takes about 5 minutes on 2 cores.
 """

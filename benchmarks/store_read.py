@@ -96,7 +96,7 @@ def main(argv=None) -> str:
             unchecked = unsealed_copy(src, tmp / f"{src.name}.unchecked")
             store = EpisodeStore(checked)
             if not store.sealed:
-                raise SystemExit(f"{src} has no checksums: seal it first (python -m kpflow.verify --seal)")
+                raise SystemExit(f"{src} has no checksums: seal it first (kpflow-verify seal=true)")
             mb = sum(p.stat().st_size for p in checked.rglob("*") if p.is_file()) / 1e6
             for name, fn in (("every field whole", read_fields), ("every episode", read_episodes)):
                 ours, base = interleaved(fn, checked, unchecked, args.repeats)

@@ -96,7 +96,7 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
         path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
         progress=False,
     )
-    with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `python -m kpflow.correct` reopens it
+    with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `kpflow-correct` reopens it
         pass
     assert [r["round"] for r in reports] == [0, 1]
     assert sum(r["takeovers"] for r in reports) > 0

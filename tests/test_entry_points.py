@@ -97,7 +97,7 @@ def test_pusht_sweep_in_parallel_writes_one_combined_table(tmp_path):
 def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     demos = tmp_path / "demos.zarr"
     cmd = [
-        sys.executable, "-m", "kpflow.correct", "policy=nearest", "policy.relative=false", "rounds=2",
+        sys.executable, "-m", "kpflow.cli.correct", "policy=nearest", "policy.relative=false", "rounds=2",
         "episodes_per_round=2", "max_steps=80", "stuck_steps=10", "takeover_steps=20", "data.n_episodes=2",
         "data.workers=1", f"data.path={demos}", "eval_configs=2", "eval_max_steps=30", "workers=1",
         f"hydra.run.dir={tmp_path / 'run'}",

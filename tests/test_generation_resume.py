@@ -1,7 +1,7 @@
 """Generation's numbers depend on the settings and seed only, and a stopped run resumes (kpflow/eval/generation.py,
 kpflow/eval/generation_journal.py): an attempt is the same to the bit whichever attempts its worker ran before, a
-cell's journal and store recover from a kill at any point and refuse anything else, and a real ``python -m
-kpflow.generate`` killed with SIGKILL and resumed ends as an uninterrupted run with other workers does."""
+cell's journal and store recover from a kill at any point and refuse anything else, and a real
+``kpflow-generate`` killed with SIGKILL and resumed ends as an uninterrupted run with other workers does."""
 
 import json
 import os
@@ -166,7 +166,7 @@ def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_
 
     n, variants, names = 4, ["wide"], ["mimicgen", "rigid"]
     run = tmp_path / "run"
-    command = [sys.executable, "-m", "kpflow.generate", "task=lift", f"n={n}", f"variants=[{','.join(variants)}]",
+    command = [sys.executable, "-m", "kpflow.cli.generate", "task=lift", f"n={n}", f"variants=[{','.join(variants)}]",
                f"families=[{','.join(names)}]", "workers=1", "videos=0", "export=false", f"hydra.run.dir={run}"]  # fmt: skip
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     killed = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

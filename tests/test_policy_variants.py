@@ -98,7 +98,7 @@ def test_training_experiments_compose_into_a_matching_model(experiment):
 
     from tests.test_release import ROOT
 
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(ROOT / "kpflow" / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[f"experiment={experiment}", "logger=none"])
     model = instantiate(cfg.model, _convert_="all")
     assert model.hparams.horizon == cfg.data.horizon and model.hparams.n_obs == cfg.data.n_obs

@@ -139,7 +139,7 @@ def test_collect_commits_successful_episodes_deterministically(tmp_path):
 
 @pytest.mark.slow
 def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
-    cmd = [sys.executable, "-m", "kpflow.collect", "task=pusht", "n_episodes=2", "workers=1", "videos=1",
+    cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=pusht", "n_episodes=2", "workers=1", "videos=1",
            "seed=1", f"hydra.run.dir={tmp_path}"]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -151,10 +151,10 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
 
 @pytest.mark.slow
 def test_collect_cli_names_an_unknown_task(tmp_path):
-    cmd = [sys.executable, "-m", "kpflow.collect", "task=packing", f"hydra.run.dir={tmp_path}"]
+    cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "config key task must be one of pusht; got 'packing'" in done.stderr  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()
-    cmd = [sys.executable, "-m", "kpflow.collect", "task=nope", f"hydra.run.dir={tmp_path}"]
+    cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=nope", f"hydra.run.dir={tmp_path}"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "task/nope" in done.stderr and "pusht" in done.stderr  # Hydra lists the tasks

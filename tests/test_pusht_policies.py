@@ -139,7 +139,7 @@ def test_demonstration_stores_are_reused_only_when_they_match(tmp_path, demos):
         ensure_pusht_demos(tmp_path / "missing.zarr", None)
     # data=pusht_human and data=pusht_store read whatever store is at data.path (here the expert demos)
     for data in ("pusht_human", "pusht_store"):
-        with initialize_config_dir(str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        with initialize_config_dir(str(Path(__file__).resolve().parents[1] / "kpflow" / "conf"), version_base="1.3"):
             cfg = compose("evaluate", overrides=[f"data={data}", f"data.path={path}", "policy=nearest", "logger=none"])
         policy = instantiate(cfg.policy)
         assert len(policy.index) == demos.n_steps

@@ -1,6 +1,7 @@
 """Released checkpoints: weights and config only, loadable with weights_only through kpflow.load_policy; and the
 ones committed under release/ load and act on the CPU."""
 
+import sys
 from pathlib import Path
 
 import lightning
@@ -9,9 +10,9 @@ import pytest
 import torch
 
 from kpflow import load_policy
+from kpflow.cli.release import KEEP, main, release
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm import KCFM
-from kpflow.release import KEEP, main, release
 from kpflow.tasks.pusht import PushTEnv, split_config, standard_config
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from tests.helpers import walk_to_block_store
@@ -21,7 +22,7 @@ RELEASED = sorted((ROOT / "release").glob("pusht_*.ckpt"))
 SUITE_RELEASED = sorted((ROOT / "release").glob("suite_*_kcfm.ckpt"))
 
 
-def test_release_keeps_weights_and_config_only(tmp_path):
+def test_release_keeps_weights_and_config_only(tmp_path, monkeypatch):
     walk_to_block_store(tmp_path / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
     model = KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16)
@@ -29,7 +30,8 @@ def test_release_keeps_weights_and_config_only(tmp_path):
                                 enable_progress_bar=False, enable_model_summary=False)
     trainer.fit(model, datamodule=ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0))
     trainer.save_checkpoint(tmp_path / "full.ckpt")
-    main([str(tmp_path / "full.ckpt"), str(tmp_path / "out" / "small.ckpt"), "--note", "tiny"])
+    monkeypatch.setattr(sys, "argv", ["kpflow-release", f"src={tmp_path / 'full.ckpt'}", f"dst={tmp_path / 'out' / 'small.ckpt'}", "note=tiny"])
+    main()
     small = torch.load(tmp_path / "out" / "small.ckpt", weights_only=True)
     assert set(small) <= {*KEEP, "release"} and small["release"]["note"] == "tiny"
     assert "optimizer_states" in torch.load(tmp_path / "full.ckpt", weights_only=True)

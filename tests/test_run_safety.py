@@ -21,9 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def entry_keys():
-    import evaluate
-    import train
-    from kpflow import collect, correct
+    from kpflow.cli import collect, correct, evaluate, train
 
     return {"evaluate": evaluate.KEYS, "train": train.KEYS, "collect": collect.KEYS, "correct": correct.KEYS}
 
@@ -50,7 +48,7 @@ BAD = [
 
 @pytest.mark.parametrize("entry, override, message", BAD, ids=[f"{e}:{o}" for e, o, _ in BAD])
 def test_bad_values_name_the_key(entry, override, message):
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(ROOT / "kpflow" / "conf"), version_base="1.3"):
         cfg = compose(entry, overrides=[override], return_hydra_config=True)
     with pytest.raises(ValueError, match=message):
         check_config(cfg, entry_keys()[entry])
@@ -58,11 +56,11 @@ def test_bad_values_name_the_key(entry, override, message):
 
 def test_good_configs_pass_their_checks():
     for entry, keys in entry_keys().items():
-        with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        with initialize_config_dir(str(ROOT / "kpflow" / "conf"), version_base="1.3"):
             cfg = compose(entry, return_hydra_config=True)
         check_config(cfg, keys)
     for trainer in ("cpu", "gpu", "ddp"):
-        with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        with initialize_config_dir(str(ROOT / "kpflow" / "conf"), version_base="1.3"):
             check_config(compose("train", overrides=[f"trainer={trainer}"]), TRAINER_KEYS)
 
 
@@ -79,8 +77,8 @@ def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("cmd", [
     ("evaluate.py", "n_configs=abc"),
-    ("-m", "kpflow.collect", "split=bogus"),
-    ("-m", "kpflow.correct", "rounds=0"),
+    ("-m", "kpflow.cli.collect", "split=bogus"),
+    ("-m", "kpflow.cli.correct", "rounds=0"),
     ("train.py", "trainer.max_epochs=abc"),
 ], ids=["evaluate", "collect", "correct", "train"])  # fmt: skip
 @pytest.mark.slow

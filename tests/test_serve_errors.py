@@ -1,4 +1,4 @@
-"""What ``python -m kpflow.serve`` and ``python -m kpflow.release`` say when they cannot run (issue 40): exit code 1
+"""What ``kpflow-serve`` and ``kpflow-release`` say when they cannot run (issue 40): exit code 1
 and at most 3 lines on stderr naming the problem (the host, the port, the file, the config key), the traceback only
 with KPFLOW_TRACEBACK=1. A host that does not resolve and a port already taken are refused before the model is
 loaded. The real commands in subprocesses, a real socket holding the port."""
@@ -31,13 +31,13 @@ def short_failure(done: subprocess.CompletedProcess, *names: str) -> None:
 
 
 def test_a_host_that_does_not_resolve_is_refused_before_loading():
-    done = run("kpflow.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123")
+    done = run("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123")
     short_failure(done, "999.1.1.1", "8123", "does not resolve")
     assert LOADED not in done.stdout  # refused before the model was loaded
 
 
 def test_kpflow_traceback_shows_the_traceback():
-    loud = run("kpflow.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123", traceback=True)
+    loud = run("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123", traceback=True)
     assert loud.returncode == 1 and "Traceback (most recent call last)" in loud.stderr
     assert "ValueError: cannot serve on 999.1.1.1:8123" in loud.stderr
 
@@ -47,7 +47,7 @@ def test_a_port_in_use_is_refused_before_loading():
         holder.bind(("127.0.0.1", 0))
         holder.listen()
         port = holder.getsockname()[1]
-        done = run("kpflow.serve", f"checkpoint={RELEASED}", "host=127.0.0.1", f"port={port}")
+        done = run("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=127.0.0.1", f"port={port}")
     short_failure(done, "127.0.0.1", str(port), "in use")
     assert LOADED not in done.stdout
 
@@ -55,14 +55,14 @@ def test_a_port_in_use_is_refused_before_loading():
 def test_a_corrupt_checkpoint_is_one_line_for_serve(tmp_path):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(b"not a checkpoint at all")
-    short_failure(run("kpflow.serve", f"checkpoint={bad}", "port=0"), str(bad), "is not a readable checkpoint (not a torch file")
+    short_failure(run("kpflow.cli.serve", f"checkpoint={bad}", "port=0"), str(bad), "is not a readable checkpoint (not a torch file")
 
 
 @pytest.mark.parametrize("content, why", [(b"not a checkpoint at all", "not a torch file"), (b"", "the file is empty")], ids=["garbage", "empty"])
 def test_a_corrupt_checkpoint_is_one_line_for_release(tmp_path, content, why):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(content)
-    short_failure(run("kpflow.release", str(bad), str(tmp_path / "out.ckpt")), str(bad), "is not a readable checkpoint", why)
+    short_failure(run("kpflow.cli.release", f"src={bad}", f"dst={tmp_path / 'out.ckpt'}"), str(bad), "is not a readable checkpoint", why)
     assert not (tmp_path / "out.ckpt").exists()
 
 
@@ -76,4 +76,4 @@ def test_a_corrupt_checkpoint_is_one_line_for_release(tmp_path, content, why):
     ],
 )
 def test_bad_config_keys_are_named(override, message):
-    short_failure(run("kpflow.serve", f"checkpoint={RELEASED}", override), message)
+    short_failure(run("kpflow.cli.serve", f"checkpoint={RELEASED}", override), message)

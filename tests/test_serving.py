@@ -339,7 +339,7 @@ def test_closed_loop_pusht_episode_through_the_server_equals_in_process(uri, rel
 
 @pytest.mark.slow
 def test_serve_cli_answers_then_stops_on_sigterm():
-    proc = subprocess.Popen([sys.executable, "-m", "kpflow.serve", f"checkpoint={RELEASED}", "port=0", "steps=2"], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "port=0", "steps=2"], cwd=ROOT,
                             stderr=subprocess.STDOUT, stdout=subprocess.PIPE, text=True)  # fmt: skip
     try:
         line = ""
@@ -359,6 +359,6 @@ def test_serve_cli_answers_then_stops_on_sigterm():
 
 
 def test_serve_cli_refuses_a_bad_config():
-    done = subprocess.run([sys.executable, "-m", "kpflow.serve", f"checkpoint={RELEASED}", "transport=spline"], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "transport=spline"], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode != 0 and "transport must be one of" in done.stderr

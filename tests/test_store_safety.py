@@ -236,9 +236,9 @@ def test_legacy_stores_read_unverified_refuse_appends_until_sealed(store, tmp_pa
     opened = EpisodeStore(legacy)
     assert not opened.sealed and opened.verify()["sealed"] is False
     episode = opened.episode(0)
-    with EpisodeStore(legacy, mode="a") as s, pytest.raises(ValueError, match="written without checksums .*python -m kpflow.verify --seal"):
+    with EpisodeStore(legacy, mode="a") as s, pytest.raises(ValueError, match="written without checksums .*kpflow-verify seal=true"):
         s.add_episode(episode)
-    done = subprocess.run([sys.executable, "-m", "kpflow.verify", "--seal", "--no-progress", str(legacy)], cwd=ROOT, capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "seal=true", "progress=false", f"store={legacy}"], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)  # fmt: skip
     assert done.returncode == 0 and "sealed now" in done.stdout, done.stderr
     with EpisodeStore(legacy, mode="a") as s:
@@ -248,7 +248,7 @@ def test_legacy_stores_read_unverified_refuse_appends_until_sealed(store, tmp_pa
 
 
 def test_verify_command_names_the_damaged_field_and_episode(store):
-    done = subprocess.run([sys.executable, "-m", "kpflow.verify", "--no-progress", str(store)], cwd=ROOT, capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "progress=false", f"store={store}"], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)  # fmt: skip
     assert done.returncode == 0 and f"{store}: 8 episodes, 160 steps, fields action, keypoints: verified" in done.stdout
 
@@ -256,7 +256,7 @@ def test_verify_command_names_the_damaged_field_and_episode(store):
         values[159 * 2 + 1] += 1.0  # the last row's y: episode 7 (the chunk's rows past 160 hold no data)
 
     rewrite_chunk(store / "data/action", "0.0", nudge)
-    done = subprocess.run([sys.executable, "-m", "kpflow.verify", "--no-progress", str(store)], cwd=ROOT, capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "progress=false", f"store={store}"], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)  # fmt: skip
     assert done.returncode == 1 and "field 'action' of episode 7 does not match the checksum" in done.stderr, done.stderr
 

@@ -451,13 +451,13 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
+    from kpflow.cli.release import release, release_source_index
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.chunk_transport import TransportPolicy
     from kpflow.policies.kcfm import KCFM
     from kpflow.policies.kcfm_policy import KCFMPolicy
     from kpflow.policies.nearest import NearestNeighbourPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-    from kpflow.release import release, release_source_index
     from kpflow.tasks.suite.rollout import run_policy_episode
 
     out, _ = generated
@@ -469,7 +469,7 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
     released = release(tmp_path / "last.ckpt", tmp_path / "suite_lift_kcfm.ckpt", ema_only=True)
-    release_source_index(released, "lift", store, 200)
+    release_source_index(released, SuiteTask("lift").policy_layout, store, 200)
     obs = {"keypoints_history": data.train_dataloader().dataset[0]["history"].numpy().astype(np.float64)}
     full, ema = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt"), KCFMPolicy.from_checkpoint(released)
     np.testing.assert_array_equal(full.act(obs), ema.act(obs))  # sampling uses the EMA network: the release acts the same
@@ -482,7 +482,7 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
         "nearest": (NearestNeighbourPolicy, ["data=suite_store", f"data.path={store}"]),
     }
     policies = {}
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(ROOT / "kpflow" / "conf"), version_base="1.3"):
         for name, (cls, args) in expected.items():
             cfg = compose("evaluate", overrides=[*common, f"policy={name.strip()}", *args])
             policies[name] = instantiate(cfg.policy)

@@ -12,9 +12,10 @@ import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
 
+from kpflow.cli.teleop import main  # noqa: E402
 from kpflow.data.episode_store import EpisodeStore  # noqa: E402
 from kpflow.tasks.pusht.env import PushTEnv  # noqa: E402
-from kpflow.teleop import KeyboardTeleop, main  # noqa: E402
+from kpflow.tasks.pusht.teleop import KeyboardTeleop  # noqa: E402
 
 FIELDS = {"keypoints": (25, 2), "action": (2,), "agent_pos": (2,), "block_pose": (3,), "goal_pose": (3,)}
 
@@ -176,8 +177,9 @@ def test_store_of_another_split_is_refused(tmp_path):
         make_teleop(tmp_path / "demos.zarr")
 
 
-def test_cli_sets_up_the_store(tmp_path, capsys):
-    main(["--store", str(tmp_path / "cli.zarr"), "--split", "object_ood", "--goal", "fixed", "--episodes", "0", "--window", "64"])
+def test_cli_sets_up_the_store(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["kpflow-teleop", f"store={tmp_path / 'cli.zarr'}", "split=object_ood", "goal=fixed", "episodes=0", "window=64"])
+    main()
     store = EpisodeStore(tmp_path / "cli.zarr", mode="r")
     assert dict(store.attrs) == {"task": "pusht", "split": "object_ood", "goal": "fixed"} and store.n_episodes == 0
     assert "saved 0 episode(s)" in capsys.readouterr().out

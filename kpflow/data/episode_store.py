@@ -29,11 +29,11 @@ episodes' 16-hex-digit checksums concatenated, written with the pending mark so 
 one; one string per field keeps the metadata small to parse). Opening a store
 checks its arrays' dtypes and shapes against the record; every read (:meth:`EpisodeStore.episode`,
 :meth:`EpisodeStore.field`) checks the rows it returns against their episodes' checksums, and :meth:`EpisodeStore.verify`
-(``python -m kpflow.verify STORE``) checks everything. A mismatch raises a ``ValueError`` naming the field and the
+(``kpflow-verify STORE``) checks everything. A mismatch raises a ``ValueError`` naming the field and the
 episode: edited dtypes, flipped bytes and chunks swapped between fields are refused instead of read as plausible
 numbers. Stores written before checksums existed (and foreign ones, such as Diffusion Policy's replay buffers) have
 no record: they are read unverified (:attr:`EpisodeStore.sealed` is False), and appending to one that holds episodes
-is refused until ``python -m kpflow.verify --seal STORE`` has recorded their checksums. Every zarr read goes through
+is refused until ``kpflow-verify seal=true store=STORE`` has recorded their checksums. Every zarr read goes through
 :class:`~kpflow.data.zarr_checks.CheckedStore`: no store can name a codec that runs code or a chunk that exhausts
 memory.
 
@@ -391,7 +391,7 @@ class EpisodeStore:
     @property
     def sealed(self) -> bool:
         """Whether the store records its fields and every episode's checksums, so that reads are verified (False for
-        stores written before kpflow recorded them and for foreign ones; ``python -m kpflow.verify --seal``)."""
+        stores written before kpflow recorded them and for foreign ones; ``kpflow-verify seal=true``)."""
         return self._schema is not None
 
     def _verify(self, name: str, values: np.ndarray, first: int, stop: int) -> None:
@@ -482,7 +482,7 @@ class EpisodeStore:
         if not self.sealed and self.n_episodes:
             raise ValueError(
                 f"{self.path} holds {self.n_episodes} episodes written without checksums (by an earlier kpflow, or another "
-                f"tool): record them first with `python -m kpflow.verify --seal {self.path}`, then append"
+                f"tool): record them first with `kpflow-verify seal=true store={self.path}`, then append"
             )
         start = self.n_steps
         end = start + len(next(iter(values.values())))

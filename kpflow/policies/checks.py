@@ -4,7 +4,7 @@ finite actions only.
 An observation far outside the data a K-CFM was trained on means nothing to it: every K-CFM policy refuses
 coordinates farther outside the training keypoints' box than :data:`INPUT_MARGIN` times the box's extent on each side
 (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`, which owns the statistics; configurable per policy as
-``input_margin``, and by ``python -m kpflow.serve input_margin=...``).
+``input_margin``, and by ``kpflow-serve input_margin=...``).
 
 A trained network fed extreme (finite) observations, or with weights that overflow for some input, returns inf or
 NaN targets, and a robot told to move to NaN does whatever its controller makes of it. Every K-CFM policy (plain,

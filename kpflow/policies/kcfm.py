@@ -414,7 +414,7 @@ class KCFM(lightning.LightningModule):
     @staticmethod
     def complete_state_dict(state: dict) -> dict:
         """A state dict with the trained network's weights: a release that keeps the EMA network alone (what
-        :meth:`sample` uses; ``python -m kpflow.release --ema-only``) starts the trained one as its copy."""
+        :meth:`sample` uses; ``kpflow-release ema_only=true``) starts the trained one as its copy."""
         if any(k.startswith("net.") for k in state) or not any(k.startswith("ema_net.") for k in state):
             return state
         return {**state, **{"net." + k[len("ema_net.") :]: v for k, v in state.items() if k.startswith("ema_net.")}}

@@ -1,5 +1,5 @@
 """Serving a policy over the network: a websocket server for any K-CFM checkpoint (transported online or not), its
-client, and the msgpack wire format they share. ``python -m kpflow.serve checkpoint=...`` runs the server."""
+client, and the msgpack wire format they share. ``kpflow-serve checkpoint=...`` runs the server."""
 
 from kpflow.serving.client import PolicyClient, PolicyServerError
 from kpflow.serving.deployment import Deployment, load_deployment

@@ -107,7 +107,7 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     """
     checkpoint = read_checkpoint(path, map_location)
     hparams = checkpoint.get("hyper_parameters", {})
-    complete = getattr(cls, "complete_state_dict", None)  # a released file may hold part of the weights (kpflow.release)
+    complete = getattr(cls, "complete_state_dict", None)  # a released file may hold part of the weights (kpflow-release)
     state = complete(checkpoint["state_dict"]) if complete else checkpoint["state_dict"]
     try:
         with torch.device("meta"):  # shapes only, no storage: whatever size the hyper-parameters ask for costs nothing

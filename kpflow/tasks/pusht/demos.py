@@ -46,7 +46,7 @@ def ensure_pusht_demos(
         if not (path / "meta" / "episode_ends").exists():
             raise FileNotFoundError(
                 f"no episode store at {path}: with n_episodes=null the store must exist (collect it with "
-                "python -m kpflow.collect, or import the human dataset with python -m kpflow.tasks.pusht.replay_import SRC DEST)"
+                "kpflow-collect, or import the human dataset with python -m kpflow.tasks.pusht.replay_import SRC DEST)"
             )
         return EpisodeStore(path)
     want = collection_attrs(n_episodes, split, goal, seed, max_steps, False)

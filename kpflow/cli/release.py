@@ -1,29 +1,32 @@
 """Release a trained policy: its checkpoint reduced to what deployment needs, small enough to commit.
 
-    python -m kpflow.release outputs/pusht_kcfm/<run>/checkpoints/last.ckpt release/<name>.ckpt [--note "..."]
-    python -m kpflow.release <run>/checkpoints/last.ckpt release/suite_lift_kcfm.ckpt --ema-only \
-        --task lift --source-store <generate run>/d0/rigid/episodes.zarr --source-episodes 200 --source-every 2
+    kpflow-release src=outputs/pusht_kcfm/<run>/checkpoints/last.ckpt dst=release/<name>.ckpt [note="..."]
+    kpflow-release src=<run>/checkpoints/last.ckpt dst=release/suite_lift_kcfm.ckpt ema_only=true \
+        task=lift source_store=<generate run>/d0/rigid/episodes.zarr source_episodes=200 source_every=2
 
 The released file holds the weights and buffers (``state_dict``: the trained and the EMA network, or with
-``--ema-only`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters and a ``release`` record (source path, note,
+``ema_only=true`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters and a ``release`` record (source path, note,
 parameter count) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
 has loaded back through :func:`kpflow.load_policy` (``torch.load(weights_only=True)``).
 
-With ``--source-store``, the transported K-CFM's source index is written beside it
-(:func:`~kpflow.policies.factory.source_index_path`): the keypoints of every ``--source-every``-th step of the
-store's first ``--source-episodes`` episodes, searched as ``--task``'s transporting policies search by default
+With ``source_store``, the transported K-CFM's source index is written beside it
+(:func:`~kpflow.policies.factory.source_index_path`): the keypoints of every ``source_every``-th step of the
+store's first ``source_episodes`` episodes, searched as the transporting policies of ``task`` (any task of ``kpflow/conf/task/`` with a policy layout) search by default
 (robot keypoints weighted 4, relative to the objects). A transported K-CFM uses the sources' keypoints only, so their
 chunks are kept one action long.
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
+import hydra
 import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig
 
 from kpflow.utils.checkpoint import read_checkpoint
+from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command
 from kpflow.utils.io import atomic_path
 
@@ -50,14 +53,12 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
     return dst
 
 
-def release_source_index(dst: str | Path, task_name: str, store: str | Path, episodes: int, every: int = 1) -> Path:
+def release_source_index(dst: str | Path, layout, store: str | Path, episodes: int, every: int = 1) -> Path:
     """Write the source index of a transported K-CFM released at ``dst`` (module docstring); returns its path."""
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
     from kpflow.policies.factory import frame_indices, source_index_path
-    from kpflow.tasks.suite.task import SuiteTask
 
-    layout = SuiteTask(task_name).policy_layout
     with EpisodeStore(store) as s:
         full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", "ee_target")
     keep = slice(None, None, int(every))
@@ -65,25 +66,30 @@ def release_source_index(dst: str | Path, task_name: str, store: str | Path, epi
     return index.save(source_index_path(dst))
 
 
+KEYS = {
+    "src": Key(str),
+    "dst": Key(str),
+    "note": Key(str),
+    "ema_only": Key(bool),
+    "source_store": Key(str, nullable=True),
+    "source_episodes": Key(int, lo=1),
+    "source_every": Key(int, lo=1),
+}
+
+
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="release")
 @command
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("src", help="a K-CFM Lightning checkpoint")
-    parser.add_argument("dst", help="where to write the released checkpoint (e.g. release/<name>.ckpt)")
-    parser.add_argument("--note", default="", help="what the checkpoint is (stored in it)")
-    parser.add_argument("--ema-only", action="store_true", help="keep the EMA network alone (what sampling uses)")
-    parser.add_argument("--task", help="a robosuite task (lift, stack, can, square): its source index layout")
-    parser.add_argument("--source-store", help="the training store: write the transported K-CFM's source index beside dst")
-    parser.add_argument("--source-episodes", type=int, default=200, help="its first episodes (the ones trained on)")
-    parser.add_argument("--source-every", type=int, default=1, help="keep every k-th step")
-    args = parser.parse_args(argv)
-    if args.source_store and not args.task:
-        raise ValueError("--source-store needs --task (the layout its index is searched with)")
-    dst = release(args.src, args.dst, args.note, args.ema_only)
+def main(cfg: DictConfig) -> Path:
+    check_config(cfg, KEYS)
+    if cfg.source_store and cfg.get("task") is None:
+        raise ValueError("source_store needs task=<name> (conf/task/): the keypoint layout its index is searched with")
+    dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only)
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
-    if args.source_store:
-        index = release_source_index(dst, args.task, args.source_store, args.source_episodes, args.source_every)
+    if cfg.source_store:
+        layout = instantiate(cfg.task).policy_layout
+        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every)
         print(f"source index {index} ({index.stat().st_size / 1e6:.2f} MB)")
+    return dst
 
 
 if __name__ == "__main__":

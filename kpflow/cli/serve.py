@@ -1,4 +1,4 @@
-"""Serve a trained policy: ``python -m kpflow.serve checkpoint=PATH [transport=ilwr] [host=0.0.0.0 port=8000]``.
+"""Serve a trained policy: ``kpflow-serve checkpoint=PATH [transport=ilwr] [host=0.0.0.0 port=8000]``.
 
 Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (transported online through a map with
 ``transport=...``, its source index read from ``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
@@ -39,7 +39,7 @@ KEYS = {
 }
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="serve")
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="serve")
 @command
 def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)

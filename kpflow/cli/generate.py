@@ -1,4 +1,4 @@
-"""Generate demonstrations for a robosuite benchmark task: ``python -m kpflow.generate task=square n=200``.
+"""Generate demonstrations for a robosuite benchmark task: ``kpflow-generate task=square n=200``.
 
 Transports ``n_sources`` scripted demonstrations into ``n`` new scenes per variant and family, segment by segment
 (:mod:`kpflow.eval.generation`), and keeps the successes: ``<variant>/<family>/episodes.zarr`` and robomimic's
@@ -41,7 +41,7 @@ KEYS = {
 }
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="generate")
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="generate")
 @command
 def main(cfg: DictConfig) -> dict:
     task = instantiate(cfg.task)

@@ -1,4 +1,4 @@
-"""Interactive corrections: ``python -m kpflow.correct policy=transport data.n_episodes=35 rounds=3``.
+"""Interactive corrections: ``kpflow-correct policy=transport data.n_episodes=35 rounds=3``.
 
 Copies the demonstrations (``data``) into the run's output folder, then grows that copy round by round with the
 scripted expert's takeovers where the policy (``policy``, rebuilt from the grown store each round) gets stuck or
@@ -105,7 +105,7 @@ def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path:
     plots.close(fig)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="correct")
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="correct")
 @command
 def main(cfg: DictConfig) -> list[dict]:
     out = start_run(cfg, KEYS)

@@ -1,4 +1,4 @@
-"""Collect demonstrations: ``python -m kpflow.collect task=pusht n_episodes=35``.
+"""Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``.
 
 Rolls the task's scripted expert out on seeded configurations and commits each successful episode to an
 :class:`~kpflow.data.episode_store.EpisodeStore` (zarr, Diffusion Policy layout) in the run's output folder, beside
@@ -31,7 +31,7 @@ KEYS = {
 }
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="collect")
 @command
 def main(cfg: DictConfig) -> dict:
     task = HydraConfig.get().runtime.choices.get("task")

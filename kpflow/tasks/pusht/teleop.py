@@ -2,7 +2,7 @@
 
 Needs pygame, an optional extra: ``pip install 'kpflow[teleop]'``. Run::
 
-    python -m kpflow.teleop --store demos.zarr --split in_distribution --goal random --episodes 5
+    kpflow-teleop store=demos.zarr split=in_distribution goal=random episodes=5
 
 Keys: arrows or WASD move the agent's absolute target (10 px per control step while held, 3 px with shift held);
 space pauses/resumes; Enter saves the episode and starts the next one; Backspace discards it and restarts the same
@@ -17,18 +17,16 @@ and the action taken (the Diffusion Policy dataset's convention): ``keypoints`` 
 
 from __future__ import annotations
 
-import argparse
 import os
 from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .data.episode_store import EpisodeStore
-from .tasks.pusht.env import PushTEnv
-from .tasks.pusht.geometry import coverage
-from .tasks.pusht.rollout import StopEpisode, run_episode
-from .tasks.pusht.scene import GOAL_MODES, SPLITS
-from .utils.errors import command
+from kpflow.data.episode_store import EpisodeStore
+
+from .env import PushTEnv
+from .geometry import coverage
+from .rollout import StopEpisode, run_episode
 
 UNBOUNDED = 10**9  # steps: an env without max_steps records until Enter or success
 _STATUS_PX = 28  # height of the status line under the scene
@@ -231,33 +229,3 @@ class KeyboardTeleop:
         text = f"coverage {coverage:.0%}   step {n_steps}   episodes {self.store.n_episodes}{state}"
         screen.blit(self._font.render(text, True, (0, 0, 0)), (8, side + 6))
         pg.display.flip()
-
-
-@command
-def main(argv: list[str] | None = None) -> None:
-    """Command line: record ``--episodes`` keyboard demonstrations into ``--store``."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--store", required=True, help="episode store (zarr directory) to append to; created if missing")
-    parser.add_argument("--split", default="in_distribution", choices=SPLITS)
-    parser.add_argument("--goal", default="random", choices=GOAL_MODES)
-    parser.add_argument("--episodes", type=int, default=5, help="episodes to save")
-    parser.add_argument("--seed", type=int, default=None, help="first reset seed (default: the store's episode count, so a resumed session draws new configurations)")
-    parser.add_argument("--max-steps", type=int, default=300, help="steps after which an episode ends and is saved")
-    parser.add_argument("--step-px", type=float, default=10.0)
-    parser.add_argument("--fine-px", type=float, default=3.0)
-    parser.add_argument("--fps", type=float, default=10.0, help="control rate; 0: unthrottled")
-    parser.add_argument("--window", type=int, default=512, help="window size in pixels")
-    args = parser.parse_args(argv)
-
-    env = PushTEnv(split=args.split, goal=args.goal, max_steps=args.max_steps, render_mode="rgb_array")
-    store = EpisodeStore(args.store, mode="a")
-    teleop = KeyboardTeleop(env, store, args.step_px, args.fine_px, args.fps, args.window)
-    try:
-        saved = teleop.run(args.episodes, store.n_episodes if args.seed is None else args.seed)
-    finally:
-        teleop.close()
-    print(f"saved {saved} episode(s); {store.path} holds {store.n_episodes}")
-
-
-if __name__ == "__main__":
-    main()

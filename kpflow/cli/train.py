@@ -1,0 +1,83 @@
+"""Train: ``python train.py experiment=frames_field``. Builds the datamodule, model and trainer from ``conf/``,
+checkpoints the best and last epochs under the run folder (``conf/callbacks``), and with ``run_name=NAME resume=true`` continues
+that run from its last checkpoint.
+
+A run folder belongs to one run: a run started into a folder another live run holds is refused at once, naming
+that run's pid (:func:`~kpflow.utils.run.claim_run_folder`, taken before anything else looks at the folder), reusing
+a finished or dead run's folder without ``resume=true`` is refused, and the resolved config is written only once
+training has started (a resume that fails, e.g. on a size mismatch, leaves the run's config as it was).
+Checkpoints are read with ``torch.load(weights_only=True)`` (:class:`~kpflow.utils.checkpoint.SafeCheckpointIO`),
+so resuming never runs code from a checkpoint file."""
+
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.utilities import rank_zero_only
+from omegaconf import DictConfig
+
+from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
+from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
+from kpflow.utils.errors import command
+from kpflow.utils.run import make_loggers, run_folder_contents, start_run, write_config
+
+KEYS = {"seed": SEED, "resume": Key(bool), "run_name": Key(str), **TRAINER_KEYS}
+
+
+class WriteConfig(Callback):
+    """Write the run's resolved config once training starts (after a resumed checkpoint has been restored)."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.cfg = cfg
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        if trainer.is_global_zero:
+            write_config(self.cfg)
+
+
+def check_resumable(model, last: Path) -> None:
+    """Raise ``ValueError`` before anything is written if ``last``'s weights do not fit ``model`` (resuming with
+    another model config than the run's)."""
+    saved = read_checkpoint(last)["state_dict"]
+    own = model.state_dict()
+    missing, extra = sorted(set(own) - set(saved)), sorted(set(saved) - set(own))
+    shapes = [f"{k}: checkpoint {list(saved[k].shape)} vs model {list(own[k].shape)}" for k in own if k in saved and saved[k].shape != own[k].shape]
+    if missing or extra or shapes:
+        what = "; ".join(shapes[:3] + [f"missing {missing[:3]}"] * bool(missing) + [f"unexpected {extra[:3]}"] * bool(extra))
+        raise ValueError(f"{last} does not fit the configured model ({what}): resume with the run's own model config (see its config.yaml)")
+
+
+@hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="train")
+@command
+def main(cfg: DictConfig) -> dict:
+    out = start_run(cfg, KEYS, write=False)  # claims the folder (rank 0): no other run passes the check below with us
+    if "model_checkpoint" not in cfg.get("callbacks", {}):
+        raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see conf/callbacks/default.yaml)")
+    last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
+    if cfg.resume and not last.exists():
+        raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")
+    # DDP's other processes re-run this script into the same folder (rank 0 has claimed and checked it): only rank 0
+    # claims it (start_run) and checks it
+    if not cfg.resume and rank_zero_only.rank == 0 and (used := run_folder_contents(out)):
+        raise FileExistsError(
+            f"{out} already holds a run ({', '.join(used)}): pass resume=true to continue it, or choose another run_name"
+        )
+    datamodule = instantiate(cfg.data)
+    model = instantiate(cfg.model, _convert_="all")  # plain lists and dicts as hparams: checkpoints load with weights_only
+    if cfg.resume:
+        check_resumable(model, last)
+    callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
+    checkpoints = callbacks["model_checkpoint"]
+    trainer = instantiate(
+        cfg.trainer, logger=make_loggers(cfg) or False, callbacks=[*callbacks.values(), WriteConfig(cfg)], plugins=[SafeCheckpointIO()],
+        default_root_dir=out,
+    )
+    trainer.fit(model, datamodule=datamodule, ckpt_path=str(last) if cfg.resume else None)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    print(f"checkpoints: {Path(checkpoints.dirpath)}  best: {checkpoints.best_model_path}  metrics: {metrics}")
+    return metrics
+
+
+if __name__ == "__main__":
+    main()
