@@ -153,7 +153,7 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
 def test_collect_cli_names_an_unknown_task(tmp_path):
     cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert done.returncode != 0 and "config key task must be one of pusht; got 'packing'" in done.stderr  # no scripted collector for it
+    assert done.returncode != 0 and "collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not PackingTask" in done.stderr  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()
     cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=nope", f"hydra.run.dir={tmp_path}"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)

@@ -469,7 +469,7 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
     released = release(tmp_path / "last.ckpt", tmp_path / "suite_lift_kcfm.ckpt", ema_only=True)
-    release_source_index(released, SuiteTask("lift").policy_layout, store, 200)
+    release_source_index(released, SuiteTask("lift").policy_layout, store, 200, action_key="ee_target")
     obs = {"keypoints_history": data.train_dataloader().dataset[0]["history"].numpy().astype(np.float64)}
     full, ema = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt"), KCFMPolicy.from_checkpoint(released)
     np.testing.assert_array_equal(full.act(obs), ema.act(obs))  # sampling uses the EMA network: the release acts the same

@@ -1,16 +1,20 @@
-"""Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``.
+"""Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``, or for a Gymnasium task of your own
+(:class:`~kpflow.tasks.base.GymTask` with an expert) ``kpflow-collect --config-dir conf task=<task> n_episodes=50``.
 
 Rolls the task's scripted expert out on seeded configurations and commits each successful episode to an
-:class:`~kpflow.data.episode_store.EpisodeStore` (zarr, Diffusion Policy layout) in the run's output folder, beside
-the resolved config and a few episode videos.
+:class:`~kpflow.data.episode_store.EpisodeStore` (zarr, Diffusion Policy layout) in the run's output folder
+(``episodes.zarr``), beside the resolved config and (Push-T) a few episode videos.
 """
 
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from kpflow.tasks.base import GymTask
+from kpflow.tasks.gym_rollout import collect_gym_episodes
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import SEED, Key
@@ -18,7 +22,6 @@ from kpflow.utils.errors import command
 from kpflow.utils.io import write_json
 from kpflow.utils.run import remove_unused_run_folder, start_run
 
-TASKS = ("pusht",)
 KEYS = {
     "n_episodes": Key(int, lo=1),
     "seed": SEED,
@@ -28,16 +31,15 @@ KEYS = {
     "keep_failures": Key(bool),
     "split": Key(str, choices=SPLITS),
     "goal": Key(str, choices=GOAL_MODES),
+    "condition": Key(str, nullable=True),
 }
 
 
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="collect")
 @command
 def main(cfg: DictConfig) -> dict:
-    task = HydraConfig.get().runtime.choices.get("task")
-    if task not in TASKS:  # only Push-T has a scripted collector
-        remove_unused_run_folder(Path(cfg.output_dir))
-        raise ValueError(f"config key task must be one of {', '.join(TASKS)}; got {task!r}")
+    if HydraConfig.get().runtime.choices.get("task") != "pusht":
+        return collect_task(cfg)
     out = start_run(cfg, KEYS)
     summary = collect_pusht(
         out / "episodes.zarr",
@@ -56,6 +58,20 @@ def main(cfg: DictConfig) -> dict:
         f"collected {summary['episodes']} episodes ({summary['successes']}/{summary['attempts']} attempts succeeded,"
         f" {summary['steps']} steps) into {summary['store']}"
     )
+    return summary
+
+
+def collect_task(cfg: DictConfig) -> dict:
+    """A Gymnasium task's expert episodes (:func:`~kpflow.tasks.gym_rollout.collect_gym_episodes`)."""
+    task = instantiate(cfg.task)
+    if not isinstance(task, GymTask):
+        remove_unused_run_folder(Path(cfg.output_dir))
+        raise ValueError(f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not {type(task).__name__}")
+    out = start_run(cfg, KEYS)
+    summary = collect_gym_episodes(task, out / "episodes.zarr", cfg.n_episodes, cfg.condition, cfg.seed, cfg.keep_failures)
+    write_json(out / "summary.json", summary)
+    print(f"collected {summary['episodes']} episodes ({summary['successes']}/{summary['attempts']} attempts succeeded,"
+          f" {summary['steps']} steps) into {summary['store']}")  # fmt: skip
     return summary
 
 

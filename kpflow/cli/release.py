@@ -2,7 +2,7 @@
 
     kpflow-release src=outputs/pusht_kcfm/<run>/checkpoints/last.ckpt dst=release/<name>.ckpt [note="..."]
     kpflow-release src=<run>/checkpoints/last.ckpt dst=release/suite_lift_kcfm.ckpt ema_only=true \
-        task=lift source_store=<generate run>/d0/rigid/episodes.zarr source_episodes=200 source_every=2
+        task=lift source_store=<generate run>/d0/rigid/episodes.zarr source_action_key=ee_target source_episodes=200 source_every=2
 
 The released file holds the weights and buffers (``state_dict``: the trained and the EMA network, or with
 ``ema_only=true`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters and a ``release`` record (source path, note,
@@ -53,14 +53,14 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
     return dst
 
 
-def release_source_index(dst: str | Path, layout, store: str | Path, episodes: int, every: int = 1) -> Path:
+def release_source_index(dst: str | Path, layout, store: str | Path, episodes: int, every: int = 1, action_key: str = "action") -> Path:
     """Write the source index of a transported K-CFM released at ``dst`` (module docstring); returns its path."""
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
     from kpflow.policies.factory import frame_indices, source_index_path
 
     with EpisodeStore(store) as s:
-        full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", "ee_target")
+        full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
     index = SourceIndex(full.keypoints[keep], full.chunks[keep], layout.weights({"robot": 4.0}), frame_indices(layout, "objects"))
     return index.save(source_index_path(dst))
@@ -74,6 +74,7 @@ KEYS = {
     "source_store": Key(str, nullable=True),
     "source_episodes": Key(int, lo=1),
     "source_every": Key(int, lo=1),
+    "source_action_key": Key(str),
 }
 
 
@@ -87,7 +88,7 @@ def main(cfg: DictConfig) -> Path:
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
     if cfg.source_store:
         layout = instantiate(cfg.task).policy_layout
-        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every)
+        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key)
         print(f"source index {index} ({index.stat().st_size / 1e6:.2f} MB)")
     return dst
 

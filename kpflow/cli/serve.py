@@ -48,7 +48,7 @@ def main(cfg: DictConfig) -> None:
     fit_on = OmegaConf.to_container(cfg.fit_on) if isinstance(cfg.fit_on, ListConfig) else cfg.fit_on
     choice = OmegaConf.to_container(cfg.source)
     deployment = load_deployment(
-        cfg.checkpoint, instantiate(cfg.task), cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
+        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
         cfg.reach, cfg.turn_deg, cfg.input_margin,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))

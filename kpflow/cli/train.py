@@ -1,4 +1,5 @@
-"""Train: ``python train.py experiment=frames_field``. Builds the datamodule, model and trainer from ``conf/``,
+"""Train: ``kpflow-train experiment=kcfm data.path=STORE_OR_LEROBOT_DATASET`` (``python train.py ...`` from a
+checkout). Builds the datamodule, model and trainer from ``conf/``,
 checkpoints the best and last epochs under the run folder (``conf/callbacks``), and with ``run_name=NAME resume=true`` continues
 that run from its last checkpoint.
 
@@ -15,7 +16,7 @@ import hydra
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
 from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
@@ -34,6 +35,20 @@ class WriteConfig(Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         if trainer.is_global_zero:
             write_config(self.cfg)
+
+
+def fill_from_data(model: DictConfig, datamodule) -> None:
+    """Fill the model keys the config leaves null (``n_keypoints: null``...) with what the data says
+    (``datamodule.model_dims()``: the keypoint layout and action size read from the store or dataset), in place, so
+    that the run's config.yaml records them."""
+    wanted = [key for key, value in model.items() if value is None]
+    if not wanted or not hasattr(datamodule, "model_dims"):
+        return
+    dims = datamodule.model_dims()
+    with open_dict(model):
+        for key in wanted:
+            if key in dims:
+                model[key] = dims[key]
 
 
 def check_resumable(model, last: Path) -> None:
@@ -64,6 +79,7 @@ def main(cfg: DictConfig) -> dict:
             f"{out} already holds a run ({', '.join(used)}): pass resume=true to continue it, or choose another run_name"
         )
     datamodule = instantiate(cfg.data)
+    fill_from_data(cfg.model, datamodule)
     model = instantiate(cfg.model, _convert_="all")  # plain lists and dicts as hparams: checkpoints load with weights_only
     if cfg.resume:
         check_resumable(model, last)

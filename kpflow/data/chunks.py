@@ -13,6 +13,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import HindsightGoals, fragment_episodes
+from kpflow.data.lerobot_dataset import is_lerobot, open_lerobot
 
 
 class ChunkDataset(Dataset):
@@ -125,7 +126,9 @@ class ChunkDataModule(lightning.LightningDataModule):
     """Train/val :class:`ChunkDataset` s from the episode store at ``path``, split by episode.
 
     Args:
-        path: episode store (opened read-only).
+        path: an episode store (opened read-only) or a LeRobot v3 dataset folder (read through a temporary store,
+            :func:`~kpflow.data.lerobot_dataset.open_lerobot`: its ``observation.state`` named ``k<i>.<axis>``
+            becomes ``keypoints [T, K, D]``, its ``action`` the ``action``).
         horizon, n_obs, obs_key, action_key: see :class:`ChunkDataset`.
         val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
         max_episodes: use only the first ``max_episodes`` episodes (all if None).
@@ -162,7 +165,7 @@ class ChunkDataModule(lightning.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        store = EpisodeStore(self.path, mode="r")
+        store = open_lerobot(self.path) if is_lerobot(self.path) else EpisodeStore(self.path, mode="r")
         n = store.n_episodes if self.max_episodes is None else min(store.n_episodes, self.max_episodes)
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
@@ -171,6 +174,19 @@ class ChunkDataModule(lightning.LightningDataModule):
                       relabel_fragments=self.relabel_fragments)
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
+
+    def model_dims(self) -> dict[str, int]:
+        """What the data says a policy's size must be: ``n_keypoints``, ``keypoint_dim`` (the observations' ``[K, D]``)
+        and ``action_dim`` (``train`` fills the model keys a config leaves null with these; sets the data up)."""
+        self.setup()
+        obs, actions = self.train_set.obs, self.train_set.actions
+        if obs.ndim != 3 or actions.ndim != 2:
+            raise ValueError(
+                f"{self.path}: a K-CFM observes keypoints [T, K, D] and acts [T, A], but field {self.obs_key!r} is"
+                f" {list(obs.shape)} and {self.action_key!r} {list(actions.shape)} (a LeRobot dataset's observation.state"
+                " is read as keypoints when its names are k0.x, k0.y, ...: kpflow.data.lerobot_dataset)"
+            )
+        return {"n_keypoints": int(obs.shape[1]), "keypoint_dim": int(obs.shape[2]), "action_dim": int(actions.shape[1])}
 
     def _loader(self, dataset: ChunkDataset | None, shuffle: bool) -> DataLoader:
         if dataset is None:

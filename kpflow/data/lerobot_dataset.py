@@ -251,3 +251,27 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
         for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(episode)]])):
             store.add_episode({name: v[a:b] for name, v in values.items()})
     return EpisodeStore(store_path)
+
+
+def open_lerobot(root: str | Path) -> EpisodeStore:
+    """The LeRobot v3 dataset at ``root`` as a read-only :class:`EpisodeStore` in a temporary folder (imported with
+    :func:`import_lerobot`'s default columns, removed when the store is garbage-collected or the process exits):
+    what a datamodule reads a LeRobot dataset through, without writing beside it."""
+    import shutil
+    import tempfile
+    import weakref
+
+    folder = Path(tempfile.mkdtemp(prefix="kpflow-lerobot-"))
+    try:
+        import_lerobot(root, folder / "episodes.zarr")
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    store = EpisodeStore(folder / "episodes.zarr", mode="r")
+    weakref.finalize(store, shutil.rmtree, folder, True)
+    return store
+
+
+def is_lerobot(root: str | Path) -> bool:
+    """Whether ``root`` is a LeRobot dataset folder (it holds ``meta/info.json``)."""
+    return (Path(root) / "meta" / "info.json").is_file()

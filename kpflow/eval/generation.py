@@ -20,23 +20,40 @@ how the attempts fall to them change nothing, and a run stopped at any point and
 
 from __future__ import annotations
 
+import json
+import shutil
 import time
 from pathlib import Path
+from typing import Sequence
 
+import h5py
 import numpy as np
+from omegaconf import OmegaConf, open_dict
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.robomimic_export import export_robomimic
-from kpflow.eval.generation_journal import STORE, CellJournal, check_output, run_manifest, write_manifest
+from kpflow.data.store_merge import merge_stores
+from kpflow.eval.generation_journal import (
+    JOURNAL,
+    STORE,
+    CellJournal,
+    check_output,
+    read_shards,
+    run_manifest,
+    shard_indices,
+    write_manifest,
+)
 from kpflow.eval.parallel import iter_jobs
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.arm.segment_transport import SegmentTransport
 from kpflow.tasks.suite.env import MODEL_SEED, controller_config
 from kpflow.tasks.suite.task import SuiteTask
-from kpflow.utils.io import write_json, write_text
+from kpflow.utils.formats import read_yaml
+from kpflow.utils.io import atomic_dir, write_json, write_text
 from kpflow.utils.video import write_video
 
 SOURCE_SEED = 10_000
+EXPORT = "demos.hdf5"  # a cell's robomimic export
 CONTROL_FREQ = 20  # Hz: robosuite's control rate, for the real-time ratio
 
 
@@ -163,6 +180,8 @@ def generate(
     export: bool = True,
     progress: bool = True,
     resume: bool = False,
+    shards: int = 1,
+    shard: int = 0,
 ) -> dict:
     """``n`` attempts per variant and family into ``output_dir`` (module docstring): ``results.json`` (every
     attempt and the summary), ``results.md``, ``<variant>/<family>/episodes.zarr`` (the successes, in attempt
@@ -173,16 +192,21 @@ def generate(
     that was stopped continues in its folder from the first attempt it had not committed (the settings in its
     ``generation.json`` must be these; ``workers``, ``videos`` and ``export`` may differ) and ends with the stores
     and results an uninterrupted run writes, but for the throughput, which counts only the attempts this call ran
-    (``attempts_run``). Without ``resume`` a folder that holds a generation run is refused."""
+    (``attempts_run``). Without ``resume`` a folder that holds a generation run is refused.
+
+    With ``shards`` > 1 the call runs shard ``shard`` of the attempts only: those ``i`` with ``i % shards == shard``
+    (:func:`~.generation_journal.shard_indices`), everything else as above (its videos are its own first attempts);
+    :func:`merge_shards` joins the shards' folders into the folder one run writes."""
     if n < 1 or workers < 1 or videos < 0:
         raise ValueError(f"n and workers must be >= 1 and videos >= 0; got {n}, {workers}, {videos}")
+    indices = shard_indices(n, shards, shard)
     bad = [v for v in variants if v not in task.variants]
     if bad or not variants:
         raise ValueError(f"unknown variants {bad or variants}; choose from {task.variants}")
     if not families:
         raise ValueError("give at least one family")
     out = Path(output_dir)
-    manifest = run_manifest(task, families, variants, n, n_sources, seed, candidates, stop_early)
+    manifest = run_manifest(task, families, variants, n, n_sources, seed, candidates, stop_early, shards, shard)
     check_output(out, manifest, resume)
     out.mkdir(parents=True, exist_ok=True)
     write_manifest(out, manifest)
@@ -190,42 +214,163 @@ def generate(
     summaries, throughput, records = {}, {}, []
     for variant in variants:
         for family in families:
-            cell, run = _run_cell(out / variant / family, generator, variant, family, n, workers, progress)
+            cell, run = _run_cell(out / variant / family, generator, variant, family, indices, workers, progress)
             records += cell
             summaries[(variant, family)], throughput[(variant, family)] = success_summary(cell), run
             if export:
-                _export(out / variant / family, task)
-    video_paths = _film(out, generator, variants[0], next(iter(families)), videos)
+                _export(out / variant / family, task.spec.env_name, generator_env_kwargs(task))
+    video_paths = _film(out, generator, variants[0], next(iter(families)), list(indices[:videos]))
+    return write_results(out, manifest, summaries, throughput, records, video_paths)
+
+
+def write_results(out: Path, manifest: dict, summaries: dict[tuple[str, str], dict], throughput: dict[tuple[str, str], dict],
+                  records: list[dict], videos: list[str], merged_from: list[str] | None = None, at: Path | None = None) -> dict:  # fmt: skip
+    """``results.json`` and ``results.md`` of a run (or a shard's, or a merged run's: ``merged_from``) into ``out``
+    (``at``: the folder where they are written, when it is not yet ``out``); returns the results."""
+    n, n_sources, seed, candidates = manifest["n"], manifest["n_sources"], manifest["seed"], manifest["candidates"]
     results = {
-        "task": task.name,
+        "task": manifest["task"],
         "n_sources": n_sources,
         "candidates": candidates,
-        "stop_early": stop_early,
+        "stop_early": manifest["stop_early"],
         "seed": seed,
         "summary": [{"variant": v, "family": f, **s, **throughput[(v, f)]} for (v, f), s in summaries.items()],
         "attempts": records,
-        "videos": video_paths,
+        "videos": videos,
     }
-    write_json(out / "results.json", results)
-    header = f"# Generation: {task.name}\n\n{n} attempts per variant and family, {n_sources} scripted source(s), seed {seed}"
+    shards, shard = manifest.get("shards", 1), manifest.get("shard", 0)
+    if shards > 1:
+        results.update(shards=shards, shard=shard)
+    if merged_from is not None:
+        results["merged_from"] = list(merged_from)
+    at = Path(at or out)
+    write_json(at / "results.json", results)
+    header = f"# Generation: {manifest['task']}\n\n"
+    if shards > 1:
+        header += f"Shard {shard} of {shards}: of {n} attempts per variant and family, the {len(range(shard, n, shards))} "
+        header += f"with index i % {shards} = {shard}"
+    else:
+        header += f"{n} attempts per variant and family"
+    header += f", {n_sources} scripted source(s), seed {seed}"
     header += f", each attempt's source among the {candidates} nearest" if candidates else ""
-    header += "." if stop_early else ", every segment run to the success test."
+    header += "." if manifest["stop_early"] else ", every segment run to the success test."
+    if merged_from is not None:
+        header += (f" Merged from {len(merged_from)} shards; the throughput columns pool the shards' processes (attempts "
+                   "and wall time summed: per process, not the sweep's).")  # fmt: skip
     ran = sum(t["attempts_run"] for t in throughput.values())
     if ran < len(records):
         header += f" Resumed: {len(records) - ran} of the {len(records)} attempts were committed by an earlier run; "
         header += f"the throughput columns time the {ran} this run made." if ran else "this run made none, so no throughput."
-    write_text(out / "results.md", header + "\n\n" + rate_table(summaries, throughput))
+    write_text(at / "results.md", header + "\n\n" + rate_table(summaries, throughput))
     return results
 
 
-def _run_cell(folder: Path, generator: Generator, variant: str, family: str, n: int, workers: int, progress: bool) -> tuple[list[dict], dict]:
-    """One variant and family: its committed attempts continued up to ``n``, each committed as it finishes; the
-    records and the throughput of the attempts run here."""
-    journal = CellJournal(folder, variant, family)
+def merge_shards(folders: Sequence[str | Path], out: str | Path) -> dict:
+    """Join the finished shards of one run (``folders``, each :func:`generate` with the same settings and
+    ``shards``, one per ``shard``) into ``out``, the folder one unsharded run writes: ``generation.json`` (the run's,
+    without a shard), per variant and family ``attempts.jsonl`` and ``episodes.zarr`` with every attempt in index
+    order (:func:`~kpflow.data.store_merge.merge_stores`: the same arrays, to the bit) and, if the shards exported
+    any, ``demos.hdf5``; ``results.json`` and ``results.md`` summarised over all the attempts (the throughput pooled:
+    attempts and wall time summed over the shards); the shards' videos; and ``config.yaml``, the first shard's resolved
+    config with ``shards=1 shard=0`` and ``output_dir`` the merged folder, if the shards have one. Returns the
+    results.
+
+    Refused before anything is written, with an error naming the folders (:func:`~.generation_journal.read_shards`,
+    :meth:`~.generation_journal.CellJournal.finished`): shards of different settings, a shard missing or given twice,
+    an unfinished or damaged shard, an existing ``out``. Everything is written into a temporary folder beside ``out``
+    and renamed into place at the end, so a failure leaves nothing behind."""
+    out = Path(out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists already: the merged run needs a new folder")
+    manifest, folders = read_shards(folders)
+    n, count = manifest["n"], len(folders)
+    wanted = [(v, f) for v in manifest["variants"] for f in manifest["families"]]
+    shard_rows = [_summary_rows(d, wanted) for d in folders]
+    order = list(shard_rows[0])  # the run's order of families (generation.json lists them sorted)
+    cells = {(v, f): [CellJournal(d / v / f, v, f, shard_indices(n, count, k)) for k, d in enumerate(folders)] for v, f in order}
+    shard_records = {key: [journal.finished() for journal in journals] for key, journals in cells.items()}
+    env_args = _exported_env(folders)
+    summaries, throughput, records = {}, {}, []
+    with atomic_dir(out) as tmp:
+        write_manifest(tmp, manifest)
+        for (variant, family), journals in cells.items():
+            cell = sorted((r for part in shard_records[(variant, family)] for r in part), key=lambda r: r["index"])
+            folder = tmp / variant / family
+            folder.mkdir(parents=True)
+            write_text(folder / JOURNAL, "".join(json.dumps(r, sort_keys=True) + "\n" for r in cell))
+            merge_stores(folder / STORE, [j.store_path for j in journals], key="index")
+            if CellJournal(folder, variant, family, range(n)).finished() != cell:  # the merged cell reads as a run's
+                raise RuntimeError(f"{out / variant / family} did not merge into a finished cell")
+            if env_args is not None:
+                _export(folder, *env_args)
+            records += cell
+            summaries[(variant, family)] = success_summary(cell)
+            throughput[(variant, family)] = _pooled_throughput([rows[(variant, family)] for rows in shard_rows])
+        videos = []
+        for video in sorted(p for d in folders for p in d.glob("*.mp4")):
+            shutil.copyfile(video, tmp / video.name)
+            videos.append(str(out / video.name))
+        results = write_results(out, manifest, summaries, throughput, records, videos, [str(d) for d in folders], at=tmp)
+        if (folders[0] / "config.yaml").is_file():
+            _merged_config(folders[0] / "config.yaml", tmp / "config.yaml", out)
+    return results
+
+
+def _summary_rows(folder: Path, cells: list[tuple[str, str]]) -> dict[tuple[str, str], dict]:
+    """The summary row of every cell (variant and family) in ``folder``'s ``results.json``, in its order;
+    ``ValueError`` unless it summarises exactly ``cells``."""
+    path = folder / "results.json"
+    try:
+        rows = {(r["variant"], r["family"]): r for r in json.loads(path.read_text())["summary"]}
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+        rows = {}
+    if set(rows) != set(cells):
+        got = ", ".join(f"{v} {f}" for v, f in rows) or "none"
+        raise ValueError(f"{path} summarises the cells {got}, not the run's {', '.join(f'{v} {f}' for v, f in cells)}: the "
+                         "shard is damaged")  # fmt: skip
+    return rows
+
+
+def _pooled_throughput(rows: list[dict]) -> dict:
+    """The throughput of the shards' runs of one cell (``rows``: their summary rows) as one: attempts and wall time
+    summed, rates over the sums (the simulated time recovered from each row's ratio)."""
+    ran, wall = sum(r["attempts_run"] for r in rows), sum(r["wall_s"] for r in rows)
+    sim = sum(r["real_time"] * r["wall_s"] for r in rows if r["attempts_run"])
+    pooled = {"attempts_run": ran, "wall_s": wall, "attempts_per_minute": None, "real_time": None}
+    if ran and wall > 0:
+        pooled.update(attempts_per_minute=60 * ran / wall, real_time=sim / wall)
+    return pooled
+
+
+def _exported_env(folders: list[Path]) -> tuple[str, dict] | None:
+    """The robosuite ``env_name`` and ``env_kwargs`` the shards' robomimic exports record (None if they exported
+    none); ``ValueError`` naming two files that record different ones."""
+    found = None
+    for path in sorted(p for d in folders for p in d.glob(f"*/*/{EXPORT}")):
+        with h5py.File(path, "r") as f:
+            args = json.loads(f["data"].attrs["env_args"])
+        if found is None:
+            found = (path, args)
+        elif args != found[1]:
+            raise ValueError(f"{found[0]} and {path} record different robosuite environments: not shards of one run")
+    return None if found is None else (found[1]["env_name"], found[1]["env_kwargs"])
+
+
+def _merged_config(src: Path, dst: Path, out: Path) -> None:
+    """``src`` (a shard's resolved config) as the config of the unsharded run in ``out``."""
+    cfg = read_yaml(src)
+    with open_dict(cfg):
+        cfg.shards, cfg.shard, cfg.output_dir = 1, 0, str(out)
+    write_text(dst, OmegaConf.to_yaml(cfg))
+
+
+def _run_cell(folder: Path, generator: Generator, variant: str, family: str, indices: range, workers: int,
+              progress: bool) -> tuple[list[dict], dict]:  # fmt: skip
+    """One variant and family: its committed attempts continued through ``indices``, each committed as it finishes;
+    the records and the throughput of the attempts run here."""
+    journal = CellJournal(folder, variant, family, indices)
     records = journal.committed()
-    if len(records) > n:
-        raise ValueError(f"{journal.journal} holds {len(records)} attempts, more than n = {n}: the cell is damaged")
-    jobs = [(variant, i, family) for i in range(len(records), n)]
+    jobs = [(variant, i, family) for i in indices[len(records):]]
     desc = f"{generator.task.name} {variant} {family}" + (f" (from attempt {len(records)})" if records else "")
     start = time.perf_counter()
     with journal:
@@ -242,12 +387,12 @@ def _run_cell(folder: Path, generator: Generator, variant: str, family: str, n: 
     return records, run
 
 
-def _export(folder: Path, task: SuiteTask) -> None:
+def _export(folder: Path, env_name: str, env_kwargs: dict) -> None:
     """The cell's stored episodes in robomimic's layout, ``demos.hdf5`` (none without a success)."""
     with EpisodeStore(folder / STORE) as store:
         episodes = list(store)
     if episodes:
-        export_robomimic(folder / "demos.hdf5", episodes, task.spec.env_name, generator_env_kwargs(task))
+        export_robomimic(folder / EXPORT, episodes, env_name, env_kwargs)
 
 
 def generator_env_kwargs(task: SuiteTask) -> dict:
@@ -256,14 +401,15 @@ def generator_env_kwargs(task: SuiteTask) -> dict:
             **task.spec.env_kwargs}  # fmt: skip
 
 
-def _film(out: Path, generator: Generator, variant: str, family: str, videos: int) -> list[str]:
-    if not videos:
+def _film(out: Path, generator: Generator, variant: str, family: str, indices: list[int]) -> list[str]:
+    """Videos of the attempts ``indices`` of ``variant`` and ``family``, run again with rendering."""
+    if not indices:
         return []
     filming = Generator(generator.task, generator.families, generator.n_sources, generator.seed, render=True,
                         candidates=generator.candidates, stop_early=generator.stop_early)  # fmt: skip
     filming.setup()
     paths = []
-    for index in range(videos):
+    for index in indices:
         frames: list = []
         record, _ = filming.attempt(variant, index, family, frames)
         outcome = "success" if record["success"] else str(record["failure"]).replace(" ", "_")

@@ -14,7 +14,7 @@ from typing import Callable
 
 from ..data.source_index import SourceIndex
 from ..maps import AffineMap, GPMap, ILWRMap
-from ..policies.base import Policy
+from ..policies.base import Policy, PolicyLayout
 from ..policies.checks import INPUT_MARGIN
 from ..policies.factory import source_index_path
 from .protocol import PolicyMetadata
@@ -50,7 +50,8 @@ def load_deployment(
     turn_deg: float | None = None,
     input_margin: float | None = INPUT_MARGIN,
 ) -> Deployment:
-    """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit), ready to serve,
+    """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit; None: a policy trained on
+    data of no kpflow task, served with the keypoints and actions its checkpoint declares), ready to serve,
     transported online through a ``transport`` map (``"ilwr"``, ``"gp"``, ``"rigid"``; the source index is read from
     beside the checkpoint) or as it is (None). Built by the one policy builder (:mod:`kpflow.policies.factory`):
     a transported one fits its map on ``fit_on`` (group or role names of the task's layout, or ``"all"``) and
@@ -73,9 +74,12 @@ def load_deployment(
         raise ValueError(f"transport must be None or one of {sorted(TRANSPORT_MAPS)}, got {transport!r}")
     model = load_checkpoint(KCFM, checkpoint, map_location="cpu")
     check_steps_and_execute(model, steps, execute)
-    check_checkpoint_fits(str(checkpoint), model.hparams, task)
-    layout = layout_of(task)
     hp = model.hparams
+    if task is None:  # no task: the layout the checkpoint was trained with, without named groups
+        layout = PolicyLayout(int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.action_dim))
+    else:
+        check_checkpoint_fits(str(checkpoint), model.hparams, task)
+        layout = layout_of(task)
     k, d, n_obs = int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.n_obs)
     limits = {name: value for name, value in (("reach", reach), ("turn_deg", turn_deg)) if value is not None}
     if transport is None:

@@ -187,3 +187,42 @@ class ArmTask(abc.ABC):
     @abc.abstractmethod
     def execute(self, env, trajectory: Trajectory, frames: list | None = None) -> Execution:
         """Run ``trajectory`` and say whether the task succeeded, and if not why (appending video frames)."""
+
+
+class GymTask(abc.ABC):
+    """A task whose simulator is a Gymnasium env: what a new task implements, in a folder of its own, to be collected
+    (``kpflow-collect``), trained on (``kpflow-train``), evaluated in closed loop (``kpflow-evaluate
+    experiment=gym_policy``) and served (``kpflow-serve``); its YAML in a ``task/`` config folder names the class
+    (docs/tutorials/own-task.md; ``examples/reach_task`` is one).
+
+    * :meth:`make_env` returns a ``gymnasium.Env`` whose ``reset(seed=i)`` draws scene ``i`` of ``condition``, whose
+      observations are dicts holding ``keypoints [K, D]`` (:attr:`policy_layout`'s), and whose ``step(action [A])``
+      reports ``info["is_success"]`` (Gymnasium's convention) and terminates once the task is done.
+    * :attr:`policy_layout` (:class:`~kpflow.policies.base.PolicyLayout`): the keypoints, their named groups and the
+      actions, which every learned or transporting policy is checked against.
+    * :attr:`conditions`: the scene distributions an evaluation can ask for (the first is the training one);
+      :attr:`max_steps`: the control steps an episode may take.
+    * :meth:`expert`: a scripted :class:`~kpflow.policies.base.Policy` that solves the task (None when the task has
+      none: its demonstrations then come from elsewhere, e.g. a LeRobot dataset).
+    """
+
+    name: str
+    conditions: tuple[str, ...] = ("default",)
+    max_steps: int = 200
+
+    @property
+    @abc.abstractmethod
+    def policy_layout(self):
+        """The :class:`~kpflow.policies.base.PolicyLayout` of the task's keypoints and actions."""
+
+    @abc.abstractmethod
+    def make_env(self, condition: str, render: bool = False):
+        """A fresh ``gymnasium.Env`` drawing the scenes of ``condition`` (``render``: ``render()`` returns RGB frames)."""
+
+    def expert(self):
+        """A scripted policy that solves the task, or None."""
+        return None
+
+    def check_condition(self, condition: str) -> None:
+        if condition not in self.conditions:
+            raise ValueError(f"{self.name} has no condition {condition!r}; choose from {', '.join(self.conditions)}")

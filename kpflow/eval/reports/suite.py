@@ -1,4 +1,5 @@
-"""The robosuite benchmark tasks' policy report: success with its 95% interval and the steps taken, per variant."""
+"""A policy's closed-loop report: success with its 95% interval and the steps taken, per condition
+(:class:`SuccessReport`, any task whose episodes succeed or not; :class:`SuiteReport`, the robosuite benchmark tasks')."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.base import TrialResult
 
 
-class SuiteReport:
+class SuccessReport:
+    """Success [95% interval], failure reasons and the median steps to success, one row per condition."""
+
     fps = 10
 
     def summarise(self, trials: list[TrialResult]) -> dict:
@@ -28,10 +31,18 @@ class SuiteReport:
 
     def header(self, trial, n_trials: dict[str, int]) -> str:
         return (f"# {trial.name}: {trial.policy_name} in closed loop\n\n"
-                f"Episodes per variant: {n_trials}; at most {trial.max_steps} control steps; robosuite's own success check.\n\n")  # fmt: skip
+                f"Episodes per condition: {n_trials}; at most {trial.max_steps} control steps; the env's own success test.\n\n")  # fmt: skip
 
     def showcase(self, trials: list[TrialResult], videos: int) -> list[tuple[TrialResult, bool]]:
         return [(t, True) for t in trials if t.index == trials[0].index][:videos]
 
     def figures(self, out: Path, trial, trials: list[TrialResult], showcase: list[TrialResult]) -> list[str]:
         return []
+
+
+class SuiteReport(SuccessReport):
+    """The robosuite benchmark tasks' report (their variants, robosuite's success check)."""
+
+    def header(self, trial, n_trials: dict[str, int]) -> str:
+        return (f"# {trial.name}: {trial.policy_name} in closed loop\n\n"
+                f"Episodes per variant: {n_trials}; at most {trial.max_steps} control steps; robosuite's own success check.\n\n")  # fmt: skip

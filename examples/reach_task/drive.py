@@ -1,0 +1,40 @@
+"""Run reach episodes with the policy a server serves: ``python drive.py [--uri ws://127.0.0.1:8000] [--episodes 5]``.
+
+The robot side of a deployment: the env observes, a :class:`~kpflow.serving.client.PolicyClient` asks the server
+for actions, the same closed loop as in-process evaluation runs them (kpflow.tasks.gym_rollout).
+"""
+
+import argparse
+import time
+
+from reach import ReachTask
+
+from kpflow.serving.client import PolicyClient
+from kpflow.tasks.gym_rollout import run_gym_episode
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--uri", default="ws://127.0.0.1:8000")
+    parser.add_argument("--episodes", type=int, default=5)
+    parser.add_argument("--condition", default="wide")
+    parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server")
+    args = parser.parse_args()
+    deadline = time.monotonic() + args.wait
+    while True:
+        try:
+            client = PolicyClient(args.uri)
+            break
+        except ConnectionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+    task = ReachTask()
+    env = task.make_env(args.condition)
+    with client:
+        wins = sum(run_gym_episode(env, client, 2_000_000 + i, task.max_steps).success for i in range(args.episodes))
+    print(f"{wins}/{args.episodes} episodes reached the target through {args.uri}")
+
+
+if __name__ == "__main__":
+    main()

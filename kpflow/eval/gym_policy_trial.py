@@ -1,0 +1,51 @@
+"""A Gymnasium task's policy trial: one closed-loop episode of a policy in a seeded scene of a
+:class:`~kpflow.tasks.base.GymTask` (``kpflow-evaluate experiment=gym_policy task=<task> policy=kcfm ...``).
+
+Scene ``i`` of a condition is the env's ``reset(seed=EVAL_SEED + seed + i)``: the evaluation stream starts far from the
+seeds ``kpflow-collect`` draws demonstrations with (0, 1, 2, ...). Success is the env's ``info["is_success"]`` within the
+task's ``max_steps``.
+"""
+
+from __future__ import annotations
+
+from kpflow.policies.base import Policy
+from kpflow.tasks.base import GymTask, TrialResult
+from kpflow.tasks.gym_rollout import run_gym_episode
+
+EVAL_SEED = 1_000_000
+
+
+class GymPolicyTrial:
+    """Episodes of ``policy`` (labelled ``name``) on ``task``, scored by ``report`` (at most ``max_steps`` steps; the
+    task's own limit when None)."""
+
+    def __init__(self, task: GymTask, policy: Policy, report, name: str = "policy", max_steps: int | None = None):
+        if not isinstance(task, GymTask):
+            raise ValueError(f"experiment=gym_policy runs Gymnasium tasks (kpflow.tasks.base.GymTask), not {type(task).__name__}")
+        self.task, self.policy, self.report, self.policy_name = task, policy, report, str(name)
+        self.max_steps = int(task.max_steps if max_steps is None else max_steps)
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        self.name, self.conditions, self.default_conditions = task.name, tuple(task.conditions), tuple(task.conditions)
+        self.envs: dict = {}
+
+    def variants(self) -> list[dict[str, str]]:
+        return [{"policy": self.policy_name}]
+
+    def setup(self) -> None:
+        import torch
+
+        torch.set_num_threads(1)
+
+    def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
+        key = (condition, frames is not None)
+        if key not in self.envs:
+            self.envs[key] = self.task.make_env(condition, render=frames is not None)
+        scene_seed = EVAL_SEED + seed + index
+        episode = run_gym_episode(self.envs[key], self.policy, scene_seed, self.max_steps, frames)
+        failure = None if episode.success else "time limit"
+        scores = {"steps": episode.steps, "decisions": episode.decisions}
+        return TrialResult(condition, index, dict(variant), {"seed": scene_seed}, episode.success, failure, scores)
+
+    def describe(self) -> dict:
+        return {"policy": self.policy_name, "max_steps": self.max_steps}
