@@ -339,7 +339,7 @@ def test_closed_loop_pusht_episode_through_the_server_equals_in_process(uri, rel
 
 @pytest.mark.slow
 def test_serve_cli_answers_then_stops_on_sigterm():
-    proc = subprocess.Popen([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "port=0", "steps=2"], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "kpflow.cli.serve", "task=pusht", f"checkpoint={RELEASED}", "port=0", "steps=2"], cwd=ROOT,
                             stderr=subprocess.STDOUT, stdout=subprocess.PIPE, text=True)  # fmt: skip
     try:
         line = ""

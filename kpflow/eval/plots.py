@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -70,3 +72,20 @@ def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_
         ax.scatter([xa, xb + width], [ya, yb], color=colour, s=10)
     ax.set_axis_off()
     ax.set_title(title, fontsize=7)
+
+
+def offline_figure(path: Path, recorded: np.ndarray, steps: list[int], predicted: list[np.ndarray], episode: int) -> Path:
+    """One held-out episode's recorded actions (a line per action dimension, at most 4) and each predicted chunk
+    drawn from the step it was asked at (the offline check, :mod:`kpflow.eval.offline`)."""
+    dims = min(recorded.shape[1], 4)
+    fig, axes = new_figure(1, dims)
+    for d, ax in enumerate(axes.flat):
+        ax.set_aspect("auto")
+        ax.plot(recorded[:, d], color="black", lw=1.5, label="recorded")
+        for i, (t, chunk) in enumerate(zip(steps, predicted)):
+            ax.plot(range(t, t + len(chunk)), chunk[:, d], color="tab:orange", lw=1, label="predicted" if i == 0 else None)
+        ax.set(title=f"episode {episode}: action {d}", xlabel="step")
+    axes.flat[0].legend(fontsize=7)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    close(fig)
+    return Path(path)

@@ -1,0 +1,79 @@
+"""A policy checked against held-out demonstrations, without a simulator: ``kpflow-evaluate experiment=offline
+checkpoint=CKPT data.path=STORE_OR_DATASET``.
+
+The data config splits episodes as training did (the same ``seed`` and ``val_fraction``: the held-out episodes are
+the training run's validation episodes). At every ``every``-th step of each held-out episode the policy sees the
+recorded observation history and returns its chunk of ``execute`` actions; the error of a decision is the mean
+Euclidean distance between its actions and the recorded ones over the steps the episode still has. The report gives
+the median error of the first action and of the chunk (with the 90th percentile), beside the same errors of a
+baseline that repeats the action taken before the step, and plots one episode's recorded and predicted actions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from kpflow.data.chunks import ChunkDataModule
+from kpflow.utils.io import write_json, write_text
+
+
+def _errors(chunk: np.ndarray, recorded: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    n = min(len(chunk), int(mask.sum()))
+    gaps = np.linalg.norm(chunk[:n] - recorded[:n], axis=-1)
+    return float(gaps[0]), float(gaps.mean())
+
+
+def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: ChunkDataModule, steps: int = 10,
+                     execute: int = 8, every: int = 4, progress: bool = True) -> dict:  # fmt: skip
+    """Run the offline check (module docstring) of the K-CFM at ``checkpoint`` on ``data``'s held-out episodes."""
+    from kpflow.eval.plots import offline_figure
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    out = Path(output_dir)
+    policy = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin=None)
+    n_obs = int(policy.model.hparams.n_obs)
+    data.setup()
+    held_out = data.val_set if data.val_set is not None and len(data.val_set) else data.train_set
+    which = "held-out" if held_out is data.val_set else "training (no episode was held out: val_fraction)"
+    items = np.flatnonzero(held_out._t % every == 0)
+    rows, shown = [], None
+    for k in tqdm(items, desc="offline check", disable=not progress):
+        item = held_out[int(k)]
+        history = item["history"].numpy().astype(np.float64)
+        policy.reset(int(k))
+        obs = {"keypoints": history[-1], **({"keypoints_history": history} if n_obs > 1 else {})}
+        chunk = policy.act(obs)
+        recorded, mask = item["actions"].numpy(), item["mask"].numpy()
+        row = int(held_out._row[k])
+        previous = held_out.actions[row - 1 if item["t"] > 0 else row]  # the action taken before this step
+        hold = np.repeat(previous[None], len(recorded), axis=0)
+        rows.append((int(item["episode"]), int(item["t"]), *_errors(chunk, recorded, mask), *_errors(hold, recorded, mask)))
+        if shown is None or shown["episode"] == rows[-1][0]:
+            shown = shown or {"episode": rows[-1][0], "t": [], "predicted": []}
+            shown["t"].append(rows[-1][1]), shown["predicted"].append(chunk)
+    errors = np.array([r[2:] for r in rows])
+    summary = {
+        "episodes": len({r[0] for r in rows}), "decisions": len(rows), "split": which, "checkpoint": str(checkpoint),
+        "first_action_median": float(np.median(errors[:, 0])), "chunk_median": float(np.median(errors[:, 1])),
+        "chunk_p90": float(np.percentile(errors[:, 1], 90)), "hold_first_action_median": float(np.median(errors[:, 2])),
+        "hold_chunk_median": float(np.median(errors[:, 3])),
+    }  # fmt: skip
+    table = (
+        f"# Offline check of {checkpoint}\n\n{summary['decisions']} decisions on {summary['episodes']} {which} episodes"
+        f" (every {every}th step; {steps} network calls per chunk, {execute} actions compared).\n\n"
+        "| policy | first action error, median | chunk error, median | chunk error, 90th percentile |\n|---|---|---|---|\n"
+        f"| K-CFM | {summary['first_action_median']:.4g} | {summary['chunk_median']:.4g} | {summary['chunk_p90']:.4g} |\n"
+        f"| repeat the previous action | {summary['hold_first_action_median']:.4g} | {summary['hold_chunk_median']:.4g} |"
+        f" {np.percentile(errors[:, 3], 90):.4g} |\n"
+    )
+    recorded = held_out.actions[held_out._row[held_out._episode == shown["episode"]]]
+    figure = offline_figure(out / "offline.png", recorded, shown["t"], shown["predicted"], shown["episode"])
+    write_json(out / "results.json", {**summary, "rows": [dict(zip(("episode", "t", "first", "chunk", "hold_first", "hold_chunk"), r)) for r in rows]})
+    write_text(out / "results.md", table)
+    metrics = {k: v for k, v in summary.items() if isinstance(v, float)}
+    return {**summary, "metrics": metrics, "table": table, "figures": [figure.name]}
