@@ -22,7 +22,7 @@ Tables:
 3. the learned map's invertibility on every pair: the share of points of a grid three times the keypoints' extent
    with det J > 0 (by construction: 100 %), and the largest inverse round-trip error there (px);
 4. decision latency of the Push-T policies with each map (medians over 50 in-distribution resets after warm-up):
-   policy transportation (``conf/policy/transport.yaml``'s options) and, with ``--kcfm CKPT``, the transported K-CFM.
+   policy transportation (``kpflow/conf/policy/transport.yaml``'s options) and, with ``--kcfm CKPT``, the transported K-CFM.
 """
 
 from __future__ import annotations

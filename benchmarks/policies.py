@@ -121,7 +121,7 @@ def main(argv=None) -> str:
                      for q in query_kps[:50]])  # fmt: skip
     transport = median_ms(TransportPolicy(index, execute=20).act, queries)
 
-    model = KCFM(N_KEYPOINTS, horizon=20, goal_frame=goal_frame())  # the configuration conf/experiment/pusht_kcfm.yaml trains
+    model = KCFM(N_KEYPOINTS, horizon=20, goal_frame=goal_frame())  # the configuration kpflow/conf/experiment/pusht_kcfm.yaml trains
     model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
     k1, k10, k20 = (KCFMPolicy(model, steps=n, execute=8) for n in (1, 10, 20))
     k1.reset(0), k10.reset(0), k20.reset(0)

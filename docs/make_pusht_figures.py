@@ -1,4 +1,4 @@
-"""Draw docs/pusht.md's Push-T figures: the three splits with their 25 keypoints, and an expert episode as a strip.
+"""Draw docs/guides/pusht.md's Push-T figures: the three splits with their 25 keypoints, and an expert episode as a strip.
 
 Run: ``python docs/make_pusht_figures.py`` (writes docs/img/pusht_splits.png and docs/img/pusht_expert.png).
 """

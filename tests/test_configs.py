@@ -11,6 +11,8 @@ import torch
 from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from kpflow.cli.train import fill_from_data
+from kpflow.eval.gym_policy_trial import GymPolicyTrial
 from kpflow.maps.base import TransportMap
 from tests.helpers import CONF, compose_config, keypoint_pair, train_learned_map, walk_to_block_store
 
@@ -22,15 +24,15 @@ ENTRIES = {
     "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_matern", "flow", "mlp", "ensemble", "learned"], "evaluate"),
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp", "ddp_cpu"], "train"),
-    "hydra/launcher": dict.fromkeys(["local", "slurm"], "train"),
+    "hydra/launcher": dict.fromkeys(["pool", "local", "slurm"], "train"),
     "callbacks": {"default": "train"},
-    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store"], "train"),
+    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store", "store"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
-        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy"], "evaluate"),
-        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm"], "train"),
+        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"], "evaluate"),
+        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm", "kcfm"], "train"),
     },
 }
 
@@ -49,12 +51,17 @@ def test_every_config_file_is_covered():
     assert on_disk == {group: set(options) for group, options in ENTRIES.items()}
 
 
-@pytest.mark.parametrize("name", sorted(ENTRIES["hydra/launcher"]))
+@pytest.mark.parametrize("name", sorted(set(ENTRIES["hydra/launcher"]) - {"pool"}))
 def test_submitit_launchers_compose(name, tmp_path):
     cfg = compose_config("train", [f"hydra/launcher={name}"], tmp_path)
     launcher = cfg.hydra.launcher
     assert launcher._target_.startswith("hydra_plugins.hydra_submitit_launcher") and launcher.timeout_min > 0
     assert launcher.submitit_folder.endswith(".submitit/%j")
+
+
+def test_the_joblib_launcher_composes(tmp_path):
+    launcher = compose_config("train", ["hydra/launcher=pool"], tmp_path).hydra.launcher
+    assert launcher._target_ == "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher" and launcher.n_jobs >= 1
 
 
 @pytest.fixture(scope="module")
@@ -111,6 +118,8 @@ def test_data_options_build_datamodules(name, store, tmp_path):
         path = ["data.n_pairs=20"]
     if name == "suite_store":  # any store with keypoints and an action field (a generated one has ee_target)
         path = [f"data.path={store}", "data.action_key=action"]
+    if name == "store":
+        path = [f"data.path={store}"]
     cfg = compose_config("train", [f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)
@@ -178,11 +187,24 @@ def square_kcfm(tmp_path) -> Path:
 
 
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))
-def test_experiment_options_compose_and_instantiate(name, entry, tmp_path):
-    # suite_policy evaluates a trained checkpoint of its task's layout (square's: an untrained K-CFM saved here)
-    extra = [f"policy.checkpoint={square_kcfm(tmp_path)}"] if name == "suite_policy" else []
+def test_experiment_options_compose_and_instantiate(name, entry, store, tmp_path):
+    # suite_policy evaluates a trained checkpoint of its task's layout (square's: an untrained K-CFM saved here); the
+    # generic experiments read any store; gym_policy needs a Gymnasium task of the user's (examples/reach_task: test_docs)
+    extra = {
+        "suite_policy": [f"policy.checkpoint={square_kcfm(tmp_path)}"],
+        "offline": ["checkpoint=model.ckpt", f"data.path={store}"],
+        "kcfm": [f"data.path={store}"],
+        "gym_policy": ["policy.checkpoint=model.ckpt"],
+    }.get(name, [])
     cfg = compose_config(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
-    if entry == "evaluate":
+    if name == "gym_policy":
+        assert get_class(cfg.experiment.trial._target_) is GymPolicyTrial and "task" not in cfg  # task=<yours> adds it
+    elif name == "kcfm":  # the model's size is left to the data
+        assert cfg.model.n_keypoints is None
+        fill_from_data(cfg.model, instantiate(cfg.data))
+        model = instantiate(cfg.model, _convert_="all")
+        assert (model.hparams.n_keypoints, model.hparams.keypoint_dim, model.hparams.action_dim) == (25, 2, 2)
+    elif entry == "evaluate":
         run = instantiate(cfg.experiment)
         assert isinstance(run, partial) and callable(run)
     else:

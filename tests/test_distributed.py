@@ -1,7 +1,7 @@
-"""Training past one process with Lightning's own engines: DDP on the CPU (2 processes over gloo, conf/trainer/ddp_cpu.yaml)
+"""Training past one process with Lightning's own engines: DDP on the CPU (2 processes over gloo, kpflow/conf/trainer/ddp_cpu.yaml)
 trains exactly like one process where it should (a deterministic loss on whole-dataset batches: each process's
 half-batch mean gradient, averaged, is the full batch's), and Hydra's submitit launcher runs a train.py sweep as
-local jobs (conf/hydra/launcher/local.yaml; slurm.yaml is its cluster twin)."""
+local jobs (kpflow/conf/hydra/launcher/local.yaml; slurm.yaml is its cluster twin)."""
 
 import subprocess
 import sys

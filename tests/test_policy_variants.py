@@ -103,7 +103,7 @@ def test_training_experiments_compose_into_a_matching_model(experiment):
     model = instantiate(cfg.model, _convert_="all")
     assert model.hparams.horizon == cfg.data.horizon and model.hparams.n_obs == cfg.data.n_obs
     assert isinstance(model.hparams.down_dims, list)  # plain hparams: the checkpoint loads with weights_only
-    # the task's experiment gives the layout and the goal frame (conf/model/kcfm.yaml has neither)
+    # the task's experiment gives the layout and the goal frame (kpflow/conf/model/kcfm.yaml has neither)
     assert model.hparams.n_keypoints == N_KEYPOINTS and model.hparams.goal_frame == goal_frame()
     if experiment == "pusht_kcfm_gpu":
         assert cfg.trainer.accelerator == "gpu" and model.hparams.down_dims == [256, 512, 1024] and model.hparams.n_obs == 2

@@ -259,7 +259,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(1), local.reset(1)
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
-    # the evaluated configuration (conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
+    # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
     deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice)

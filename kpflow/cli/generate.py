@@ -17,7 +17,7 @@ Past one machine: ``shards=S shard=K`` runs only the attempts ``i`` with ``i % S
 ``K`` in ``0..S-1``, ``S`` at most ``n``), and a Hydra multirun over a launcher runs all the shards as separate jobs,
 each in its own folder ``multirun/generate/<task>/<run_name>/<job>_shard<K>``::
 
-    kpflow-generate -m task=lift n=200 shards=4 'shard=range(4)' run_name=NAME hydra/launcher=joblib
+    kpflow-generate -m task=lift n=200 shards=4 'shard=range(4)' run_name=NAME hydra/launcher=pool
     kpflow-merge 'shards=multirun/generate/lift/NAME/*' out=outputs/generate/lift/NAME
 
 (``hydra/launcher=local``: submitit jobs on this machine; ``slurm``: SLURM jobs.) ``kpflow-merge``
@@ -26,7 +26,6 @@ run (``resume=true`` with its folder, ``hydra.run.dir=...``); its ``generation.j
 with another ``shards`` or ``shard`` is refused.
 """
 
-import warnings
 from pathlib import Path
 
 import hydra
@@ -39,10 +38,6 @@ from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.config_checks import SEED, Key, check_config
 from kpflow.utils.errors import command
 from kpflow.utils.run import remove_unused_run_folder, start_run, write_config
-
-# conf/hydra/launcher/joblib.yaml shares its name with the joblib launcher's own config, so Hydra checks it against
-# that schema (as intended: it sets the same fields) and says so, in every process, on every run
-warnings.filterwarnings("ignore", message=r"\n?'hydra/launcher/joblib' is validated against ConfigStore schema", category=UserWarning)
 
 KEYS = {
     "n": Key(int, lo=1),

@@ -22,14 +22,14 @@ from kpflow.eval.generation import merge_shards
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command
 
-KEYS = {"out": Key(str)}
+KEYS = {"out": Key(str), "progress": Key(bool)}
 GLOB = set("*?[")
 
 
 def shard_folders(shards) -> list[Path]:
     """The folders ``shards`` names: each entry (a list, or one string) a folder, or a glob expanded to the folders
     it matches (sorted; files such as a sweep's ``multirun.yaml`` are skipped). ``ValueError`` for an entry that is
-    not a string, or a glob that matches no folder."""
+    not a string, a glob that matches no folder, or a folder that holds run folders (a sweep's) rather than being one."""
     entries = list(shards) if isinstance(shards, (ListConfig, list, tuple)) else [shards]
     folders = []
     for entry in entries:
@@ -40,6 +40,8 @@ def shard_folders(shards) -> list[Path]:
             if not matched:
                 raise ValueError(f"shards={entry} matches no folder")
             folders += matched
+        elif not (Path(entry) / "generation.json").exists() and list(Path(entry).glob("*/generation.json")):
+            raise ValueError(f"{entry} holds run folders (a sweep's?), it is not one: give them as 'shards={entry}/*'")
         else:
             folders.append(Path(entry))
     return folders
@@ -50,7 +52,7 @@ def shard_folders(shards) -> list[Path]:
 def main(cfg: DictConfig) -> dict:
     check_config(cfg, KEYS)
     folders = shard_folders(cfg.shards)
-    results = merge_shards(folders, cfg.out)
+    results = merge_shards(folders, cfg.out, cfg.progress)
     for row in results["summary"]:
         print(f"{results['task']} {row['variant']} {row['family']}: {row['successes']}/{row['trials']} generated")
     print(f"merged {len(folders)} shards into {cfg.out}")

@@ -83,7 +83,7 @@ KEYS = {
 def main(cfg: DictConfig) -> Path:
     check_config(cfg, KEYS)
     if cfg.source_store and cfg.get("task") is None:
-        raise ValueError("source_store needs task=<name> (conf/task/): the keypoint layout its index is searched with")
+        raise ValueError("source_store needs task=<name> (kpflow/conf/task/): the keypoint layout its index is searched with")
     dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only)
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
     if cfg.source_store:

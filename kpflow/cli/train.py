@@ -1,6 +1,6 @@
 """Train: ``kpflow-train experiment=kcfm data.path=STORE_OR_LEROBOT_DATASET`` (``python train.py ...`` from a
 checkout). Builds the datamodule, model and trainer from ``conf/``,
-checkpoints the best and last epochs under the run folder (``conf/callbacks``), and with ``run_name=NAME resume=true`` continues
+checkpoints the best and last epochs under the run folder (``kpflow/conf/callbacks``), and with ``run_name=NAME resume=true`` continues
 that run from its last checkpoint.
 
 A run folder belongs to one run: a run started into a folder another live run holds is refused at once, naming
@@ -68,7 +68,7 @@ def check_resumable(model, last: Path) -> None:
 def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS, write=False)  # claims the folder (rank 0): no other run passes the check below with us
     if "model_checkpoint" not in cfg.get("callbacks", {}):
-        raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see conf/callbacks/default.yaml)")
+        raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see kpflow/conf/callbacks/default.yaml)")
     last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
     if cfg.resume and not last.exists():
         raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")

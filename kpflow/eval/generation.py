@@ -16,6 +16,14 @@ same worker ran before it (every attempt resets the simulator, :meth:`~kpflow.ta
 and every worker builds the same model, :data:`~kpflow.tasks.suite.env.MODEL_SEED`), so the number of workers and
 how the attempts fall to them change nothing, and a run stopped at any point and resumed
 (:mod:`.generation_journal`) ends with the numbers of one that was not.
+
+That also makes sharding exact. :func:`generate` with ``shards`` S > 1 runs shard ``shard`` K only: the attempts
+``i`` with ``i % S == K`` of every variant and family (strided rather than in blocks, so that every shard meets scenes
+from the whole index range and the shards' sizes differ by one at most), in a run folder of its own that records the
+shard; the S shards run anywhere (a Hydra launcher's jobs: :mod:`kpflow.cli.generate`). :func:`merge_shards` then
+joins the finished shards into the folder an unsharded run writes: the stores merged in attempt order
+(:func:`~kpflow.data.store_merge.merge_stores`), the same to the bit, and the results summarised over all the
+attempts (:mod:`kpflow.cli.merge`).
 """
 
 from __future__ import annotations
@@ -223,10 +231,10 @@ def generate(
     return write_results(out, manifest, summaries, throughput, records, video_paths)
 
 
-def write_results(out: Path, manifest: dict, summaries: dict[tuple[str, str], dict], throughput: dict[tuple[str, str], dict],
-                  records: list[dict], videos: list[str], merged_from: list[str] | None = None, at: Path | None = None) -> dict:  # fmt: skip
-    """``results.json`` and ``results.md`` of a run (or a shard's, or a merged run's: ``merged_from``) into ``out``
-    (``at``: the folder where they are written, when it is not yet ``out``); returns the results."""
+def write_results(folder: Path, manifest: dict, summaries: dict[tuple[str, str], dict], throughput: dict[tuple[str, str], dict],
+                  records: list[dict], videos: list[str], merged_from: list[str] | None = None) -> dict:  # fmt: skip
+    """``results.json`` and ``results.md`` of a run (or a shard's, or a merged run's: ``merged_from``, the shards'
+    folders) into ``folder``; returns the results."""
     n, n_sources, seed, candidates = manifest["n"], manifest["n_sources"], manifest["seed"], manifest["candidates"]
     results = {
         "task": manifest["task"],
@@ -243,8 +251,7 @@ def write_results(out: Path, manifest: dict, summaries: dict[tuple[str, str], di
         results.update(shards=shards, shard=shard)
     if merged_from is not None:
         results["merged_from"] = list(merged_from)
-    at = Path(at or out)
-    write_json(at / "results.json", results)
+    write_json(Path(folder) / "results.json", results)
     header = f"# Generation: {manifest['task']}\n\n"
     if shards > 1:
         header += f"Shard {shard} of {shards}: of {n} attempts per variant and family, the {len(range(shard, n, shards))} "
@@ -261,11 +268,11 @@ def write_results(out: Path, manifest: dict, summaries: dict[tuple[str, str], di
     if ran < len(records):
         header += f" Resumed: {len(records) - ran} of the {len(records)} attempts were committed by an earlier run; "
         header += f"the throughput columns time the {ran} this run made." if ran else "this run made none, so no throughput."
-    write_text(at / "results.md", header + "\n\n" + rate_table(summaries, throughput))
+    write_text(Path(folder) / "results.md", header + "\n\n" + rate_table(summaries, throughput))
     return results
 
 
-def merge_shards(folders: Sequence[str | Path], out: str | Path) -> dict:
+def merge_shards(folders: Sequence[str | Path], out: str | Path, progress: bool = False) -> dict:
     """Join the finished shards of one run (``folders``, each :func:`generate` with the same settings and
     ``shards``, one per ``shard``) into ``out``, the folder one unsharded run writes: ``generation.json`` (the run's,
     without a shard), per variant and family ``attempts.jsonl`` and ``episodes.zarr`` with every attempt in index
@@ -278,7 +285,10 @@ def merge_shards(folders: Sequence[str | Path], out: str | Path) -> dict:
     Refused before anything is written, with an error naming the folders (:func:`~.generation_journal.read_shards`,
     :meth:`~.generation_journal.CellJournal.finished`): shards of different settings, a shard missing or given twice,
     an unfinished or damaged shard, an existing ``out``. Everything is written into a temporary folder beside ``out``
-    and renamed into place at the end, so a failure leaves nothing behind."""
+    and renamed into place at the end, so a failure leaves nothing behind. ``progress``: a progress bar over the
+    cells."""
+    from tqdm import tqdm
+
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists already: the merged run needs a new folder")
@@ -293,7 +303,7 @@ def merge_shards(folders: Sequence[str | Path], out: str | Path) -> dict:
     summaries, throughput, records = {}, {}, []
     with atomic_dir(out) as tmp:
         write_manifest(tmp, manifest)
-        for (variant, family), journals in cells.items():
+        for (variant, family), journals in tqdm(cells.items(), desc=f"merge into {out}", unit="cell", disable=not progress):
             cell = sorted((r for part in shard_records[(variant, family)] for r in part), key=lambda r: r["index"])
             folder = tmp / variant / family
             folder.mkdir(parents=True)
@@ -310,7 +320,7 @@ def merge_shards(folders: Sequence[str | Path], out: str | Path) -> dict:
         for video in sorted(p for d in folders for p in d.glob("*.mp4")):
             shutil.copyfile(video, tmp / video.name)
             videos.append(str(out / video.name))
-        results = write_results(out, manifest, summaries, throughput, records, videos, [str(d) for d in folders], at=tmp)
+        results = write_results(tmp, manifest, summaries, throughput, records, videos, [str(d) for d in folders])
         if (folders[0] / "config.yaml").is_file():
             _merged_config(folders[0] / "config.yaml", tmp / "config.yaml", out)
     return results

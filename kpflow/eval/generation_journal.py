@@ -110,12 +110,7 @@ def check_output(out: Path, manifest: dict, resume: bool) -> None:
         return
     if not path.exists():
         raise FileNotFoundError(f"resume=true but {path} does not exist: {out} holds no generation run to continue")
-    try:
-        saved = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path} is not valid JSON ({error}): the run folder is damaged") from None
-    if not isinstance(saved, dict):
-        raise ValueError(f"{path} does not hold a generation run's settings: the run folder is damaged")
+    saved = read_manifest(out)
     whole = {"shards": 1, "shard": 0}  # what an unsharded run's manifest leaves out
     what = _differences({**whole, **saved}, {**whole, **manifest}, "there", "now")
     if what:
@@ -213,10 +208,7 @@ class CellJournal:
         the journal (module docstring). Raises ``ValueError`` naming the file when the cell is otherwise
         inconsistent, leaving the journal as it was."""
         lines, torn = self._lines()
-        if self.indices is not None and len(lines) > len(self.indices):
-            raise ValueError(f"{self.journal} holds {len(lines)} attempts, more than the {len(self.indices)} the cell runs: "
-                             "the cell is damaged (nothing was changed)")  # fmt: skip
-        records = [self._record(i, line) for i, line in enumerate(lines)]
+        records = self._records(lines)
         stored = self._stored_indices()
         successes = [r["index"] for r in records if r["success"]]
         if stored != successes:
@@ -238,14 +230,11 @@ class CellJournal:
         journal's successes)."""
         if self.indices is None:
             raise ValueError("finished() needs the cell's attempt indices")
-        lines, torn = self._lines() if self.journal.exists() else ([], False)
+        lines, torn = self._lines()
         if torn or len(lines) < len(self.indices):
             what = "ends in a partly written line" if torn else f"records {len(lines)} of the cell's {len(self.indices)} attempts"
             raise ValueError(f"{self.journal} {what}: the cell is unfinished (resume=true finishes its run)")
-        if len(lines) > len(self.indices):
-            raise ValueError(f"{self.journal} holds {len(lines)} attempts, more than the {len(self.indices)} the cell runs: "
-                             "the cell is damaged")  # fmt: skip
-        records = [self._record(i, line) for i, line in enumerate(lines)]
+        records = self._records(lines)
         stored = self._stored_indices(mode="r")
         successes = [r["index"] for r in records if r["success"]]
         if stored != successes:
@@ -262,6 +251,13 @@ class CellJournal:
             return [line.decode() for line in complete], tail != b""
         except UnicodeDecodeError:
             raise ValueError(f"{self.journal} is not text: the cell is damaged (nothing was changed)") from None
+
+    def _records(self, lines: list[str]) -> list[dict]:
+        """The records on ``lines``, each checked to be the expected attempt's (:meth:`_record`)."""
+        if self.indices is not None and len(lines) > len(self.indices):
+            raise ValueError(f"{self.journal} holds {len(lines)} attempts, more than the {len(self.indices)} the cell runs: "
+                             "the cell is damaged (nothing was changed)")  # fmt: skip
+        return [self._record(i, line) for i, line in enumerate(lines)]
 
     def _record(self, i: int, line: str) -> dict:
         where = f"{self.journal}, line {i + 1}"

@@ -8,7 +8,7 @@ polar(J(p)) R`` with ``J`` phi's Jacobian (:func:`kpflow.transport.transport_ori
 gripper command) is kept.
 
 Which keypoints the map is fitted on (``fit_on``; all by default). In Push-T, fitting the block and the agent
-alone (``fit_on=block_agent`` in ``conf/policy/transport.yaml``) carries the chunk rigidly with the block
+alone (``fit_on=block_agent`` in ``kpflow/conf/policy/transport.yaml``) carries the chunk rigidly with the block
 and bends it only towards the agent. Fitting the goal too makes the map bend between the block's and the goal's
 keypoints, which nearly coincide at the end of a push (and coincide exactly at the end of a demonstration read with
 hindsight goals, :mod:`kpflow.data.hindsight`), so the chunk is carried part with the block and part with the goal.

@@ -1,4 +1,4 @@
-"""The one policy builder: every policy of every task, built from configuration (``conf/policy/*.yaml``, plain
+"""The one policy builder: every policy of every task, built from configuration (``kpflow/conf/policy/*.yaml``, plain
 functions Hydra instantiates) for ``evaluate`` and ``correct``, and from a checkpoint for ``serve``
 (:func:`make_kcfm`, :func:`make_transported_kcfm`).
 
@@ -87,7 +87,7 @@ def source_index(demos: ChunkDataModule, layout: PolicyLayout, horizon: int, wei
     ``frame``."""
     demos = _built(demos)
     if not isinstance(demos, ChunkDataModule):
-        raise ValueError(f"demos must be a data node of demonstrations (a ChunkDataModule, conf/data/), got {type(demos).__name__}")
+        raise ValueError(f"demos must be a data node of demonstrations (a ChunkDataModule, kpflow/conf/data/), got {type(demos).__name__}")
     store = EpisodeStore(demos.path)
     n = store.n_episodes if demos.max_episodes is None else min(store.n_episodes, int(demos.max_episodes))
     return SourceIndex.from_store(store, horizon, layout.weights(weights), frame_indices(layout, frame), range(n), demos.obs_key,

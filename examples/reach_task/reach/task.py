@@ -5,8 +5,6 @@ agent moves towards it by at most ``SPEED`` per step. Success: the agent within 
 Conditions: ``default`` (targets in the middle of the square) and ``wide`` (targets anywhere).
 """
 
-from __future__ import annotations
-
 import gymnasium as gym
 import numpy as np
 

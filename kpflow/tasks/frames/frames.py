@@ -4,8 +4,7 @@ A :class:`Frame` is a pose ``(p, R)``: position ``p`` [D] and rotation ``R`` [D,
 (columns are the frame's axes in world coordinates). It maps local points to world
 points with ``x_world = R x_local + p``.
 
-Following the keypoint-based policy transportation set-up (Franzese, Prakash, Kober,
-"Generalization of robot skills with keypoints / policy transportation"), every frame
+Following the keypoint-based policy transportation set-up (Franzese, Prakash and Kober, arXiv:2404.13458), every frame
 is summarised by five keypoints rigidly attached to it (:func:`frame_keypoints`); a
 scene of several frames by their concatenation (:func:`scene_keypoints`).
 

@@ -12,7 +12,7 @@ from kpflow.tasks.frames.scene import random_frames
 class FramesPairs:
     """Pair sampler ``(n, rng) -> (source, target) [n, 10, 2]``: source and target are each a start and goal frame
     drawn as :func:`~kpflow.tasks.frames.scene.random_scenes` draws them (without their demonstrations), with
-    keypoints ``frame_size`` from each origin (``conf/task/frames.yaml``'s 0.1)."""
+    keypoints ``frame_size`` from each origin (``kpflow/conf/task/frames.yaml``'s 0.1)."""
 
     def __init__(self, frame_size: float = 0.1, min_distance: float = 0.8) -> None:
         if not frame_size > 0:

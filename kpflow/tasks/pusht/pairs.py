@@ -9,7 +9,7 @@ A target ``T`` is a 25-keypoint observation (block T, goal T, agent) of one of t
   ``jitter_px``.
 
 Its source ``S`` is what the policies fit a map from: one of the ``candidates`` nearest demonstrated steps of the
-store in the block's frame (:class:`~kpflow.data.source_index.SourceIndex`, the weights of ``conf/policy/transport``).
+store in the block's frame (:class:`~kpflow.data.source_index.SourceIndex`, the weights of ``kpflow/conf/policy/transport``).
 """
 
 from __future__ import annotations
