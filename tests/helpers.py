@@ -1,6 +1,7 @@
 """Keypoint sets, stores and configs shared by the tests."""
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -109,3 +110,11 @@ def compose_config(entry: str, overrides: list[str], tmp_path):
         cfg.hydra.runtime.choices = OmegaConf.create({k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None})
     HydraConfig.instance().set_config(cfg)
     return cfg
+
+
+def child_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a command it runs, without the rendering platform chosen here (robosuite's
+    import sets ``PYOPENGL_PLATFORM=egl`` when it finds no choice): the child chooses its own, consistently
+    (:func:`kpflow.utils.headless.use_headless_gl`)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    return {**env, **extra}

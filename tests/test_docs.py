@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import child_env
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 EXAMPLES = ROOT / "examples"
@@ -27,8 +29,11 @@ BIN = Path(sys.executable).parent
 # pages whose code takes more than ~20 s on 2 cores (marked slow: `make test-fast` leaves them out), and why
 SLOW = {
     "quickstart": "collects 35 Push-T demonstrations and evaluates 9 episodes (about a minute)",
+}
+# the longest pages run from files of their own (tests/test_tutorial_*.py), so that the suite's two workers share them
+OWN_FILE = {
     "own-data": "trains, evaluates and serves a policy",
-    "own-task": "collects, trains and evaluates on a task of its own",
+    "own-task": "collects, trains, evaluates and serves on a task of its own",
     "generate": "generates robosuite demonstrations (MuJoCo)",
 }
 # examples run directly (not included in a page) that take more than ~20 s, and why
@@ -36,7 +41,6 @@ SLOW_EXAMPLES: dict[str, str] = {}
 
 ENV = {
     "OMP_NUM_THREADS": "1",
-    "MUJOCO_GL": "osmesa",
     "MPLBACKEND": "Agg",
     "WANDB_MODE": "offline",
     "NO_MKDOCS_2_WARNING": "1",
@@ -129,7 +133,7 @@ def run_in_scratch(args: list[str], folder: Path, timeout: int) -> tuple[int, st
     for name in ("examples", "release"):
         if (ROOT / name).exists() and not (folder / name).exists():
             (folder / name).symlink_to(ROOT / name)
-    env = {**os.environ, **ENV, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env = child_env(**ENV, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
     log = folder / "output.log"
     with log.open("w") as out:
         proc = subprocess.Popen(args, cwd=folder, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -189,19 +193,29 @@ def examples_to_run_directly() -> list[Path]:
 def test_site_builds_strict(tmp_path):
     done = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"), "-d", str(tmp_path / "site")],
-        cwd=ROOT, env={**os.environ, **ENV}, capture_output=True, text=True, timeout=600,
+        cwd=ROOT, env=child_env(**ENV), capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout[-5000:] + done.stderr[-5000:]
     assert (tmp_path / "site" / "reference" / "maps" / "index.html").exists()
     assert (tmp_path / "site" / "results" / "pusht_table1" / "index.html").exists()
 
 
-@pytest.mark.parametrize("page", [marked(p) for p in pages_under_test()])
-def test_page_code_runs(page: Path, tmp_path):
-    script = tmp_path / f"{page.stem}_page.py"
+def check_page(page: Path, folder: Path) -> None:
+    """Run ``page``'s code (module docstring) in ``folder``; fail with its output unless it exits 0."""
+    script = folder / f"{page.stem}_page.py"
     script.write_text(page_script(page))
-    code, output = run_in_scratch([sys.executable, str(script)], tmp_path, timeout=1800)
+    code, output = run_in_scratch([sys.executable, str(script)], folder, timeout=1800)
     assert code == 0, f"{page.relative_to(ROOT)} (script {script}): {code}\n{output}"
+
+
+@pytest.mark.parametrize("page", [marked(p) for p in pages_under_test() if page_id(p) not in OWN_FILE])
+def test_page_code_runs(page: Path, tmp_path):
+    check_page(page, tmp_path)
+
+
+def test_the_long_pages_run_from_their_own_files():
+    for name in OWN_FILE:
+        assert f'check_page(DOCS / "tutorials" / "{name}.md"' in (ROOT / "tests" / f"test_tutorial_{name.replace('-', '_')}.py").read_text()
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,6 @@ cell's journal and store recover from a kill at any point and refuse anything el
 ``kpflow-generate`` killed with SIGKILL and resumed ends as an uninterrupted run with other workers does."""
 
 import json
-import os
 import re
 import signal
 import subprocess
@@ -18,6 +17,7 @@ import pytest
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.generation_journal import CellJournal, check_output
+from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 #: what an uninterrupted and a resumed run may differ in: the timing of the attempts each process ran
@@ -168,7 +168,7 @@ def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_
     run = tmp_path / "run"
     command = [sys.executable, "-m", "kpflow.cli.generate", "task=lift", f"n={n}", f"variants=[{','.join(variants)}]",
                f"families=[{','.join(names)}]", "workers=1", "videos=0", "export=false", f"hydra.run.dir={run}"]  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = child_env(OMP_NUM_THREADS="1")
     killed = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 300
     while journal_lines(run) < 2 and killed.poll() is None and time.monotonic() < deadline:

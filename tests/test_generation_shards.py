@@ -19,6 +19,7 @@ import pytest
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.store_merge import merge_stores
 from kpflow.eval.generation_journal import check_output, run_manifest, shard_indices
+from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -262,7 +263,7 @@ def test_the_merge_refuses_anything_but_the_finished_shards_of_one_run_and_write
 
 def run(command: list[str], cwd: Path) -> subprocess.CompletedProcess:
     """A kpflow console script (this interpreter's) run in ``cwd``."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "osmesa", "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env = child_env(OMP_NUM_THREADS="1", PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
 
 

@@ -5,7 +5,6 @@ The fresh venv takes kpflow from the wheel only; its dependencies are the test e
 ``.pth`` line (no download: the suite runs offline). The full resolution (``pip install -c constraints.txt .`` into
 an empty venv) is what ``make venv`` and docs/install.md do."""
 
-import os
 import subprocess
 import sys
 import sysconfig
@@ -14,12 +13,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import child_env
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(args, cwd, timeout=600, **env):
     done = subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=timeout,
-                          env={**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline", "MPLBACKEND": "Agg", **env})  # fmt: skip
+                          env=child_env(OMP_NUM_THREADS="1", WANDB_MODE="offline", MPLBACKEND="Agg", **env))  # fmt: skip
     assert done.returncode == 0, f"{args}: {done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     return done
 

@@ -12,7 +12,7 @@ import pytest
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import export_lerobot
-from tests.helpers import walk_to_block_store
+from tests.helpers import child_env, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,8 +37,8 @@ def test_newcomer_trains_evaluates_and_serves_a_lerobot_dataset(tmp_path):
     (tmp_path / "examples").symlink_to(ROOT / "examples")
     install, *commands = newcomer_commands()  # the install is this test's environment
     script = "\n".join(["set -euo pipefail", "trap 'kill $(jobs -p) 2>/dev/null || true' EXIT", *commands])
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "OMP_NUM_THREADS": "1",
-           "WANDB_MODE": "offline", "MPLBACKEND": "Agg"}  # fmt: skip
+    env = child_env(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", OMP_NUM_THREADS="1", WANDB_MODE="offline",
+                    MPLBACKEND="Agg")  # fmt: skip
     done = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     run = tmp_path / "outputs" / "kcfm" / "mine"

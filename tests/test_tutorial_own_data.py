@@ -1,0 +1,11 @@
+"""docs/tutorials/own-data.md runs as written: trains a K-CFM on a LeRobot dataset, checks it offline, releases and serves it (the page runner of tests/test_docs.py, in a file of its own
+so that the suite's two workers share the long tutorials)."""
+
+import pytest
+
+from tests.test_docs import DOCS, check_page
+
+
+@pytest.mark.slow
+def test_the_tutorial_runs(tmp_path):
+    check_page(DOCS / "tutorials" / "own-data.md", tmp_path)
