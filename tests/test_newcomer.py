@@ -1,6 +1,7 @@
 """The README's "Train on your own data" commands, run exactly as written (but the install, which is the
-environment this test runs in) on a small synthetic LeRobot dataset named ``my_dataset``: train a K-CFM, check it
-on held-out episodes, serve it and ask it for an action chunk."""
+environment this test runs in) on a small synthetic LeRobot dataset named ``my_dataset`` (a point walking to a
+square target: 5 keypoints in 2-D, 2-D actions): train a K-CFM, check it on held-out episodes, serve it and ask it
+for an action chunk."""
 
 import os
 import re
@@ -8,13 +9,29 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import export_lerobot
-from tests.helpers import child_env, walk_to_block_store
+from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def walking_dataset(root: Path, episodes: int = 12, steps: int = 20) -> None:
+    rng = np.random.default_rng(0)
+    corners = 0.05 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    with EpisodeStore(root.with_suffix(".zarr"), mode="a") as store:
+        for _ in range(episodes):
+            target, agent = rng.uniform(0.3, 0.7, 2), rng.uniform(0, 1, 2)
+            keypoints, actions = [], []
+            for _ in range(steps):
+                keypoints.append(np.vstack([target + corners, agent]))
+                agent = agent + 0.2 * (target - agent)
+                actions.append(agent)
+            store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})
+        export_lerobot(store, root, fps=10, task="walk to the target")
 
 
 def newcomer_commands() -> list[str]:
@@ -32,8 +49,7 @@ def test_the_readme_promises_at_most_five_commands():
 
 @pytest.mark.slow
 def test_newcomer_trains_evaluates_and_serves_a_lerobot_dataset(tmp_path):
-    walk_to_block_store(tmp_path / "store.zarr")
-    export_lerobot(EpisodeStore(tmp_path / "store.zarr"), tmp_path / "my_dataset", fps=10, task="walk to the block")
+    walking_dataset(tmp_path / "my_dataset")
     (tmp_path / "examples").symlink_to(ROOT / "examples")
     install, *commands = newcomer_commands()  # the install is this test's environment
     script = "\n".join(["set -euo pipefail", "trap 'kill $(jobs -p) 2>/dev/null || true' EXIT", *commands])
@@ -42,8 +58,8 @@ def test_newcomer_trains_evaluates_and_serves_a_lerobot_dataset(tmp_path):
     done = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     run = tmp_path / "outputs" / "kcfm" / "mine"
-    assert (run / "checkpoints" / "last.ckpt").is_file() and "n_keypoints: 25" in (run / "config.yaml").read_text()  # read from the data
+    assert (run / "checkpoints" / "last.ckpt").is_file() and "n_keypoints: 5" in (run / "config.yaml").read_text()  # read from the data
     offline = next((tmp_path / "outputs" / "offline").iterdir())
     assert (offline / "offline.png").is_file() and "| K-CFM |" in (offline / "results.md").read_text()
-    assert "server: kcfm, observes {'keypoints_history': [2, 25, 2]}, returns [8, 2] actions" in done.stdout
+    assert "server: kcfm, observes {'keypoints_history': [2, 5, 2]}, returns [8, 2] actions" in done.stdout
     assert re.search(r"action chunk \[8, 2\] in [\d.]+ ms on the server", done.stdout)

@@ -34,6 +34,8 @@ def main() -> None:
     with client:
         wins = sum(run_gym_episode(env, client, 2_000_000 + i, task.max_steps).success for i in range(args.episodes))
     print(f"{wins}/{args.episodes} episodes reached the target through {args.uri}")
+    if not wins:
+        raise SystemExit("no episode reached the target: is the server serving a reach policy?")
 
 
 if __name__ == "__main__":
