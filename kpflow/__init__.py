@@ -5,9 +5,11 @@ Fit a smooth map phi from the keypoints of a demonstration's scene to those of a
 its Gymnasium ids; :func:`load_policy` loads a trained K-CFM for deployment.
 """
 
+from importlib.metadata import version
+
 from kpflow.tasks.pusht.registration import register_envs
 
-__version__ = "0.1.0"
+__version__ = version("kpflow")  # pyproject.toml's, the one place it is written
 
 register_envs()  # gymnasium.make("kpflow/PushT-v0") and the split ids (kpflow/tasks/pusht/registration.py)
 

@@ -34,6 +34,11 @@ def wheel(tmp_path_factory):
 
 
 def test_the_wheel_holds_configs_assets_and_types(wheel):
+    import tomllib
+
+    import kpflow
+
+    assert wheel.name.startswith(f"kpflow-{kpflow.__version__}-") and kpflow.__version__ == tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
     names = set(zipfile.ZipFile(wheel).namelist())
     for name in ("kpflow/py.typed", "kpflow/conf/train.yaml", "kpflow/conf/evaluate.yaml", "kpflow/conf/task/pusht.yaml",
                  "kpflow/conf/experiment/kcfm.yaml", "kpflow/conf/hydra/launcher/slurm.yaml", "kpflow/cli/train.py"):  # fmt: skip
