@@ -1,5 +1,5 @@
 """Evaluate: ``python evaluate.py policy=transport split=all`` (Push-T) or ``python evaluate.py experiment=frames``.
-Builds the experiment (and what it needs: policy, data, map) from ``conf/``, runs it, writes the resolved
+Builds the experiment (and what it needs: policy, data, map) from ``kpflow/conf/``, runs it, writes the resolved
 config, results, plots and videos under the run's output folder and prints the table it computed (an experiment
 returns its results with ``metrics`` for the loggers, ``table``: the text of its results.md, and the ``figures`` and
 ``videos`` it wrote).

@@ -1,5 +1,5 @@
 """Train: ``kpflow-train experiment=kcfm data.path=STORE_OR_LEROBOT_DATASET`` (``python train.py ...`` from a
-checkout). Builds the datamodule, model and trainer from ``conf/``,
+checkout). Builds the datamodule, model and trainer from ``kpflow/conf/``,
 checkpoints the best and last epochs under the run folder (``kpflow/conf/callbacks``), and with ``run_name=NAME resume=true`` continues
 that run from its last checkpoint.
 
