@@ -79,6 +79,20 @@ class ChunkDataset(Dataset):
     def __len__(self) -> int:
         return len(self._row)
 
+    @property
+    def steps(self) -> np.ndarray:
+        """Each item's step ``t`` within its episode ``[N]``."""
+        return self._t
+
+    def previous_action(self, k: int) -> np.ndarray:
+        """The action taken before item ``k``'s step (its own at an episode's first step)."""
+        row = int(self._row[k])
+        return self.actions[row - 1 if self._t[k] > 0 else row]
+
+    def episode_actions(self, episode: int) -> np.ndarray:
+        """The recorded actions ``[T, A]`` of ``episode`` (one of this dataset's)."""
+        return self.actions[self._row[self._episode == episode]]
+
     def arrays(self, items: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Observations ``[n, ...]``, action chunks ``[n, H, A]`` and masks ``[n, H]`` of ``items`` (all by default)."""
         row, end = self._row[items], self._end[items]

@@ -40,7 +40,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
     data.setup()
     held_out = data.val_set if data.val_set is not None and len(data.val_set) else data.train_set
     which = "held-out" if held_out is data.val_set else "training (no episode was held out: val_fraction)"
-    items = np.flatnonzero(held_out._t % every == 0)
+    items = np.flatnonzero(held_out.steps % every == 0)
     rows, shown = [], None
     for k in tqdm(items, desc="offline check", disable=not progress):
         item = held_out[int(k)]
@@ -49,9 +49,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         obs = {"keypoints": history[-1], **({"keypoints_history": history} if n_obs > 1 else {})}
         chunk = policy.act(obs)
         recorded, mask = item["actions"].numpy(), item["mask"].numpy()
-        row = int(held_out._row[k])
-        previous = held_out.actions[row - 1 if item["t"] > 0 else row]  # the action taken before this step
-        hold = np.repeat(previous[None], len(recorded), axis=0)
+        hold = np.repeat(held_out.previous_action(int(k))[None], len(recorded), axis=0)
         rows.append((int(item["episode"]), int(item["t"]), *_errors(chunk, recorded, mask), *_errors(hold, recorded, mask)))
         if shown is None or shown["episode"] == rows[-1][0]:
             shown = shown or {"episode": rows[-1][0], "t": [], "predicted": []}
@@ -71,7 +69,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         f"| repeat the previous action | {summary['hold_first_action_median']:.4g} | {summary['hold_chunk_median']:.4g} |"
         f" {np.percentile(errors[:, 3], 90):.4g} |\n"
     )
-    recorded = held_out.actions[held_out._row[held_out._episode == shown["episode"]]]
+    recorded = held_out.episode_actions(shown["episode"])
     figure = offline_figure(out / "offline.png", recorded, shown["t"], shown["predicted"], shown["episode"])
     write_json(out / "results.json", {**summary, "rows": [dict(zip(("episode", "t", "first", "chunk", "hold_first", "hold_chunk"), r)) for r in rows]})
     write_text(out / "results.md", table)
