@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from kpflow.data.episode_store import EpisodeStore
@@ -17,20 +16,13 @@ from kpflow.data.lerobot_dataset import export_lerobot
 from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+from train_on_store import walking_store  # noqa: E402
 
 
-def walking_dataset(root: Path, episodes: int = 12, steps: int = 20) -> None:
-    rng = np.random.default_rng(0)
-    corners = 0.05 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-    with EpisodeStore(root.with_suffix(".zarr"), mode="a") as store:
-        for _ in range(episodes):
-            target, agent = rng.uniform(0.3, 0.7, 2), rng.uniform(0, 1, 2)
-            keypoints, actions = [], []
-            for _ in range(steps):
-                keypoints.append(np.vstack([target + corners, agent]))
-                agent = agent + 0.2 * (target - agent)
-                actions.append(agent)
-            store.add_episode({"keypoints": np.array(keypoints, np.float32), "action": np.array(actions, np.float32)})
+def walking_dataset(root: Path) -> None:
+    """examples/train_on_store.py's walking episodes, as a LeRobot dataset at ``root``."""
+    with EpisodeStore(walking_store(root.with_suffix(".zarr"), episodes=12)) as store:
         export_lerobot(store, root, fps=10, task="walk to the target")
 
 
