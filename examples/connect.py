@@ -6,22 +6,10 @@ box as a smoke test) and prints the chunk. It waits up to ``--wait`` seconds for
 """
 
 import argparse
-import time
 
 import numpy as np
 
 from kpflow.serving.client import PolicyClient
-
-
-def connect(uri: str, wait: float) -> PolicyClient:
-    deadline = time.monotonic() + wait
-    while True:
-        try:
-            return PolicyClient(uri)
-        except ConnectionError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.5)
 
 
 def main() -> None:
@@ -30,7 +18,7 @@ def main() -> None:
     parser.add_argument("--keypoints", help="an .npy file of keypoints [K, D] (or [n_obs, K, D])")
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server")
     args = parser.parse_args()
-    with connect(args.uri, args.wait) as policy:
+    with PolicyClient(args.uri, wait=args.wait) as policy:
         meta = policy.metadata
         print(f"server: {meta.policy}, observes {meta.observation}, returns {meta.action_shape} actions at {meta.control_hz:g} Hz")
         (key, shape), = meta.observation.items()

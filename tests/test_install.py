@@ -64,6 +64,6 @@ def test_a_fresh_venv_runs_the_commands_and_the_demo_from_another_folder(wheel, 
     assert "experiment: frames, frames_field" in run([str(venv / "bin" / "kpflow-evaluate"), "--help"], elsewhere).stdout
     demo = run([str(venv / "bin" / "kpflow-evaluate"), "experiment=pusht_demo", "n_configs=2", "workers=1", "logger=none",
                 "experiment.videos=0", "hydra.run.dir=demo"], elsewhere)  # fmt: skip
-    assert "policy transportation" in demo.stdout or "| transport" in demo.stdout, demo.stdout[-2000:]
+    assert all(f"| transport | {split} | 2 |" in demo.stdout for split in ("in_distribution", "robot_ood", "object_ood")), demo.stdout[-2000:]
     assert (elsewhere / "demo" / "results.md").is_file() and (elsewhere / "demo" / "config.yaml").is_file()
     assert not (ROOT / "demo").exists()

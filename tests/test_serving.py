@@ -241,6 +241,10 @@ def test_graceful_shutdown_finishes_requests_then_says_going_away(released):
         client.act(observation(1))
     with pytest.raises(ConnectionError, match="no policy server"):
         PolicyClient(address, timeout=2)
+    start = time.monotonic()
+    with pytest.raises(ConnectionError, match=r"no policy server at .* after waiting 0.6 s"):
+        PolicyClient(address, timeout=2, wait=0.6)  # it kept trying for that long before giving up
+    assert time.monotonic() - start >= 0.6
 
 
 def test_transported_policy_is_served_with_its_source_index(tiny_run):

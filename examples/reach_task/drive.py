@@ -5,7 +5,6 @@ for actions, the same closed loop as in-process evaluation runs them (kpflow.tas
 """
 
 import argparse
-import time
 
 from reach import ReachTask
 
@@ -20,15 +19,7 @@ def main() -> None:
     parser.add_argument("--condition", default="wide")
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server")
     args = parser.parse_args()
-    deadline = time.monotonic() + args.wait
-    while True:
-        try:
-            client = PolicyClient(args.uri)
-            break
-        except ConnectionError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.5)
+    client = PolicyClient(args.uri, wait=args.wait)
     task = ReachTask()
     env = task.make_env(args.condition)
     with client:

@@ -41,14 +41,13 @@ def fill_from_data(model: DictConfig, datamodule) -> None:
     """Fill the model keys the config leaves null (``n_keypoints: null``...) with what the data says
     (``datamodule.model_dims()``: the keypoint layout and action size read from the store or dataset), in place, so
     that the run's config.yaml records them."""
-    wanted = [key for key, value in model.items() if value is None]
-    if not wanted or not hasattr(datamodule, "model_dims"):
+    wanted = [key for key in getattr(datamodule, "MODEL_DIMS", ()) if key in model and model[key] is None]
+    if not wanted:  # the data is not read before training unless the config asks for it
         return
     dims = datamodule.model_dims()
     with open_dict(model):
         for key in wanted:
-            if key in dims:
-                model[key] = dims[key]
+            model[key] = dims[key]
 
 
 def check_resumable(model, last: Path) -> None:

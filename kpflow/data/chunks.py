@@ -189,6 +189,9 @@ class ChunkDataModule(lightning.LightningDataModule):
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
 
+    #: the model keys :meth:`model_dims` reads from the data
+    MODEL_DIMS = ("n_keypoints", "keypoint_dim", "action_dim")
+
     def model_dims(self) -> dict[str, int]:
         """What the data says a policy's size must be: ``n_keypoints``, ``keypoint_dim`` (the observations' ``[K, D]``)
         and ``action_dim`` (``train`` fills the model keys a config leaves null with these; sets the data up)."""
@@ -200,7 +203,7 @@ class ChunkDataModule(lightning.LightningDataModule):
                 f" {list(obs.shape)} and {self.action_key!r} {list(actions.shape)} (a LeRobot dataset's observation.state"
                 " is read as keypoints when its names are k0.x, k0.y, ...: kpflow.data.lerobot_dataset)"
             )
-        return {"n_keypoints": int(obs.shape[1]), "keypoint_dim": int(obs.shape[2]), "action_dim": int(actions.shape[1])}
+        return dict(zip(self.MODEL_DIMS, (int(obs.shape[1]), int(obs.shape[2]), int(actions.shape[1]))))
 
     def _loader(self, dataset: ChunkDataset | None, shuffle: bool) -> DataLoader:
         if dataset is None:

@@ -41,7 +41,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
     held_out = data.val_set if data.val_set is not None and len(data.val_set) else data.train_set
     which = "held-out" if held_out is data.val_set else "training (no episode was held out: val_fraction)"
     items = np.flatnonzero(held_out.steps % every == 0)
-    rows, shown = [], None
+    rows, chunks = [], []
     for k in tqdm(items, desc="offline check", disable=not progress):
         item = held_out[int(k)]
         history = item["history"].numpy().astype(np.float64)
@@ -51,9 +51,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         recorded, mask = item["actions"].numpy(), item["mask"].numpy()
         hold = np.repeat(held_out.previous_action(int(k))[None], len(recorded), axis=0)
         rows.append((int(item["episode"]), int(item["t"]), *_errors(chunk, recorded, mask), *_errors(hold, recorded, mask)))
-        if shown is None or shown["episode"] == rows[-1][0]:
-            shown = shown or {"episode": rows[-1][0], "t": [], "predicted": []}
-            shown["t"].append(rows[-1][1]), shown["predicted"].append(chunk)
+        chunks.append(chunk)
     errors = np.array([r[2:] for r in rows])
     summary = {
         "episodes": len({r[0] for r in rows}), "decisions": len(rows), "split": which, "checkpoint": str(checkpoint),
@@ -69,8 +67,10 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         f"| repeat the previous action | {summary['hold_first_action_median']:.4g} | {summary['hold_chunk_median']:.4g} |"
         f" {np.percentile(errors[:, 3], 90):.4g} |\n"
     )
-    recorded = held_out.episode_actions(shown["episode"])
-    figure = offline_figure(out / "offline.png", recorded, shown["t"], shown["predicted"], shown["episode"])
+    shown = rows[0][0]  # the first held-out episode, plotted with every decision taken in it
+    picked = [i for i, row in enumerate(rows) if row[0] == shown]
+    figure = offline_figure(out / "offline.png", held_out.episode_actions(shown), [rows[i][1] for i in picked],
+                            [chunks[i] for i in picked], shown)  # fmt: skip
     write_json(out / "results.json", {**summary, "rows": [dict(zip(("episode", "t", "first", "chunk", "hold_first", "hold_chunk"), r)) for r in rows]})
     write_text(out / "results.md", table)
     metrics = {k: v for k, v in summary.items() if isinstance(v, float)}

@@ -7,6 +7,7 @@ client drops in wherever an in-process policy runs: ``run_episode(env, PolicyCli
 
 from __future__ import annotations
 
+import time
 from contextlib import ExitStack
 
 import numpy as np
@@ -24,18 +25,26 @@ class PolicyServerError(RuntimeError):
 class PolicyClient:
     """Connect to ``uri`` (``ws://host:port``) and read the server's metadata.
 
+    ``wait``: seconds to keep trying while nothing answers at ``uri`` (a server still loading its model).
+
     Attributes: ``metadata`` (:class:`PolicyMetadata`), ``max_message_bytes`` (the server's frame limit),
     ``n_obs`` (what an episode loop reads to pass an observation history), ``server_ms`` (the last reply's
     inference time on the server).
     """
 
-    def __init__(self, uri: str, timeout: float = 30.0) -> None:
+    def __init__(self, uri: str, timeout: float = 30.0, wait: float = 0.0) -> None:
         self._stack = ExitStack()
-        try:
-            connection = connect(uri, open_timeout=timeout, close_timeout=timeout, compression=None, proxy=None, max_size=1 << 24)
-            self._ws = self._stack.enter_context(connection)
-        except (OSError, TimeoutError) as e:
-            raise ConnectionError(f"no policy server at {uri} ({type(e).__name__}: {e})") from None
+        deadline = time.monotonic() + wait  # a server still starting (loading its model) is waited for this long
+        while True:
+            try:
+                connection = connect(uri, open_timeout=timeout, close_timeout=timeout, compression=None, proxy=None, max_size=1 << 24)
+                self._ws = self._stack.enter_context(connection)
+                break
+            except (OSError, TimeoutError) as e:
+                if time.monotonic() >= deadline:
+                    waited = f" after waiting {wait:g} s" if wait else ""
+                    raise ConnectionError(f"no policy server at {uri}{waited} ({type(e).__name__}: {e})") from None
+                time.sleep(0.2)
         self.uri, self.timeout = uri, timeout
         hello = self._receive()
         self.metadata = PolicyMetadata.from_dict(hello["metadata"])
