@@ -1,5 +1,6 @@
 """The generative objectives in closed form: I-CFM and OT-CFM interpolants and targets, DDPM forward noising against
-the squared-cosine schedule, one DDIM step on a one-point dataset; and the observation history of K-CFM."""
+the squared-cosine schedule, one DDIM step on a one-point dataset, MeanFlow's target and one step on a one-point
+dataset, reflow's straight couplings of a known teacher; the ODE solvers' order on a linear ODE."""
 
 import math
 
@@ -7,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from kpflow.policies.objectives import DDPM, ICFM, OBJECTIVES, OTCFM, build_objective
-from kpflow.policies.objectives.icfm import euler
+from kpflow.policies.objectives import DDPM, ICFM, OBJECTIVES, OTCFM, SOLVERS, MeanFlow, Reflow, build_objective
+from kpflow.policies.objectives.solvers import integrate, intervals
 
 
 def _data(b=6, h=8, a=2, seed=0):
@@ -35,7 +36,7 @@ def test_icfm_interpolant_and_target_are_the_straight_path():
 def test_euler_integrates_the_exact_field_of_a_one_point_dataset_in_one_step():
     # for data = {x*}, the I-CFM field is v(x, t) = (x* - x) / (1 - t): one Euler step from t = 0 lands on x*
     star = torch.tensor([[[0.3, -0.7]] * 4])
-    out = euler(lambda x, t: (star - x) / (1 - t[:, None, None]), torch.randn(1, 4, 2), steps=1)
+    out = integrate(lambda x, t: (star - x) / (1 - t[:, None, None]), torch.randn(1, 4, 2), 1)
     torch.testing.assert_close(out, star)
 
 
@@ -119,7 +120,7 @@ def test_one_ddim_step_on_a_one_point_dataset_returns_the_point():
 
 
 def test_objectives_are_chosen_by_name_with_clear_errors():
-    assert set(OBJECTIVES) == {"icfm", "otcfm", "ddpm"}
+    assert set(OBJECTIVES) == {"icfm", "otcfm", "ddpm", "meanflow", "reflow"}
     assert build_objective("ddpm", train_steps=50).train_steps == 50
     with pytest.raises(ValueError, match="unknown objective 'flow'"):
         build_objective("flow")
@@ -127,3 +128,113 @@ def test_objectives_are_chosen_by_name_with_clear_errors():
         build_objective("icfm", sigma=0.1)
     with pytest.raises(ValueError, match="train_steps must be an integer >= 2"):
         DDPM(train_steps=1)
+
+
+# ------------------------------------------------------------------------------------------------ solvers
+
+
+def _count(field):
+    """``field`` that counts its calls in ``.calls``."""
+
+    def counted(x, t):
+        counted.calls += 1
+        return field(x, t)
+
+    counted.calls = 0
+    return counted
+
+
+def test_solvers_spend_exactly_their_budget_of_network_calls():
+    for solver in SOLVERS:
+        for calls in (1, 2, 3, 4, 10, 20):
+            field = _count(lambda x, t: -x)
+            integrate(field, torch.ones(2, 3, 1), calls, solver)
+            assert field.calls == calls, (solver, calls)
+    assert intervals(5, "midpoint") == ["midpoint", "midpoint", "euler"] and intervals(1, "heun") == ["euler"]
+    with pytest.raises(ValueError, match="unknown ODE solver 'rk4'"):
+        intervals(4, "rk4")
+    with pytest.raises(ValueError, match="network calls must be an integer >= 1"):
+        intervals(0, "euler")
+
+
+@pytest.mark.parametrize(("solver", "order"), [("euler", 1), ("midpoint", 2), ("heun", 2)])
+def test_solver_order_on_a_linear_ode(solver, order):
+    # dx/dt = a x + b t (non-autonomous, so the time each call is made at matters): the exact x(1) is known in
+    # closed form; halving the step divides the global error by 2^order
+    a, b, x0 = -1.5, 2.0, torch.tensor([[[1.0]]], dtype=torch.float64)
+    exact = (x0 + b / a**2) * math.exp(a) - b / a**2 - b / a
+    errors = [(integrate(lambda x, t: a * x + b * t[:, None, None], x0, calls, solver) - exact).abs().item() for calls in (32, 64, 128, 256)]
+    ratios = [e0 / e1 for e0, e1 in zip(errors, errors[1:])]
+    assert all(abs(math.log2(r) - order) < 0.15 for r in ratios), (errors, ratios)
+
+
+# ----------------------------------------------------------------------------------------------- MeanFlow
+
+
+def _point_field(star):
+    """The exact average velocity of a one-point dataset ``{x*}``: ``u(x_s, s, t) = (x* - x_s) / (1 - s)`` for every
+    ``t`` (every trajectory is the straight line to ``x*``), as a network ``u(x, (s, t), c)``."""
+    return lambda x, st, c=None: (star - x) / (1 - st[:, 0, None, None])
+
+
+def test_meanflow_target_is_the_exact_average_velocity_on_a_one_point_dataset():
+    # with the exact u, the MeanFlow identity u = v + (t - s)(v . d_x u + d_s u) holds at every drawn (x_s, s, t):
+    # the target the objective builds by a Jacobian-vector product equals the network's own output
+    star = torch.tensor([[[0.3, -0.7]] * 5], dtype=torch.float64)
+    x1 = star.expand(64, 5, 2).clone()
+    target = MeanFlow(flow_fraction=0.25).training_target(x1, None, torch.Generator().manual_seed(0), _point_field(star))
+    s, t = target.t[:, 0], target.t[:, 1]
+    assert target.t.shape == (64, 2) and (s <= t).all() and (s < t).any() and (s == t).any()
+    torch.testing.assert_close(target.target, _point_field(star)(target.x_t, target.t))
+    # the sign of the time tangent matters: the target of a field that is right for s = t only is not its output
+    wrong = lambda x, st, c=None: (star - x) / (1 - st[:, 1, None, None])  # noqa: E731  (uses t instead of s)
+    off = MeanFlow(flow_fraction=0.0).training_target(x1, None, torch.Generator().manual_seed(0), wrong)
+    assert not torch.allclose(off.target, wrong(off.x_t, off.t))
+
+
+def test_meanflow_one_step_recovers_a_one_point_dataset_and_its_times():
+    star = torch.tensor([[[0.5, 2.0]] * 4])
+    noise = torch.randn(3, 4, 2, generator=torch.Generator().manual_seed(1))
+    for steps in (1, 2, 5):
+        torch.testing.assert_close(MeanFlow().sample(_point_field(star), noise, steps), star.expand(3, 4, 2))
+    st = MeanFlow(flow_fraction=0.75).times(20000, torch.zeros(1), torch.Generator().manual_seed(0))
+    equal = (st[:, 0] == st[:, 1]).float().mean().item()
+    assert abs(equal - 0.75) < 0.02 and (st[:, 0] <= st[:, 1]).all() and st.min() >= 0 and st.max() <= 1
+    with pytest.raises(ValueError, match="depends on the network"):
+        MeanFlow().training_target(star)
+    with pytest.raises(ValueError, match="flow_fraction must be in"):
+        MeanFlow(flow_fraction=1.5)
+
+
+# ------------------------------------------------------------------------------------------------- reflow
+
+
+def test_reflow_regresses_the_straight_line_to_its_teachers_sample():
+    # teacher: the exact transport of N(0, I) onto N(mu, sigma^2 I), x1_hat = mu + sigma x0 (a 1-D monotone map per
+    # coordinate): every target is x1_hat - x0 at a point of the line between them, and one Euler step of that
+    # target from x0 lands on the teacher's sample
+    mu, sigma = torch.tensor([0.5, -1.0]), 0.3
+    objective = Reflow(teacher="unused.ckpt", t_grid=None)
+    objective.attach(lambda x0, c: mu + sigma * x0)
+    x1 = torch.zeros(32, 6, 2)  # the data chunks themselves are not used, only their shape
+    target = objective.training_target(x1, None, torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.randn(x1.shape, generator=g)
+    x1_hat = mu + sigma * x0
+    torch.testing.assert_close(target.target, x1_hat - x0)
+    t = target.t[:, None, None]
+    torch.testing.assert_close(target.x_t, t * x1_hat + (1 - t) * x0)
+    torch.testing.assert_close(x0 + target.target, x1_hat)
+    # on the grid of a 2-step sampler, t is 0 or 1/2 only
+    grid = Reflow(teacher="unused.ckpt", t_grid=2)
+    grid.attach(lambda x0, c: mu + sigma * x0)
+    assert set(grid.training_target(torch.zeros(200, 2, 2), None, torch.Generator().manual_seed(0)).t.tolist()) == {0.0, 0.5}
+
+
+def test_reflow_needs_its_teacher_and_checks_its_options():
+    with pytest.raises(ValueError, match="attach the teacher first"):
+        Reflow(teacher="t.ckpt").training_target(torch.zeros(2, 3, 2))
+    with pytest.raises(ValueError, match="teacher must be the path"):
+        Reflow(teacher="")
+    with pytest.raises(ValueError, match="t_grid must be None or an integer >= 1"):
+        Reflow(teacher="t.ckpt", t_grid=0)

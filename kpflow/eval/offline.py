@@ -26,7 +26,7 @@ def _errors(chunk: np.ndarray, recorded: np.ndarray, mask: np.ndarray) -> tuple[
     return float(gaps[0]), float(gaps.mean())
 
 
-def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: ChunkDataModule, steps: int = 10,
+def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: ChunkDataModule, steps: int | None = None,
                      execute: int = 8, every: int = 4, progress: bool = True) -> dict:  # fmt: skip
     """Run the offline check (module docstring) of the K-CFM at ``checkpoint`` on ``data``'s held-out episodes."""
     from kpflow.eval.plots import offline_figure
@@ -36,6 +36,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         raise ValueError(f"every must be >= 1, got {every}")
     out = Path(output_dir)
     policy = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin=None)
+    steps = policy.steps
     n_obs = int(policy.model.hparams.n_obs)
     data.setup()
     held_out = data.val_set if data.val_set is not None and len(data.val_set) else data.train_set

@@ -112,22 +112,23 @@ def _map_factory(make_map, layout: PolicyLayout, fit: tuple[int, ...] | None, wh
     return make_map
 
 
-def make_kcfm(model, layout: PolicyLayout, steps: int = 10, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
-              reach: float | None = None, turn_deg: float | None = None):  # fmt: skip
-    """A loaded K-CFM as a policy (:class:`~.kcfm_policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``."""
+def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+              reach: float | None = None, turn_deg: float | None = None, solver: str | None = None):  # fmt: skip
+    """A loaded K-CFM as a policy (:class:`~.kcfm_policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``;
+    ``steps``/``solver`` None: the checkpoint's own sampling settings."""
     from .kcfm_policy import KCFMPolicy
 
-    return within_reach(KCFMPolicy(model, steps, execute, input_margin), layout, reach, turn_deg)
+    return within_reach(KCFMPolicy(model, steps, execute, input_margin, solver), layout, reach, turn_deg)
 
 
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
-                          steps: int = 10, execute: int = 8, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
+                          steps: int | None = None, execute: int = 8, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
-                          **choice):  # fmt: skip
+                          solver: str | None = None, **choice):  # fmt: skip
     """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`)."""
     from .transported_kcfm import TransportedKCFMPolicy
 
-    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, **choice)
+    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, **choice)
     return within_reach(policy, layout, reach, turn_deg)
 
 
@@ -150,21 +151,22 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
     return TransportPolicy(source_index(demos, layout, horizon, weights, frame), make_map, execute, fit_on=fit, layout=layout, **options)
 
 
-def kcfm(checkpoint: str, task, steps: int = 10, execute: int = 8, reach: float | None = None, turn_deg: float | None = None,
-         input_margin: float | None = INPUT_MARGIN):  # fmt: skip
-    """The K-CFM at ``checkpoint`` for ``task`` (:func:`make_kcfm`); a checkpoint trained on another task's keypoints
-    or actions is refused here, naming both layouts (:func:`check_checkpoint_fits`)."""
+def kcfm(checkpoint: str, task, steps: int | None = None, execute: int = 8, reach: float | None = None, turn_deg: float | None = None,
+         input_margin: float | None = INPUT_MARGIN, solver: str | None = None):  # fmt: skip
+    """The K-CFM at ``checkpoint`` for ``task`` (:func:`make_kcfm`; ``steps``/``solver`` None: the checkpoint's); a
+    checkpoint trained on another task's keypoints or actions is refused here, naming both layouts
+    (:func:`check_checkpoint_fits`)."""
     from .kcfm_policy import KCFMPolicy
 
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin).model
+    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
     check_checkpoint_fits(checkpoint, model.hparams, task)
-    return make_kcfm(model, layout_of(task), steps, execute, input_margin, reach, turn_deg)
+    return make_kcfm(model, layout_of(task), steps, execute, input_margin, reach, turn_deg, solver)
 
 
 def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
-                     steps: int = 10, execute: int = 8, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
+                     steps: int | None = None, execute: int = 8, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
                      fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
-                     input_margin: float | None = INPUT_MARGIN, **options):  # fmt: skip
+                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, **options):  # fmt: skip
     """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the
     index saved beside the checkpoint, :func:`source_index_path`, searched with ``weights`` and ``frame``)
     (:func:`make_transported_kcfm`), its map fitted on ``fit_on``; ``options``: the source choice. The checkpoint
@@ -174,7 +176,7 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
 
     task = _built(task)
     layout = layout_of(task)
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin).model
+    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
     check_checkpoint_fits(checkpoint, model.hparams, task)
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"the transported K-CFM (fit_on={fit_on})")
@@ -183,4 +185,4 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
         index = SourceIndex(saved.keypoints, saved.chunks, layout.weights(weights), frame_indices(layout, frame))
     else:
         index = source_index(demos, layout, int(model.hparams.horizon), weights, frame)
-    return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, **options)
+    return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, **options)

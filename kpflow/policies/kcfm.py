@@ -6,9 +6,12 @@ the last ``n_obs`` observations of a task's ``K`` keypoints ``k`` (Push-T: 25, b
 
 The generative objective is injected by name (:mod:`kpflow.policies.objectives`): ``"icfm"`` (conditional flow
 matching, the straight path with ``sigma = 0``: Lipman et al. 2023 eqs. 20-23, the default), ``"otcfm"`` (with
-minibatch optimal-transport couplings, Tong et al. 2024) or ``"ddpm"`` (DDPM training and DDIM sampling as Diffusion
-Policy does it: with the same network, data and budget, the DP-equivalent baseline). The loss is the objective's
-regression target averaged over the real, unpadded steps of each chunk (:func:`masked_mse`).
+minibatch optimal-transport couplings, Tong et al. 2024), ``"ddpm"`` (DDPM training and DDIM sampling as Diffusion
+Policy does it: with the same network, data and budget, the DP-equivalent baseline), ``"meanflow"`` (average
+velocities, one step from noise to data, Geng et al. 2025) or ``"reflow"`` (distillation of a trained K-CFM, the
+*teacher*, into few steps: Liu et al. 2023). The loss is the objective's regression target averaged over the real,
+unpadded steps of each chunk (:func:`masked_mse`). How a chunk is sampled by default is part of the model
+(``sample_steps`` network calls of ``solver``), so a checkpoint carries the settings it was made for.
 
 The network is injected by name too: the 1-D temporal U-Net with FiLM (:class:`~kpflow.policies.unet1d.ConditionalUnet1D`,
 any widths up to DP's (256, 512, 1024)) or a small transformer
@@ -46,7 +49,7 @@ from kpflow.policies.objectives import build_objective
 from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
 
-MAX_STEPS = 100  # most network calls :meth:`KCFM.sample` takes (Euler steps of a flow, DDIM steps of a diffusion)
+MAX_STEPS = 100  # most network calls :meth:`KCFM.sample` takes (solver steps of a flow, DDIM steps of a diffusion)
 NETWORKS = ("unet", "transformer")
 LR_SCHEDULES = ("cosine", "constant")
 _MIN_STD = 1e-3  # px: a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
@@ -78,6 +81,15 @@ def fill_padding(actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     idx = torch.where(mask, h, -1).cummax(-1).values
     idx = torch.where(idx < 0, first, idx)
     return actions.gather(1, idx[..., None].expand_as(actions))
+
+
+def check_sampler(objective, steps, solver: str | None) -> None:
+    """Raise ``ValueError`` unless ``steps`` is an integer in ``1..MAX_STEPS`` and ``solver`` is None or one of the
+    ``objective``'s samplers."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
+        raise ValueError(f"steps must be an integer in 1..{MAX_STEPS} (network calls per chunk); got {steps!r}")
+    if solver is not None and solver not in objective.solvers:
+        raise ValueError(f"solver must be one of {objective.solvers} for this objective ({type(objective).__name__}); got {solver!r}")
 
 
 # -------------------------------------------------------------------------------------------- goal frame
@@ -168,8 +180,13 @@ class KCFM(lightning.LightningModule):
         origin: the index of the keypoint (negative: from the end) that keypoints and the actions' positions (their
             first ``keypoint_dim`` values) are taken relative to, in any dimension (module docstring). None: off.
             Not with ``goal_frame`` or ``relative``.
-        objective: ``"icfm"``, ``"otcfm"`` or ``"ddpm"`` (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with
-            ``objective_options`` (e.g. ``{"train_steps": 100}`` for ``"ddpm"``).
+        objective: ``"icfm"``, ``"otcfm"``, ``"ddpm"``, ``"meanflow"`` or ``"reflow"``
+            (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with ``objective_options`` (e.g.
+            ``{"train_steps": 100}`` for ``"ddpm"``; ``{"teacher": "path/to/teacher.ckpt"}`` for ``"reflow"``, whose
+            teacher is read when training starts, :meth:`attach_teacher`).
+        sample_steps: network calls per chunk when :meth:`sample` is not told (1..``MAX_STEPS``).
+        solver: the objective's sampler when :meth:`sample` is not told (``"euler"``, ``"midpoint"``, ``"heun"`` for
+            flows, ``"ddim"`` for ``"ddpm"``; :mod:`~kpflow.policies.objectives.solvers`); None: the objective's first.
         network: ``"unet"`` or ``"transformer"``.
         down_dims, kernel_size, n_groups: the :class:`~kpflow.policies.unet1d.ConditionalUnet1D`.
         d_model, n_layers, n_heads: the :class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`.
@@ -193,6 +210,8 @@ class KCFM(lightning.LightningModule):
         origin: int | None = None,
         objective: str = "icfm",
         objective_options: dict | None = None,
+        sample_steps: int = 10,
+        solver: str | None = None,
         network: str = "unet",
         down_dims: Sequence[int] = (32, 64),
         kernel_size: int = 5,
@@ -222,12 +241,13 @@ class KCFM(lightning.LightningModule):
         if warmup_steps < 0:
             raise ValueError(f"warmup_steps must be >= 0; got {warmup_steps}")
         self.objective = build_objective(objective, **(objective_options or {}))  # validates the name and options
+        check_sampler(self.objective, sample_steps, solver)
         self.save_hyperparameters()
-        cond_dim = keypoint_dim * n_keypoints * n_obs
+        cond_dim, times = keypoint_dim * n_keypoints * n_obs, dict(n_times=self.objective.n_times, time_scale=self.objective.time_scale)
         if network == "unet":
-            self.net = ConditionalUnet1D(action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim)
+            self.net = ConditionalUnet1D(action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim, **times)
         else:
-            self.net = ConditionalTransformer1D(action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim)
+            self.net = ConditionalTransformer1D(action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim, **times)
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         self.register_buffer("kp_mean", torch.zeros(keypoint_dim * n_keypoints))
         self.register_buffer("kp_std", torch.ones(keypoint_dim * n_keypoints))
@@ -278,7 +298,10 @@ class KCFM(lightning.LightningModule):
             self.stats_set.fill_(True)
 
     def setup(self, stage: str) -> None:
-        """Fit the normalisation to ``trainer.datamodule.train_set`` (once; a resumed run keeps the checkpoint's)."""
+        """Fit the normalisation to ``trainer.datamodule.train_set`` (once; a resumed run keeps the checkpoint's), or
+        take the teacher's with an objective that distils one (:meth:`attach_teacher`)."""
+        if stage == "fit" and hasattr(self.objective, "attach"):
+            self.attach_teacher()
         if stage != "fit" or self.trainer is None or bool(self.stats_set):
             return
         ds = getattr(self.trainer.datamodule, "train_set", None)
@@ -293,6 +316,46 @@ class KCFM(lightning.LightningModule):
             raise ValueError(f"the data's observation history n_obs={getattr(ds, 'n_obs', 1)} differs from the model's n_obs={self.hparams.n_obs}")
         obs, chunks, mask = ds.arrays()  # one row per step of the training episodes only
         self.set_normalisation(obs, chunks, mask)
+
+    def attach_teacher(self) -> None:
+        """Read the teacher K-CFM of a distilling objective (``objective_options["teacher"]``, a checkpoint path) and
+        hand the objective its sampler (its EMA network, ``teacher_steps`` calls of ``teacher_solver``).
+
+        The student takes the teacher's normalisation (so that a condition and a normalised chunk mean the same to
+        both) and, with ``initialise`` (the default) and the same network, starts from the teacher's weights; a
+        resumed run's checkpoint then overwrites those. The teacher must see the same keypoints and predict the same
+        actions: its layout, horizon, observation history and frames must equal the student's.
+
+        Raises:
+            ValueError: a teacher whose layout or frames differ, or whose network differs when ``initialise``.
+        """
+        from kpflow.utils.checkpoint import load_checkpoint
+
+        teacher = load_checkpoint(KCFM, self.objective.teacher, map_location=self.device).eval()
+        same = ("n_keypoints", "keypoint_dim", "action_dim", "horizon", "n_obs", "goal_frame", "relative", "origin")
+        differ = [k for k in same if teacher.hparams.get(k) != self.hparams.get(k)]
+        if differ:
+            raise ValueError(
+                f"the teacher {self.objective.teacher} differs from this K-CFM in {differ}: "
+                + ", ".join(f"{k} {teacher.hparams.get(k)!r} against {self.hparams.get(k)!r}" for k in differ)
+            )
+        with torch.no_grad():
+            for name in ("kp_mean", "kp_std", "action_center", "action_scale", "stats_set"):
+                getattr(self, name).copy_(getattr(teacher, name))
+            if self.objective.initialise:
+                try:
+                    self.net.load_state_dict(teacher.ema_net.state_dict())
+                    self.ema_net.load_state_dict(teacher.ema_net.state_dict())
+                except RuntimeError as e:
+                    raise ValueError(f"initialise=True starts the student from the teacher's weights, but their networks differ ({e})") from None
+        steps, solver = self.objective.teacher_steps, self.objective.teacher_solver
+        check_sampler(teacher.objective, steps, solver)
+
+        def teacher_sample(noise: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+            teacher.to(noise.device)  # it follows the student (the trainer moves the student after setup)
+            return teacher.objective.sample(lambda x, t: teacher.ema_net(x, t, c), noise, steps, solver)
+
+        self.objective.attach(teacher_sample)
 
     def _stats_frame(self, history: torch.Tensor) -> torch.Tensor:
         """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
@@ -388,8 +451,8 @@ class KCFM(lightning.LightningModule):
             )
         c = self._condition(history)
         x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(history[:, -1]))
-        target = self.objective.training_target(x1, c, generator)
         net = self.net if net is None else net
+        target = self.objective.training_target(x1, c, generator, net)
         i = target.index
         return masked_mse(net(target.x_t, target.t, c[i]), target.target, mask.bool()[i])
 
@@ -514,25 +577,33 @@ class KCFM(lightning.LightningModule):
                 )
         return kp
 
+    def sampler(self, steps: int | None = None, solver: str | None = None) -> tuple[int, str]:
+        """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the model's ``sample_steps`` and
+        ``solver`` (checkpoints from before those settings: 10 calls of the objective's first solver)."""
+        steps = int(self.hparams.get("sample_steps", 10)) if steps is None else steps
+        solver = solver if solver is not None else self.hparams.get("solver") or self.objective.solvers[0]
+        check_sampler(self.objective, steps, solver)
+        return int(steps), solver
+
     @torch.no_grad()
-    def sample(self, keypoints, steps: int = 10, generator: torch.Generator | None = None) -> torch.Tensor:
+    def sample(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None) -> torch.Tensor:
         """Action chunks ``[B, H, A]`` (float32, world px) for keypoint frames (shapes: :meth:`_check_keypoints`).
 
-        The objective's sampler (Euler steps of the flow, or DDIM steps of the diffusion) with ``steps`` calls of
-        the EMA network, from ``x ~ N(0, I)`` drawn with ``generator`` (on the generator's device). Deterministic
-        given the generator's state.
+        The objective's sampler ``solver`` (an ODE solver of the flow, DDIM for the diffusion) with ``steps`` calls of
+        the EMA network (None: the model's own settings, :meth:`sampler`), from ``x ~ N(0, I)`` drawn with
+        ``generator`` (on the generator's device). Deterministic given the generator's state.
 
         Raises:
-            ValueError: ``steps`` not an integer in ``1..MAX_STEPS``; keypoints of the wrong shape or not finite.
+            ValueError: ``steps`` not an integer in ``1..MAX_STEPS``; a solver the objective lacks; keypoints of the
+                wrong shape or not finite.
         """
-        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
-            raise ValueError(f"steps must be an integer in 1..{MAX_STEPS}; got {steps!r}")
+        steps, solver = self.sampler(steps, solver)
         kp = self._check_keypoints(keypoints)
         c, frame = self._condition(kp), self.action_frame(kp[:, -1])
         noise = self._randn((len(kp), self.hparams.horizon, self.hparams.action_dim), generator)
-        x = self.objective.sample(lambda x, t: self.ema_net(x, t, c), noise, int(steps))
+        x = self.objective.sample(lambda x, t: self.ema_net(x, t, c), noise, steps, solver)
         return self.denormalise_actions(x, frame)
 
-    def forward(self, keypoints, steps: int = 10, generator: torch.Generator | None = None) -> torch.Tensor:
+    def forward(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None) -> torch.Tensor:
         """Same as :meth:`sample`."""
-        return self.sample(keypoints, steps, generator)
+        return self.sample(keypoints, steps, generator, solver)

@@ -1,8 +1,8 @@
 """A trained :class:`~kpflow.policies.kcfm.KCFM` behind the :class:`~kpflow.tasks.base.Policy` protocol.
 
 ``act(obs)`` samples one chunk for ``obs["keypoints"]`` (``obs["keypoints_history"] [n_obs, K, 2]`` for a model with an
-observation history, as :func:`~kpflow.tasks.pusht.rollout.run_episode` provides) with ``steps`` network calls and
-returns its first ``execute`` absolute agent targets (px). The flow's starting noise comes from a CPU ``torch.Generator`` seeded by
+observation history, as :func:`~kpflow.tasks.pusht.rollout.run_episode` provides) with ``steps`` network calls of
+``solver`` (by default the checkpoint's own, :meth:`KCFM.sampler`) and returns its first ``execute`` absolute agent targets (px). The flow's starting noise comes from a CPU ``torch.Generator`` seeded by
 :meth:`KCFMPolicy.reset`, so an episode is reproducible from its seed (and does not depend on the model's device).
 
 An observation far outside the training data (farther outside its keypoints' box than ``input_margin`` times the
@@ -20,46 +20,50 @@ import torch
 from kpflow.utils.config_checks import RESET_SEED, Key
 
 from .checks import INPUT_MARGIN, check_actions
-from .kcfm import KCFM, MAX_STEPS
+from .kcfm import KCFM
 
 _INPUT_MARGIN = Key(float, lo=0, nullable=True)
 
 
-def check_steps_and_execute(model: KCFM, steps: int, execute: int) -> None:
-    """Raise ``ValueError`` unless ``steps`` is in ``1..MAX_STEPS`` and ``execute`` in ``1..horizon``."""
+def check_steps_and_execute(model: KCFM, steps: int | None, execute: int, solver: str | None = None) -> None:
+    """Raise ``ValueError`` unless ``steps`` (None: the model's) and ``solver`` suit the model's objective
+    (:meth:`KCFM.sampler`) and ``execute`` is in ``1..horizon``."""
+    model.sampler(steps, solver)
     horizon = int(model.hparams.horizon)
-    for name, value, hi in (("steps", steps, MAX_STEPS), ("execute", execute, horizon)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= hi:
-            what = " (the model's chunk length)" if name == "execute" else ""
-            raise ValueError(f"{name} must be an integer in 1..{hi}{what}; got {value!r}")
+    if isinstance(execute, bool) or not isinstance(execute, (int, np.integer)) or not 1 <= execute <= horizon:
+        raise ValueError(f"execute must be an integer in 1..{horizon} (the model's chunk length); got {execute!r}")
 
 
 class KCFMPolicy:
-    """K-CFM as a policy: ``act(obs) = model.sample(obs["keypoints"], steps, generator)[0, :execute]`` (float64).
+    """K-CFM as a policy: ``act(obs) = model.sample(obs["keypoints"], steps, generator, solver)[0, :execute]`` (float64).
 
     Args:
         model: a trained K-CFM (put in eval mode).
-        steps: network calls per chunk (Euler steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``).
+        steps: network calls per chunk (solver steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``); None:
+            the model's ``sample_steps``.
         execute: how many of the chunk's ``horizon`` actions :meth:`act` returns.
         input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the
             box on each side (:meth:`KCFM.check_in_range`; >= 0); None: no range check.
+        solver: the objective's sampler (``euler``, ``midpoint``, ``heun``; ``ddim``); None: the model's.
     """
 
-    def __init__(self, model: KCFM, steps: int = 10, execute: int = 8, input_margin: float | None = INPUT_MARGIN) -> None:
-        check_steps_and_execute(model, steps, execute)
+    def __init__(self, model: KCFM, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN, solver: str | None = None) -> None:
+        check_steps_and_execute(model, steps, execute, solver)
         _INPUT_MARGIN.check("input_margin", input_margin)
-        self.model, self.steps, self.execute = model.eval(), int(steps), int(execute)
+        self.steps, self.solver = model.sampler(steps, solver)
+        self.model, self.execute = model.eval(), int(execute)
         self.input_margin = None if input_margin is None else float(input_margin)
         self.n_obs = int(model.hparams.n_obs)
         self.generator = torch.Generator()
         self.reset()
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, steps: int = 10, execute: int = 8, input_margin: float | None = INPUT_MARGIN) -> "KCFMPolicy":
+    def from_checkpoint(cls, path: str | Path, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+                        solver: str | None = None) -> "KCFMPolicy":  # fmt: skip
         """The policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         from kpflow.utils.checkpoint import load_checkpoint
 
-        return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute, input_margin)
+        return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute, input_margin, solver)
 
     def reset(self, seed: int | None = None) -> None:
         """Reseed the sampling noise with ``seed`` (an integer >= 0; 0 when None)."""
@@ -81,5 +85,5 @@ class KCFMPolicy:
         else:
             raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
         keypoints = self.model.check_in_range(keypoints, self.input_margin)
-        chunk = self.model.sample(keypoints, self.steps, self.generator)
+        chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver)
         return check_actions(chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy(), "the K-CFM")

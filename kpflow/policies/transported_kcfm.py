@@ -69,7 +69,8 @@ class TransportedKCFMPolicy:
         index: its training configurations (e.g. ``SourceIndex.from_store(store, episodes=train_episodes,
             reference=PUSHT_BLOCK)``); only their keypoints are used.
         make_map: builds an unfitted map with an inverse (``ILWRMap``: exact inverse, rigid alignment first).
-        steps: Euler steps of the flow.
+        steps, solver: network calls per chunk and the sampler (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`;
+            None: the model's own).
         execute: how many actions of the chunk :meth:`act` returns.
         pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
@@ -89,15 +90,16 @@ class TransportedKCFMPolicy:
         model: KCFM,
         index: SourceIndex,
         make_map: Callable[[], TransportMap] = ILWRMap,
-        steps: int = 10,
+        steps: int | None = None,
         execute: int = 8,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,
+        solver: str | None = None,
         **choice,
     ) -> None:
-        self.policy = KCFMPolicy(model, steps, execute, input_margin)  # validates steps, execute and input_margin
+        self.policy = KCFMPolicy(model, steps, execute, input_margin, solver)  # validates steps, solver, execute and input_margin
         self.n_obs = self.policy.n_obs
         k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
         if index.keypoints.shape[1:] != (k, d):
@@ -117,17 +119,18 @@ class TransportedKCFMPolicy:
         path: str | Path,
         index: SourceIndex,
         make_map: Callable[[], TransportMap] = ILWRMap,
-        steps: int = 10,
+        steps: int | None = None,
         execute: int = 8,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,
+        solver: str | None = None,
         **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
-        base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, **choice)
+        base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin, solver)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, **choice)
 
     @property
     def model(self) -> KCFM:

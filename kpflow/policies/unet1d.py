@@ -2,7 +2,8 @@
 small enough to run a 10-step flow in a few milliseconds on one CPU thread.
 
 The network maps a chunk ``x [B, H, A]``, a scalar flow time ``t [B]`` and a condition ``c [B, C]`` to a velocity
-``[B, H, A]``. Convolutions run over the time axis ``H`` with the ``A`` action dimensions as input channels. Every
+``[B, H, A]``; built with ``n_times=2`` it takes an interval ``t [B, 2] = (s, t)`` instead (an average velocity,
+:mod:`~kpflow.policies.objectives.meanflow`), embedded as ``emb(s) + emb'(t - s)``. Convolutions run over the time axis ``H`` with the ``A`` action dimensions as input channels. Every
 residual block is FiLM-conditioned on ``[emb(t), c]``. The down path halves ``H`` ``len(down_dims) - 1`` times and
 the up path doubles it back, with skip connections laid out as in Diffusion Policy. An ``H`` that is not a multiple
 of ``2 ** (len(down_dims) - 1)`` is zero-padded at the end and the output cropped back, so any ``H >= 1`` works.
@@ -39,16 +40,25 @@ class SinusoidalEmbedding(nn.Module):
         return torch.cat([s.sin(), s.cos()], dim=-1)
 
 
-def time_and_condition(x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None, cond_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """A denoiser's time ``[B]`` (a scalar broadcast) and condition ``[B, cond_dim]`` (None: an empty one) for the
-    chunks ``x [B, H, A]``; a condition of another shape raises ``ValueError``."""
+def time_and_condition(x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None, cond_dim: int, n_times: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """A denoiser's time ``[B]`` (``[B, 2]`` when ``n_times = 2``; a scalar or one pair broadcast) and condition
+    ``[B, cond_dim]`` (None: an empty one) for the chunks ``x [B, H, A]``; other shapes raise ``ValueError``."""
     b = len(x)
-    t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(b)
+    t = torch.as_tensor(t, dtype=x.dtype, device=x.device)
+    shape = (b,) if n_times == 1 else (b, n_times)
+    if t.shape not in (shape, shape[1:], ()) or (n_times > 1 and t.ndim == 0):
+        raise ValueError(f"time must have shape {list(shape)} (n_times={n_times}); got {tuple(t.shape)}")
+    t = t.expand(shape)
     if c is None:
         c = x.new_zeros(b, 0)
     if c.shape != (b, cond_dim):
         raise ValueError(f"condition must have shape [{b}, {cond_dim}]; got {tuple(c.shape)}")
     return t, c
+
+
+def time_mlp(dim: int, scale: float = 1000.0) -> nn.Sequential:
+    """The embedding of a time in [0, 1]: sinusoidal (of ``scale * t``), then ``Linear -> Mish -> Linear``."""
+    return nn.Sequential(SinusoidalEmbedding(dim, scale), nn.Linear(dim, 4 * dim), nn.Mish(), nn.Linear(4 * dim, dim))
 
 
 class Conv1dBlock(nn.Module):
@@ -99,6 +109,9 @@ class ConditionalUnet1D(nn.Module):
         kernel_size: temporal kernel of the conv blocks (odd).
         n_groups: GroupNorm groups; must divide every width.
         time_dim: size of the flow-time embedding (sinusoidal, then ``Linear -> Mish -> Linear``).
+        n_times: 1 (a time ``t [B]``) or 2 (an interval ``[B, 2]``; its length gets an embedding of its own).
+        time_scale: the embedding's ``scale`` (:class:`SinusoidalEmbedding`); an objective that differentiates the
+            network in time (MeanFlow) wants a smooth one (1).
     """
 
     def __init__(
@@ -109,20 +122,24 @@ class ConditionalUnet1D(nn.Module):
         kernel_size: int = 5,
         n_groups: int = 8,
         time_dim: int = 64,
+        n_times: int = 1,
+        time_scale: float = 1000.0,
     ) -> None:
         super().__init__()
         down_dims = tuple(int(d) for d in down_dims)
+        if n_times not in (1, 2):
+            raise ValueError(f"n_times must be 1 (a time) or 2 (an interval); got {n_times!r}")
         if action_dim < 1 or cond_dim < 0:
             raise ValueError(f"need action_dim >= 1 and cond_dim >= 0; got {action_dim}, {cond_dim}")
         if not down_dims or any(d % n_groups for d in down_dims):
             raise ValueError(f"down_dims {down_dims} must be non-empty and divisible by n_groups={n_groups}")
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be odd; got {kernel_size}")
-        self.action_dim, self.cond_dim = action_dim, cond_dim
+        self.action_dim, self.cond_dim, self.n_times = action_dim, cond_dim, n_times
         self.stride = 2 ** (len(down_dims) - 1)  # H is padded to a multiple of this
-        self.time_mlp = nn.Sequential(
-            SinusoidalEmbedding(time_dim), nn.Linear(time_dim, 4 * time_dim), nn.Mish(), nn.Linear(4 * time_dim, time_dim)
-        )
+        self.time_mlp = time_mlp(time_dim, time_scale)
+        if n_times == 2:
+            self.interval_mlp = time_mlp(time_dim, time_scale)
 
         def block(c_in: int, c_out: int) -> ConditionalResidualBlock1D:
             return ConditionalResidualBlock1D(c_in, c_out, kernel_size, n_groups)
@@ -145,12 +162,14 @@ class ConditionalUnet1D(nn.Module):
         self.film = nn.Sequential(nn.Mish(), nn.Linear(time_dim + cond_dim, sum(self.film_sizes)))
 
     def forward(self, x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None = None) -> torch.Tensor:
-        """Velocity ``[B, H, A]`` at chunk ``x [B, H, A]``, flow time ``t`` (``[B]`` or a scalar) and condition ``c [B, C]``."""
+        """Velocity ``[B, H, A]`` at chunk ``x [B, H, A]``, flow time ``t`` (``[B]`` or a scalar; ``[B, 2]`` with
+        ``n_times=2``) and condition ``c [B, C]``."""
         if x.ndim != 3 or x.shape[-1] != self.action_dim:
             raise ValueError(f"x must have shape [B, H, {self.action_dim}]; got {tuple(x.shape)}")
         b, h = x.shape[:2]
-        t, c = time_and_condition(x, t, c, self.cond_dim)
-        films = iter(self.film(torch.cat([self.time_mlp(t), c], dim=-1)).split(self.film_sizes, dim=-1))
+        t, c = time_and_condition(x, t, c, self.cond_dim, self.n_times)
+        emb = self.time_mlp(t) if self.n_times == 1 else self.time_mlp(t[:, 0]) + self.interval_mlp(t[:, 1] - t[:, 0])
+        films = iter(self.film(torch.cat([emb, c], dim=-1)).split(self.film_sizes, dim=-1))
 
         z = x.transpose(1, 2)  # [B, A, H]: time is the conv axis
         pad = -h % self.stride

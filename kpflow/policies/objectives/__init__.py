@@ -7,9 +7,12 @@ one never calls anything a file names.
 from .base import Objective, TrainingTarget
 from .ddpm import DDPM
 from .icfm import ICFM
+from .meanflow import MeanFlow
 from .otcfm import OTCFM
+from .reflow import Reflow
+from .solvers import SOLVERS
 
-OBJECTIVES = {"icfm": ICFM, "otcfm": OTCFM, "ddpm": DDPM}
+OBJECTIVES = {"icfm": ICFM, "otcfm": OTCFM, "ddpm": DDPM, "meanflow": MeanFlow, "reflow": Reflow}
 
 
 def build_objective(name: str, **options) -> Objective:
@@ -22,4 +25,4 @@ def build_objective(name: str, **options) -> Objective:
         raise ValueError(f"bad options {options} for objective {name!r}: {e}") from None
 
 
-__all__ = ["DDPM", "ICFM", "OBJECTIVES", "OTCFM", "Objective", "TrainingTarget", "build_objective"]
+__all__ = ["DDPM", "ICFM", "OBJECTIVES", "OTCFM", "SOLVERS", "MeanFlow", "Objective", "Reflow", "TrainingTarget", "build_objective"]

@@ -4,8 +4,10 @@ An objective says two things about a denoising network ``net(x [B, H, A], t [B],
 [0, 1]): what it is trained to predict for a batch of normalised data chunks ``x1`` (:meth:`Objective.training_target`)
 and how a sample is drawn with it from Gaussian noise (:meth:`Objective.sample`). The policy
 (:class:`~kpflow.policies.kcfm.KCFM`) owns the data, the condition, the mask and the network; the objective owns the
-probability path. Families: :mod:`.icfm`, :mod:`.otcfm` (flow matching, torchcfm) and :mod:`.ddpm` (diffusion,
-diffusers' schedulers, as Diffusion Policy trains and samples).
+probability path and its samplers. Families: :mod:`.icfm`, :mod:`.otcfm` (flow matching, torchcfm), :mod:`.ddpm`
+(diffusion, diffusers' schedulers, as Diffusion Policy trains and samples), :mod:`.meanflow` (average velocities:
+one step from noise to data, trained from scratch) and :mod:`.reflow` (a trained flow's own samples as straight
+couplings: distillation into few steps).
 """
 
 from __future__ import annotations
@@ -31,15 +33,29 @@ class TrainingTarget:
     index: torch.Tensor  # [B] int64 rows of the data batch
 
 
+#: ``net(x, t, c)``: the network being trained, as an objective whose target depends on it sees it.
+Network = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
 class Objective(Protocol):
-    """A generative objective (module docstring)."""
+    """A generative objective (module docstring).
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None) -> TrainingTarget:
+    ``solvers`` names its samplers, the first the default; ``n_times`` is how many times the network takes per row
+    (1: ``t [B]``; 2: ``t [B, 2]``, the start and end of an interval, :mod:`.meanflow`); ``time_scale`` the scale
+    of the network's sinusoidal time embedding (:class:`~kpflow.policies.unet1d.SinusoidalEmbedding`).
+    """
+
+    solvers: tuple[str, ...]
+    n_times: int
+    time_scale: float
+
+    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net: Network | None = None) -> TrainingTarget:
         """Corrupt normalised data chunks ``x1 [B, H, A]`` (conditions ``cond [B, C]``, which a coupling may use)
-        with noise drawn from ``generator``."""
+        with noise drawn from ``generator``; ``net`` is the network being trained, for targets that depend on it."""
 
-    def sample(self, net: Denoiser, noise: torch.Tensor, steps: int) -> torch.Tensor:
-        """Chunks ``[B, H, A]`` in the data's normalised space, from ``noise ~ N(0, I)`` in ``steps`` network calls."""
+    def sample(self, net: Denoiser, noise: torch.Tensor, steps: int, solver: str) -> torch.Tensor:
+        """Chunks ``[B, H, A]`` in the data's normalised space, from ``noise ~ N(0, I)`` in ``steps`` network calls
+        of ``solver`` (one of :attr:`solvers`)."""
 
 
 def randn_like(x: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:

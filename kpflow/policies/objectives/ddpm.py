@@ -27,10 +27,16 @@ from .base import Denoiser, TrainingTarget, identity_index, randn_like
 class DDPM:
     """Denoising diffusion (module docstring).
 
+    Its one sampler is DDIM (``solvers = ("ddim",)``).
+
     Args:
         train_steps: the number of diffusion steps ``T`` (DP: 100).
         clip_sample: clip each DDIM estimate of the clean chunk to [-1, 1] (the chunks' normalised range).
     """
+
+    solvers = ("ddim",)
+    n_times = 1
+    time_scale = 1000.0
 
     def __init__(self, train_steps: int = 100, clip_sample: bool = True) -> None:
         if isinstance(train_steps, bool) or not isinstance(train_steps, int) or train_steps < 2:
@@ -45,14 +51,16 @@ class DDPM:
         """``alpha_bar_k`` for ``k = 0..T-1`` (float32)."""
         return self.noise_scheduler.alphas_cumprod
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None) -> TrainingTarget:
+    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None) -> TrainingTarget:
         eps = randn_like(x1, generator)
         device = generator.device if generator is not None else x1.device
         k = torch.randint(0, self.train_steps, (len(x1),), generator=generator, device=device).to(x1.device)
         x_k = self.noise_scheduler.add_noise(x1, eps, k)
         return TrainingTarget(x_k, k.to(x1.dtype) / self.train_steps, eps, identity_index(x1))
 
-    def sample(self, net: Denoiser, noise: torch.Tensor, steps: int) -> torch.Tensor:
+    def sample(self, net: Denoiser, noise: torch.Tensor, steps: int, solver: str = "ddim") -> torch.Tensor:
+        if solver != "ddim":
+            raise ValueError(f"a diffusion samples with DDIM only (solver='ddim'); got {solver!r}")
         if not 1 <= steps <= self.train_steps:
             raise ValueError(f"DDIM steps must be in 1..{self.train_steps} (the diffusion steps); got {steps}")
         self.sampler.set_timesteps(steps, device=noise.device)
