@@ -102,4 +102,5 @@ def test_serving_benchmark_writes_its_table(tmp_path):
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
-    assert len(rows) == 3 and rows[0].startswith("| in-process") and all(float(r.split(" | ")[2]) > 0 for r in rows)
+    assert len(rows) == 5 and rows[0].startswith("| in-process") and all(float(r.split(" | ")[2]) > 0 for r in rows)
+    assert [r.split(" | ")[0] for r in rows[1:]] == ["| server, batching off"] * 2 + ["| server, batching on (8 rows, 5 ms)"] * 2

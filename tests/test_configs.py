@@ -32,7 +32,7 @@ ENTRIES = {
     "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"], "evaluate"),
-        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm", "kcfm"], "train"),
+        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_fast", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm", "kcfm"], "train"),
     },
 }
 

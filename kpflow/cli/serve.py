@@ -8,6 +8,10 @@ The config keys, then the host and port (the host must resolve and the port bind
 loaded, so a mistyped address fails at once with one line naming it. ``input_margin`` (10 by default) is how far
 outside the K-CFM's training keypoints, in extents of their box on each side, an observation may lie before it is
 refused (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); null turns the check off.
+
+``batch.max_size`` (8 by default; 1 turns batching off) and ``batch.max_wait_ms`` (5): the network calls of requests
+from several clients in flight at once run as one forward pass of at most that many rows, its leader waiting at
+most that long for the others (:mod:`kpflow.serving.batching`). A lone client never waits.
 """
 
 import logging
@@ -26,7 +30,8 @@ log = logging.getLogger("kpflow.serve")
 KEYS = {
     "checkpoint": Key(str),
     "transport": Key(str, choices=tuple(TRANSPORT_MAPS), nullable=True),
-    "steps": Key(int, lo=1),
+    "steps": Key(int, lo=1, nullable=True),
+    "solver": Key(str, nullable=True),
     "execute": Key(int, lo=1),
     "control_hz": Key(float, lo=0),
     "reach": Key(float, lo=0, nullable=True),
@@ -36,6 +41,8 @@ KEYS = {
     "max_message_mb": Key(float, lo=0.001, hi=1024),  # PolicyServer takes frames of at least 1024 bytes
     "input_margin": Key(float, lo=0, nullable=True),
     "threads": Key(int, lo=1),
+    "batch.max_size": Key(int, lo=1),
+    "batch.max_wait_ms": Key(float, lo=0, hi=1000),
 }
 
 
@@ -49,10 +56,11 @@ def main(cfg: DictConfig) -> None:
     choice = OmegaConf.to_container(cfg.source)
     deployment = load_deployment(
         cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
-        cfg.reach, cfg.turn_deg, cfg.input_margin,
+        cfg.reach, cfg.turn_deg, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms), cfg.solver,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
-    log.info("%s from %s (sha256 %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12])
+    batching = f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait" if cfg.batch.max_size > 1 else "no batching"
+    log.info("%s from %s (sha256 %s; %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12], batching)
     server.run()
 
 

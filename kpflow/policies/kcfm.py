@@ -586,12 +586,14 @@ class KCFM(lightning.LightningModule):
         return int(steps), solver
 
     @torch.no_grad()
-    def sample(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None) -> torch.Tensor:
+    def sample(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None,
+               net=None) -> torch.Tensor:  # fmt: skip
         """Action chunks ``[B, H, A]`` (float32, world px) for keypoint frames (shapes: :meth:`_check_keypoints`).
 
         The objective's sampler ``solver`` (an ODE solver of the flow, DDIM for the diffusion) with ``steps`` calls of
         the EMA network (None: the model's own settings, :meth:`sampler`), from ``x ~ N(0, I)`` drawn with
-        ``generator`` (on the generator's device). Deterministic given the generator's state.
+        ``generator`` (on the generator's device). Deterministic given the generator's state. ``net``: what runs the
+        EMA network, e.g. its :class:`~kpflow.policies.traced.TracedNetwork` (None: the module itself).
 
         Raises:
             ValueError: ``steps`` not an integer in ``1..MAX_STEPS``; a solver the objective lacks; keypoints of the
@@ -601,7 +603,8 @@ class KCFM(lightning.LightningModule):
         kp = self._check_keypoints(keypoints)
         c, frame = self._condition(kp), self.action_frame(kp[:, -1])
         noise = self._randn((len(kp), self.hparams.horizon, self.hparams.action_dim), generator)
-        x = self.objective.sample(lambda x, t: self.ema_net(x, t, c), noise, steps, solver)
+        net = self.ema_net if net is None else net
+        x = self.objective.sample(lambda x, t: net(x, t, c), noise, steps, solver)
         return self.denormalise_actions(x, frame)
 
     def forward(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None) -> torch.Tensor:

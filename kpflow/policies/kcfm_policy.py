@@ -21,8 +21,17 @@ from kpflow.utils.config_checks import RESET_SEED, Key
 
 from .checks import INPUT_MARGIN, check_actions
 from .kcfm import KCFM
+from .traced import TracedNetwork
 
 _INPUT_MARGIN = Key(float, lo=0, nullable=True)
+
+
+def traced_network(model: KCFM) -> TracedNetwork:
+    """The model's EMA network as traces, one :class:`~.traced.TracedNetwork` per model (the policies of one
+    deployment share its traces)."""
+    if getattr(model, "_traced", None) is None or model._traced.net is not model.ema_net:
+        model._traced = TracedNetwork(model.ema_net)
+    return model._traced
 
 
 def check_steps_and_execute(model: KCFM, steps: int | None, execute: int, solver: str | None = None) -> None:
@@ -45,13 +54,17 @@ class KCFMPolicy:
         input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the
             box on each side (:meth:`KCFM.check_in_range`; >= 0); None: no range check.
         solver: the objective's sampler (``euler``, ``midpoint``, ``heun``; ``ddim``); None: the model's.
+        trace: run the network as TorchScript traces (:class:`~.traced.TracedNetwork`: the same outputs, about 30 %
+            less time per call at batch 1); False: eagerly.
     """
 
-    def __init__(self, model: KCFM, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN, solver: str | None = None) -> None:
+    def __init__(self, model: KCFM, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+                 solver: str | None = None, trace: bool = True) -> None:  # fmt: skip
         check_steps_and_execute(model, steps, execute, solver)
         _INPUT_MARGIN.check("input_margin", input_margin)
         self.steps, self.solver = model.sampler(steps, solver)
         self.model, self.execute = model.eval(), int(execute)
+        self.network = traced_network(model) if trace else model.ema_net
         self.input_margin = None if input_margin is None else float(input_margin)
         self.n_obs = int(model.hparams.n_obs)
         self.generator = torch.Generator()
@@ -85,5 +98,5 @@ class KCFMPolicy:
         else:
             raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
         keypoints = self.model.check_in_range(keypoints, self.input_margin)
-        chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver)
+        chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver, self.network)
         return check_actions(chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy(), "the K-CFM")

@@ -3,6 +3,10 @@
 The server gives every connection its own policy from :attr:`Deployment.make_policy` (its own sampling noise and
 last decision), all sharing one loaded model and, for a transported K-CFM, one source index. The source index of a
 transporting policy lives beside its checkpoint as ``<name>.source_index.npz`` (:func:`~kpflow.policies.factory.source_index_path`).
+
+With ``max_batch > 1`` the shared model's network is wrapped in a :class:`~kpflow.serving.batching.BatchedNetwork`,
+so that the network calls of policies acting at once in different threads run as one forward pass, and every
+policy's ``act`` counts as a request in flight on it (:class:`~kpflow.serving.batching.BatchedPolicy`).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from ..maps import AffineMap, GPMap, ILWRMap
 from ..policies.base import Policy, PolicyLayout
 from ..policies.checks import INPUT_MARGIN
 from ..policies.factory import source_index_path
+from .batching import DEFAULT_MAX_WAIT_MS, BatchedNetwork, BatchedPolicy, check_batching
 from .protocol import PolicyMetadata
 
 #: The maps a transported K-CFM can be served with (``transport=...``); each has an inverse.
@@ -25,10 +30,12 @@ TRANSPORT_MAPS: dict[str, Callable] = {"ilwr": ILWRMap, "gp": GPMap, "rigid": la
 
 @dataclass(frozen=True)
 class Deployment:
-    """``make_policy()`` builds a fresh policy (``reset``/``act``) described by ``metadata``."""
+    """``make_policy()`` builds a fresh policy (``reset``/``act``) described by ``metadata``; ``network`` is the
+    shared model's batched network when batching is on (None otherwise)."""
 
     make_policy: Callable[[], Policy]
     metadata: PolicyMetadata
+    network: BatchedNetwork | None = None
 
 
 def sha256(path: str | Path) -> str:
@@ -40,7 +47,7 @@ def load_deployment(
     checkpoint: str | Path,
     task,
     transport: str | None = None,
-    steps: int = 10,
+    steps: int | None = None,
     execute: int = 8,
     pull_back: str = "agent",
     control_hz: float = 10.0,
@@ -49,6 +56,9 @@ def load_deployment(
     reach: float | None = None,
     turn_deg: float | None = None,
     input_margin: float | None = INPUT_MARGIN,
+    max_batch: int = 1,
+    max_wait_ms: float = DEFAULT_MAX_WAIT_MS,
+    solver: str | None = None,
 ) -> Deployment:
     """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit; None: a policy trained on
     data of no kpflow task, served with the keypoints and actions its checkpoint declares), ready to serve,
@@ -59,21 +69,25 @@ def load_deployment(
     nearest, no stuck detection, when None). ``reach`` and ``turn_deg`` (planar tasks) show the policy its goal
     within that distance and turn of its object (:class:`~kpflow.policies.subgoal.SubgoalPolicy`). ``input_margin``:
     how far outside the K-CFM's training keypoints an observation may lie before it is refused, in extents of their
-    box on each side (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`; None: no range check).
+    box on each side (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`; None: no range check). ``max_batch`` (1: off)
+    and ``max_wait_ms``: batch the network calls of policies acting at once (:class:`~kpflow.serving.batching.BatchedNetwork`;
+    a batched reply equals the unbatched one up to floating-point effects of the batch size). ``steps`` and
+    ``solver``: how the K-CFM samples (None: the checkpoint's own settings, :meth:`~kpflow.policies.kcfm.KCFM.sampler`).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), a checkpoint of another task, an
-    unknown map or keypoint group.
+    unknown map or keypoint group, a ``max_batch`` below 1 or a negative ``max_wait_ms``.
     """
     from ..policies.factory import check_checkpoint_fits, fit_on_indices, layout_of, make_kcfm, make_transported_kcfm
     from ..policies.kcfm import KCFM
     from ..policies.kcfm_policy import check_steps_and_execute
     from ..utils.checkpoint import load_checkpoint
 
+    check_batching(max_batch, max_wait_ms)
     if transport is not None and transport not in TRANSPORT_MAPS:
         raise ValueError(f"transport must be None or one of {sorted(TRANSPORT_MAPS)}, got {transport!r}")
     model = load_checkpoint(KCFM, checkpoint, map_location="cpu")
-    check_steps_and_execute(model, steps, execute)
+    check_steps_and_execute(model, steps, execute, solver)
     hp = model.hparams
     if task is None:  # no task: the layout the checkpoint was trained with, without named groups
         layout = PolicyLayout(int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.action_dim))
@@ -84,15 +98,22 @@ def load_deployment(
     limits = {name: value for name, value in (("reach", reach), ("turn_deg", turn_deg)) if value is not None}
     if transport is None:
         def make_policy() -> Policy:
-            return make_kcfm(model, layout, steps, execute, input_margin, reach, turn_deg)
+            return make_kcfm(model, layout, steps, execute, input_margin, reach, turn_deg, solver)
         name = "kcfm"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
         make_map, fit, options = TRANSPORT_MAPS[transport], fit_on_indices(layout, fit_on), dict(choice or {})
 
         def make_policy() -> Policy:
-            return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, **options)
+            return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, **options)
         name = f"transported_kcfm/{transport}"
+    network = None
+    if max_batch > 1:
+        network = model.ema_net = BatchedNetwork(model.ema_net, int(max_batch), float(max_wait_ms), trace=True)
+        unbatched = make_policy
+
+        def make_policy() -> Policy:
+            return BatchedPolicy(unbatched(), network)
     make_policy()  # checks it all now
     name = "/".join([name, *(f"{limit}={float(value):g}" for limit, value in limits.items())])
     observation = {"keypoints": [k, d]} if n_obs == 1 else {"keypoints_history": [n_obs, k, d]}
@@ -101,4 +122,4 @@ def load_deployment(
         policy=name, observation=observation, keypoint_groups=groups, action_shape=[int(execute), int(hp.action_dim)],
         horizon=int(hp.horizon), n_obs=n_obs, control_hz=float(control_hz), checkpoint_sha256=sha256(checkpoint),
     )  # fmt: skip
-    return Deployment(make_policy, metadata)
+    return Deployment(make_policy, metadata, network)

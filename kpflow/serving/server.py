@@ -1,7 +1,9 @@
 """A websocket policy server (:mod:`kpflow.serving.protocol` over :mod:`kpflow.serving.wire`).
 
 Each connection gets the metadata, then its own policy from the deployment; its requests are answered in order, the
-policy's ``act`` running in a worker thread so that other connections are served meanwhile. A request that is not
+policy's ``act`` running in a worker thread (up to :data:`WORKERS` at once) so that other connections are served
+meanwhile. A deployment loaded with ``max_batch > 1`` runs the network calls of the requests in flight together
+(:mod:`kpflow.serving.batching`); each reply's ``server_ms`` still times its own request. A request that is not
 well formed gets an error reply and the connection goes on, a frame larger than ``max_message_bytes`` included; one
 larger than :data:`HARD_LIMIT` times that is refused by the websocket layer before it is read (close code 1009,
 "message too big"), which ends that connection only. Actions that are not finite are never sent: the reply is an
@@ -18,6 +20,7 @@ import signal
 import socket
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
@@ -33,6 +36,7 @@ from .wire import WireError, pack, unpack
 log = logging.getLogger(__name__)
 MAX_MESSAGE_BYTES = 1 << 20
 HARD_LIMIT = 8  # frames up to this many times max_message_bytes are read and answered with an error
+WORKERS = 32  # requests whose act runs at once (asyncio's default executor would allow only cpu_count + 4)
 
 
 def check_address(host: str, port: int) -> None:
@@ -84,7 +88,7 @@ class PolicyServer:
                 return {"reset": seed}
             obs = check_observation(body, self.metadata.observation)
             start = time.perf_counter()
-            actions = await asyncio.to_thread(policy.act, obs)
+            actions = await self._loop.run_in_executor(self._executor, policy.act, obs)
             return {"actions": check_actions(actions, f"the served policy ({self.metadata.policy})"), "server_ms": 1e3 * (time.perf_counter() - start)}
         except (WireError, ValueError) as e:
             return {"error": str(e)}
@@ -121,6 +125,13 @@ class PolicyServer:
         ``on_start`` is called once the port is bound."""
         self._loop = asyncio.get_running_loop()
         self._idle, self._stop = asyncio.Condition(), asyncio.Event()
+        with ThreadPoolExecutor(WORKERS, thread_name_prefix="kpflow-policy") as self._executor:
+            await self._serve(on_start)
+        if self.deployment.network is not None:
+            stats = self.deployment.network.stats()
+            log.info("batching: %d network calls in %d forward passes (%.2f rows each)", stats["calls"], stats["passes"], stats["mean_batch"])
+
+    async def _serve(self, on_start: Callable[[], None] | None) -> None:
         async with serve(self._handle, self.host, self.port, max_size=HARD_LIMIT * self.max_message_bytes, compression=None) as server:
             self.port = server.sockets[0].getsockname()[1]
             log.info("serving %s on ws://%s:%d", self.metadata.policy, self.host, self.port)
