@@ -159,3 +159,22 @@ def test_released_table1_kcfm_with_20_euler_steps_covers_a_goal_10_steps_miss(tm
         assert scores["success_085"] == succeeds, (steps, scores)
         if succeeds:
             assert scores["steps_085"] == 165, scores
+
+
+FAST = ROOT / "release" / "pusht_standard_fast.ckpt"
+
+
+@pytest.mark.skipif(not FAST.exists(), reason="no released few-step K-CFM")
+def test_released_fast_kcfm_samples_with_its_stored_settings_and_reproduces_an_episode_of_its_row(tmp_path):
+    """``policy=kcfm`` loads release/pusht_standard_fast.ckpt with the sampling it was distilled for (2 Euler calls),
+    no override needed; within 60 px and 60 degrees, on the first standard test seed (100000) its row's run covered
+    the goal to 0.95 at step 160 (``results/pusht_fast.md``)."""
+    from hydra.utils import instantiate
+
+    from tests.helpers import compose_config
+
+    overrides = ["policy=kcfm", f"policy.checkpoint={FAST}", "policy.reach=60", "policy.turn_deg=60", "split=standard"]
+    policy = instantiate(compose_config("evaluate", [*overrides, "logger=none"], tmp_path).policy)
+    assert (policy.policy.steps, policy.policy.solver) == (2, "euler")
+    scores = _episode(tmp_path, overrides, "standard", 100_000, max_steps=300)
+    assert scores["steps_095"] == 160, scores  # the standard protocol succeeds at coverage 0.95
