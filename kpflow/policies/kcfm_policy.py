@@ -12,6 +12,7 @@ never returned (:func:`~kpflow.policies.checks.check_actions`): both raise a ``V
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -26,12 +27,16 @@ from .traced import TracedNetwork
 _INPUT_MARGIN = Key(float, lo=0, nullable=True)
 
 
+_TRACES: "weakref.WeakKeyDictionary[KCFM, TracedNetwork]" = weakref.WeakKeyDictionary()
+
+
 def traced_network(model: KCFM) -> TracedNetwork:
-    """The model's EMA network as traces, one :class:`~.traced.TracedNetwork` per model (the policies of one
-    deployment share its traces)."""
-    if getattr(model, "_traced", None) is None or model._traced.net is not model.ema_net:
-        model._traced = TracedNetwork(model.ema_net)
-    return model._traced
+    """The model's EMA network as traces, one :class:`~.traced.TracedNetwork` per model and network (the policies
+    of one deployment share its traces; a model whose ``ema_net`` was replaced gets new ones)."""
+    traced = _TRACES.get(model)
+    if traced is None or traced.net is not model.ema_net:
+        traced = _TRACES[model] = TracedNetwork(model.ema_net)
+    return traced
 
 
 def check_steps_and_execute(model: KCFM, steps: int | None, execute: int, solver: str | None = None) -> None:
