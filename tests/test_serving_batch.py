@@ -102,9 +102,14 @@ def test_rows_from_four_threads_are_their_lone_calls_in_fewer_passes(trace):
 
 
 def test_a_batched_network_is_not_traced_itself():
-    """Tracing it raises RuntimeError, so that a policy's TracedNetwork around the model's ema_net calls it eagerly
-    (kpflow/policies/traced.py) and the batches are traced inside."""
+    """It declares itself untraceable, so a policy's TracedNetwork around the model's ema_net calls it eagerly
+    (kpflow/policies/traced.py, no trace recorded) and the batches are traced inside; tracing it anyway raises."""
+    from kpflow.policies.traced import TracedNetwork
+
     batched = BatchedNetwork(unet(), trace=True)
+    outer = TracedNetwork(batched)
+    x, t, c = calls(1, seed=5)[0]
+    assert torch.equal(outer(x, t, c), batched(x, t, c)) and outer.traces == {}
     with pytest.raises(RuntimeError, match="not traced"):
         torch.jit.trace(batched, calls(1, seed=5)[0], check_trace=False)
 

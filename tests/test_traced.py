@@ -33,3 +33,16 @@ def test_a_network_that_cannot_be_traced_runs_eagerly():
     x, t, c = torch.ones(2, 3, 1), torch.tensor([0.5, 1.0]), torch.zeros(2, 4)
     assert torch.equal(traced(x, t, c), x * 2 + t[:, None, None])
     assert list(traced.traces.values()) == [None]
+
+
+def test_a_network_that_declares_itself_untraceable_is_never_traced():
+    class Dynamic(torch.nn.Module):
+        traceable = False
+
+        def forward(self, x, t, c):
+            assert not torch.jit.is_tracing()
+            return x + 1
+
+    traced = TracedNetwork(Dynamic())
+    x = torch.zeros(1, 3, 2)
+    assert torch.equal(traced(x, torch.zeros(1), torch.zeros(1, 4)), x + 1) and traced.traces == {}

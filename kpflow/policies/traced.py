@@ -5,7 +5,9 @@ dispatch, not arithmetic: ``torch.jit.trace`` records the call once and replays 
 batch 1 (results/export.md: 1.9 against 2.9 ms a call; outputs equal to eager, difference 0). A trace is fixed to the
 shapes it was recorded with, so :class:`TracedNetwork` keeps one per input signature (shapes, dtype, device) and
 checks each against the eager network on the inputs it was recorded with; a trace that disagrees by more than
-``atol`` (or that fails to record) is never used: that signature runs eagerly. The traces share the network's
+``atol`` (or that fails to record) is never used: that signature runs eagerly, as does every call of a network that
+declares ``traceable = False`` (one that decides at run time what to run, e.g. the server's batching of several
+threads' calls, :class:`~kpflow.serving.batching.BatchedNetwork`, which traces inside). The traces share the network's
 parameters (no freezing), so loading or averaging weights into it later is seen by every trace.
 """
 
@@ -27,6 +29,7 @@ class TracedNetwork:
 
     def __init__(self, net: torch.nn.Module, atol: float = 1e-5) -> None:
         self.net, self.atol = net, float(atol)
+        self.eager = not getattr(net, "traceable", True)
         self.traces: dict[tuple, torch.jit.ScriptModule | None] = {}  # None: this signature runs eagerly
         self._lock = threading.Lock()
 
@@ -46,6 +49,8 @@ class TracedNetwork:
 
     @torch.no_grad()
     def __call__(self, x: torch.Tensor, t: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        if self.eager:
+            return self.net(x, t, c)
         t = torch.as_tensor(t, dtype=x.dtype, device=x.device)
         key = self.signature(x, t, c)
         if key not in self.traces:

@@ -111,14 +111,16 @@ class BatchedNetwork(nn.Module):
             use (:class:`~kpflow.policies.traced.TracedNetwork`: what a :class:`~kpflow.policies.kcfm_policy.KCFMPolicy`
             runs, so that a lone caller computes the bits an unbatched policy does); False: eagerly.
 
-    A ``BatchedNetwork`` cannot itself be traced (it gathers the calls of several threads at run time): tracing it
-    raises ``RuntimeError``, which makes a policy's :class:`~kpflow.policies.traced.TracedNetwork` around the model's
-    ``ema_net`` call it eagerly, and the tracing happens inside, per batch.
+    A ``BatchedNetwork`` cannot itself be traced (it gathers the calls of several threads at run time): it declares
+    ``traceable = False``, so a policy's :class:`~kpflow.policies.traced.TracedNetwork` around the model's ``ema_net``
+    calls it eagerly, and the tracing happens inside, per batch; tracing it anyway raises ``RuntimeError``.
 
     The wrapped network stays a submodule, and :meth:`state_dict` and :meth:`load_state_dict` read and write its keys
     without the wrapper's ``net.`` prefix, so a model holding a ``BatchedNetwork`` saves and loads as one holding
     ``net``. :meth:`stats` counts the network calls received, the forward passes run and their rows.
     """
+
+    traceable = False  # kpflow.policies.traced.TracedNetwork calls it eagerly
 
     def __init__(self, net: nn.Module, max_batch: int = DEFAULT_MAX_BATCH, max_wait_ms: float = DEFAULT_MAX_WAIT_MS, trace: bool = False) -> None:
         super().__init__()
