@@ -133,6 +133,28 @@ def test_import_max_episodes_and_cli(source, tmp_path, capsys):
     assert err.startswith("error: ") and "already holds 1 episodes" in err and len(err.splitlines()) == 2
 
 
+def test_data_node_max_episodes(source, recorded, tmp_path):
+    """``data=pusht_human data.max_episodes=N`` (Diffusion Policy's ``max_train_episodes``): training chunks and the
+    transport index read only the store's first N episodes."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from kpflow.policies.factory import layout_of, source_index
+    from kpflow.tasks.pusht.task import PushTTask
+
+    dest = import_pusht_replay(source, tmp_path / "human.zarr", progress=False).path
+    node = OmegaConf.load(ROOT / "kpflow/conf/data/pusht_human.yaml")
+    assert node.max_episodes is None  # all episodes unless asked
+    node.path, node.workers, node.horizon = str(dest), 0, 4
+    full, first2 = instantiate(node), instantiate(node, max_episodes=2, val_fraction=0.5)
+    first2.setup()
+    assert (first2.train_episodes, first2.val_episodes) in (([0], [1]), ([1], [0]))
+    layout = layout_of(PushTTask())
+    lengths = [len(s) for s in recorded[0]]
+    assert len(source_index(full, layout, 4)) == sum(lengths)
+    assert len(source_index(first2, layout, 4)) == sum(lengths[:2])
+
+
 def test_refuses_to_overwrite(source, tmp_path):
     dest = tmp_path / "store"
     import_pusht_replay(source, dest, max_episodes=1, progress=False)

@@ -68,14 +68,17 @@ def pusht_datamodule(
     n_obs: int = 1,
     goals: str = "recorded",
     relabel_fragments: bool = False,
+    max_episodes: int | None = None,
 ) -> ChunkDataModule:
     """Chunks (keypoints -> next ``horizon`` actions) of the Push-T store at ``path`` (see :func:`ensure_pusht_demos`:
     expert demonstrations collected if missing, or with ``n_episodes=None`` whatever store is there), the goals read
     as ``goals`` says (:func:`pusht_hindsight`); with ``goals="hindsight"``, ``relabel_fragments`` relabels the
-    correction takeovers too (:mod:`kpflow.data.hindsight`; a source index always does)."""
+    correction takeovers too (:mod:`kpflow.data.hindsight`; a source index always does). ``max_episodes``: train on
+    (and, for policy transportation, index) only the store's first ``max_episodes`` episodes, as Diffusion Policy's
+    configs do with ``max_train_episodes: 90``."""
     hindsight = pusht_hindsight(goals)  # a bad name is refused before anything is collected
     ensure_pusht_demos(path, n_episodes, seed, workers)
     return ChunkDataModule(
         path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs, hindsight=hindsight,
-        relabel_fragments=relabel_fragments,
+        relabel_fragments=relabel_fragments, max_episodes=max_episodes,
     )
