@@ -10,6 +10,7 @@ import torch
 
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.policies.checks import INPUT_MARGIN
 from kpflow.policies.kcfm import KCFM, MAX_STEPS, fill_padding, masked_mse
 from kpflow.policies.unet1d import ConditionalUnet1D
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, observation_keypoints
@@ -211,6 +212,11 @@ def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
     bad[0, 0] += 500.0
     with pytest.raises(ValueError, match="relative to keypoint -3"):
         model.check_in_range(bad)
+    with pytest.raises(ValueError, match="relative to keypoint -3"):  # sample checks the same when given a margin
+        model.sample(bad, steps=1, input_margin=INPUT_MARGIN)
+    with pytest.raises(ValueError, match="far outside the range"):
+        world.sample(kp + shift, steps=1, input_margin=INPUT_MARGIN)
+    assert world.sample(kp + shift, steps=1).shape == (4, 8, a)  # and nothing without one
     for kwargs, message in (({"origin": 6}, "keypoint index"), ({"origin": True}, "keypoint index"), ({"origin": 0, "relative": True}, "without goal_frame")):
         with pytest.raises(ValueError, match=message):
             KCFM(k, keypoint_dim=2, action_dim=2, **kwargs)

@@ -101,6 +101,7 @@ def _episode(tmp_path, overrides: list[str], split: str, index: int, max_steps: 
     return trial.run(split, index, {"policy": overrides[0].removeprefix("policy=")}, seed=cfg.seed).scores
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
 def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_path):
     """Transported K-CFM of Table 1 is the released K-CFM plus the store it was trained on (35 demos + corrections),
@@ -114,6 +115,7 @@ def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_p
     assert scores["success_085"], scores
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not STORE.exists(), reason="no released Table 1 store under release/")
 def test_released_table1_transported_kcfm_within_reach_and_turn_keeps_a_block_it_lost(tmp_path):
     """With the defaults, transported K-CFM pushes the block of in-distribution tuning configuration 30908 away from
@@ -126,6 +128,7 @@ def test_released_table1_transported_kcfm_within_reach_and_turn_keeps_a_block_it
             assert scores["steps_085"] == 192, scores
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_path):
     """The released Table 1 K-CFM shown its goal within 125 px, built from the evaluation's config: on object-OOD
@@ -136,6 +139,7 @@ def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_
         assert scores["success_085"] == succeeds, (reach, scores)
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_within_turn_leaves_a_block_it_waited_beside(tmp_path):
     """Shown its goal within 125 px only, the released Table 1 K-CFM leaves the block of in-distribution tuning
@@ -148,6 +152,7 @@ def test_released_table1_kcfm_within_turn_leaves_a_block_it_waited_beside(tmp_pa
         assert scores["success_085"] == succeeds, (turn, scores)
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not TABLE1_KCFM.exists(), reason="no released Table 1 K-CFM")
 def test_released_table1_kcfm_with_20_euler_steps_covers_a_goal_10_steps_miss(tmp_path):
     """Shown its goal within 125 px and 30 degrees, the released Table 1 K-CFM sampling with 10 Euler steps never
@@ -164,6 +169,7 @@ def test_released_table1_kcfm_with_20_euler_steps_covers_a_goal_10_steps_miss(tm
 FAST = ROOT / "release" / "pusht_standard_fast.ckpt"
 
 
+@pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not FAST.exists(), reason="no released few-step K-CFM")
 def test_released_fast_kcfm_samples_with_its_stored_settings_and_reproduces_an_episode_of_its_row(tmp_path):
     """``policy=kcfm`` loads release/pusht_standard_fast.ckpt with the sampling it was distilled for (2 Euler calls),

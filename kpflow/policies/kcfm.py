@@ -357,13 +357,14 @@ class KCFM(lightning.LightningModule):
 
         self.objective.attach(teacher_sample)
 
-    def _stats_frame(self, history: torch.Tensor) -> torch.Tensor:
+    def _stats_frame(self, history: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
-        frame in the current (last) frame's goal frame if ``goal_frame``, relative to the current frame's ``origin``
-        keypoint if one is set, else as they are."""
+        frame in the current (last) frame's goal frame if ``goal_frame`` (``pose``: that frame's :meth:`goal_pose`,
+        when the caller has it already), relative to the current frame's ``origin`` keypoint if one is set, else as
+        they are."""
         kp = history.to(torch.float64)
         if self.hparams.goal_frame is not None:
-            kp = to_frame(kp.flatten(1, 2), *self.goal_pose(kp[:, -1])).reshape(kp.shape)
+            kp = to_frame(kp.flatten(1, 2), *(self.goal_pose(kp[:, -1]) if pose is None else pose)).reshape(kp.shape)
         elif self.hparams.get("origin") is not None:
             kp = kp - kp[:, -1, self.hparams.origin][:, None, None]
         return kp
@@ -378,19 +379,21 @@ class KCFM(lightning.LightningModule):
         template = torch.as_tensor(spec["template"], dtype=goal.dtype, device=goal.device)
         return fit_affine(template.expand_as(goal), goal, "rigid")
 
-    def _condition(self, history: torch.Tensor) -> torch.Tensor:
+    def _condition(self, history: torch.Tensor, stats_frame: torch.Tensor | None = None) -> torch.Tensor:
         """Condition ``c [B, n_obs D K]`` (float32) of world keypoint frames ``[B, n_obs, K, D]``: every frame in the
-        statistics' frame (:meth:`_stats_frame`), standardised, concatenated oldest first."""
-        kp = self._stats_frame(history)
+        statistics' frame (:meth:`_stats_frame`; ``stats_frame``: those frames, when the caller has them already),
+        standardised, concatenated oldest first."""
+        kp = self._stats_frame(history) if stats_frame is None else stats_frame
         b, n = kp.shape[:2]
         return ((kp.reshape(b, n, -1) - self.kp_mean.double()) / self.kp_std.double()).reshape(b, -1).float()
 
-    def action_frame(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    def action_frame(self, keypoints: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The rigid frame ``(R [B, 2, 2], p [B, 2])`` that actions are predicted in, for keypoints ``[B, K, 2]``.
 
         ``R`` is the goal's rotation with ``goal_frame`` (else the identity), ``p`` the agent (the last keypoint) with
         ``relative`` (else the goal's origin, or 0). With ``origin``: ``(I [B, D, D], the origin keypoint)``, applied
-        to the actions' first ``D`` values. None when all are off: actions stay in world coordinates.
+        to the actions' first ``D`` values. None when all are off: actions stay in world coordinates. ``pose``: the
+        keypoints' :meth:`goal_pose`, when the caller has it already.
         """
         hp = self.hparams
         kp = keypoints.to(torch.float64)
@@ -400,7 +403,7 @@ class KCFM(lightning.LightningModule):
         if hp.goal_frame is None and not hp.relative:
             return None
         if hp.goal_frame is not None:
-            rot, origin = self.goal_pose(kp)
+            rot, origin = self.goal_pose(kp) if pose is None else pose
         else:
             rot, origin = torch.eye(2, dtype=kp.dtype, device=kp.device).expand(len(kp), 2, 2), torch.zeros_like(kp[:, 0])
         return rot, kp[:, -1] if hp.relative else origin
@@ -449,8 +452,10 @@ class KCFM(lightning.LightningModule):
                 f"batch must hold history [B, {n}, {k}, {d}] (or obs [B, {k}, {d}] when n_obs=1), actions [B, {h}, {a}] and "
                 f"mask [B, {h}]; got {tuple(history.shape)}, {tuple(actions.shape)}, {tuple(mask.shape)}"
             )
-        c = self._condition(history)
-        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(history[:, -1]))
+        history = history.to(torch.float64)
+        pose = self.goal_pose(history[:, -1]) if self.hparams.goal_frame is not None else None
+        c = self._condition(history, self._stats_frame(history, pose))
+        x1 = self.normalise_actions(fill_padding(actions, mask.bool()), self.action_frame(history[:, -1], pose))
         net = self.net if net is None else net
         target = self.objective.training_target(x1, c, generator, net)
         i = target.index
@@ -555,14 +560,19 @@ class KCFM(lightning.LightningModule):
             ValueError: naming the first keypoint outside, its coordinates, the accepted interval and the box.
         """
         kp = self._check_keypoints(keypoints)
+        self._check_range(kp, self._stats_frame(kp), input_margin)
+        return kp
+
+    def _check_range(self, kp: torch.Tensor, stats_frame: torch.Tensor, input_margin: float | None) -> None:
+        """:meth:`check_in_range`'s test of checked keypoint frames ``kp`` and those frames in the statistics' frame."""
         if input_margin is None or not bool(self.stats_set):
-            return kp
+            return
         lo, hi = self.keypoint_box()
         lo_ok, hi_ok = lo - input_margin * (hi - lo), hi + input_margin * (hi - lo)
         if self.hparams.get("origin") is not None:  # statistics relative to a keypoint say nothing of the world
-            frames = [(f" relative to keypoint {self.hparams.origin}", self._stats_frame(kp))]
+            frames = [(f" relative to keypoint {self.hparams.origin}", stats_frame)]
         else:
-            frames = [("", kp)] + ([(" in the goal's frame", self._stats_frame(kp))] if self.hparams.goal_frame is not None else [])
+            frames = [("", kp)] + ([(" in the goal's frame", stats_frame)] if self.hparams.goal_frame is not None else [])
         for where, x in frames:
             outside = ~((x >= lo_ok) & (x <= hi_ok))  # NaN (a frame that overflowed) counts as outside
             if outside.any():
@@ -575,7 +585,6 @@ class KCFM(lightning.LightningModule):
                     f"{float(hi_ok[d]):.4g}] (the training keypoints' box [{float(lo[d]):.4g}, {float(hi[d]):.4g}], mean +- "
                     f"{_BOX_STDS:g} std, widened by input_margin={input_margin:g} times its extent on each side); refusing to act on it"
                 )
-        return kp
 
     def sampler(self, steps: int | None = None, solver: str | None = None) -> tuple[int, str]:
         """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the model's ``sample_steps`` and
@@ -587,21 +596,26 @@ class KCFM(lightning.LightningModule):
 
     @torch.no_grad()
     def sample(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None,
-               net=None) -> torch.Tensor:  # fmt: skip
+               net=None, input_margin: float | None = None) -> torch.Tensor:  # fmt: skip
         """Action chunks ``[B, H, A]`` (float32, world px) for keypoint frames (shapes: :meth:`_check_keypoints`).
 
         The objective's sampler ``solver`` (an ODE solver of the flow, DDIM for the diffusion) with ``steps`` calls of
         the EMA network (None: the model's own settings, :meth:`sampler`), from ``x ~ N(0, I)`` drawn with
         ``generator`` (on the generator's device). Deterministic given the generator's state. ``net``: what runs the
         EMA network, e.g. its :class:`~kpflow.policies.traced.TracedNetwork` (None: the module itself).
+        ``input_margin``: refuse keypoints far outside the training data, as :meth:`check_in_range` does (None: not
+        checked). The goal's frame is fitted once and serves the check, the condition and the actions' frame.
 
         Raises:
             ValueError: ``steps`` not an integer in ``1..MAX_STEPS``; a solver the objective lacks; keypoints of the
-                wrong shape or not finite.
+                wrong shape, not finite or (with ``input_margin``) out of range.
         """
         steps, solver = self.sampler(steps, solver)
         kp = self._check_keypoints(keypoints)
-        c, frame = self._condition(kp), self.action_frame(kp[:, -1])
+        pose = self.goal_pose(kp[:, -1]) if self.hparams.goal_frame is not None else None
+        stats_frame = self._stats_frame(kp, pose)
+        self._check_range(kp, stats_frame, input_margin)
+        c, frame = self._condition(kp, stats_frame), self.action_frame(kp[:, -1], pose)
         noise = self._randn((len(kp), self.hparams.horizon, self.hparams.action_dim), generator)
         net = self.ema_net if net is None else net
         x = self.objective.sample(lambda x, t: net(x, t, c), noise, steps, solver)

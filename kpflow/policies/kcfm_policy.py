@@ -102,6 +102,5 @@ class KCFMPolicy:
             keypoints = obs["keypoints_history"]
         else:
             raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
-        keypoints = self.model.check_in_range(keypoints, self.input_margin)
-        chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver, self.network)
+        chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver, self.network, self.input_margin)
         return check_actions(chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy(), "the K-CFM")
