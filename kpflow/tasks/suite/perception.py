@@ -1,0 +1,153 @@
+"""The benchmark tasks' keypoints from cameras: mask -> points -> oriented box -> the simulator extractor's keypoints.
+
+For each object, the pixels its mask covers in every camera are lifted to world points
+(:meth:`~kpflow.vision.cameras.CameraFrame.points`), and their :func:`~kpflow.vision.boxes.fit_footprint_box` (the
+minimum-area rectangle of the footprint, the top from the highest voxels; the paper's Sec. 3.3) gives the object's
+pose as its kind reads it:
+
+* ``cube``: the centre of the rectangle, half a side below the top (the side: the top's height above what the cube
+  stands on, else the rectangle's mean side); its yaw is the rectangle's (a quarter turn is the same cube);
+* ``can``: the rectangle's centre, half the can's height below the top (a cylinder has no yaw);
+* ``nut`` (its handle and ring kinds alike): the rectangle's longer axis is the handle's; the ring is at the end
+  whose points spread wider across that axis, its centre the rectangle's short half side in from that end (the ring
+  is square), the body 1 cm below the top;
+* ``peg``: the rectangle's centre, the body a peg's half length below the top;
+* ``bin``: the rectangle's centre, its yaw a quarter turn from the rectangle's longer axis (the bin's longer sides
+  run along its y), the body 0.1 m below the rim.
+
+:func:`~.keypoints.object_keypoints` then places the same named keypoints as the simulator-based extractor, in the
+same order, with the symmetric ones ordered by the same reference yaw. The gripper's keypoints come from the robot
+itself (its forward kinematics), as on a real arm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from scipy import ndimage
+
+from kpflow.tasks.arm.motion import yaw_of
+from kpflow.vision.boxes import FootprintBox, fit_footprint_box
+from kpflow.vision.cameras import CameraFrame
+from kpflow.vision.depth_filter import smooth_depth
+from kpflow.vision.noise import CameraNoise
+from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
+
+from .cameras import SuiteCameras, object_geoms
+from .keypoints import CAN_HALF_HEIGHT, PEG_HEIGHT, SYMMETRY, gripper_keypoints, object_keypoints, yaw_rotation
+from .specs import TaskSpec
+
+NUT_TOP = 0.01  # the nut's top above its body origin (m; robosuite 1.5's SquareNut is 2 cm thick)
+BIN_RIM = 0.1  # the bin's rim above its body origin
+
+
+def object_points(frames: Sequence[CameraFrame], masks: Sequence[np.ndarray], erode: int = 2, smooth: int = 5,
+                  support_margin: float | None = 0.005) -> tuple[np.ndarray, float | None]:  # fmt: skip
+    """World points ``[N, 3]`` of one object, and the height of what it stands on (None: not seen).
+
+    The pixels of its mask in each frame, ``erode`` pixels in from the mask's edge (an edge pixel's depth may be the
+    surface behind the object, and a segmenter's mask may spill over), their depth smoothed within the mask
+    (:func:`~kpflow.vision.depth_filter.smooth_depth`, ``smooth x smooth`` windows; 1: as measured), lifted and
+    stacked. The support's height is the median height of the points in a ring 3 to 8 pixels around the masks; with
+    ``support_margin``, the object's points less than that far above it are dropped."""
+    if len(frames) != len(masks):
+        raise ValueError(f"one mask per frame: got {len(masks)} masks for {len(frames)} frames")
+    masks = [np.asarray(m, bool) for m in masks]
+    rings = [ndimage.binary_dilation(m, iterations=8) & ~ndimage.binary_dilation(m, iterations=3) for m in masks]
+    if erode:
+        masks = [ndimage.binary_erosion(m, iterations=int(erode)) for m in masks]
+    smoothed = [replace(f, depth=smooth_depth(f.depth, m, smooth)) for f, m in zip(frames, masks)]
+    points = np.concatenate([f.points(m) for f, m in zip(smoothed, masks)] or [np.zeros((0, 3))])
+    ring = np.concatenate([f.points(r) for f, r in zip(frames, rings)] or [np.zeros((0, 3))])
+    support = float(np.median(ring[:, 2])) if len(ring) >= 10 else None
+    if support_margin is not None and support is not None:
+        points = points[points[:, 2] > support + support_margin]
+    return points, support
+
+
+def pose_from_box(kind: str, box: FootprintBox, support: float | None = None) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """``(pos [3], rot [3, 3], half)`` of an object of ``kind`` whose :class:`FootprintBox` is ``box`` (module
+    docstring), standing on a surface at height ``support`` (None: unknown); ``half``: a cube's half side, else
+    None."""
+    if kind not in SYMMETRY:
+        raise ValueError(f"unknown keypoint kind {kind!r}; choose one of {sorted(SYMMETRY)}")
+    centre = np.asarray(box.centre, float)
+    if kind == "cube":
+        half = float(np.mean(box.half)) if support is None or box.top <= support else (box.top - support) / 2
+        return np.r_[centre, box.top - half], yaw_rotation(box.yaw), half
+    if kind == "can":
+        return np.r_[centre, box.top - CAN_HALF_HEIGHT], np.eye(3), None
+    if kind in ("nut", "nut_handle", "nut_ring"):
+        axis = box.axis
+        s = (box.voxels[:, :2] - centre) @ axis  # along the handle
+        across = (box.voxels[:, :2] - centre) @ np.array([-axis[1], axis[0]])
+        ends = (s > 0.5 * box.half[0], s < -0.5 * box.half[0])
+        spread = [np.ptp(across[e]) if e.sum() > 1 else 0.0 for e in ends]
+        sign = 1.0 if spread[0] > spread[1] else -1.0  # +axis points to the ring's end
+        ring = centre + sign * (box.half[0] - box.half[1]) * axis  # the ring is square: its half side is the short one
+        yaw = float(np.arctan2(-sign * axis[1], -sign * axis[0]))  # the nut's x axis points from the ring to the handle
+        return np.r_[ring, box.top - NUT_TOP], yaw_rotation(yaw), None
+    if kind == "peg":
+        return np.r_[centre, box.top - PEG_HEIGHT], yaw_rotation(box.yaw), None
+    return np.r_[centre, box.top - BIN_RIM], yaw_rotation(box.yaw - np.pi / 2), None  # its longer sides run along its y
+
+
+def perceived_object_keypoints(kind: str, points: np.ndarray, reference_yaw: float = 0.0, support: float | None = None,
+                               voxel: float = 0.002, top_fraction: float = 0.1) -> np.ndarray:  # fmt: skip
+    """Keypoints ``[N, 3]`` of an object of ``kind`` seen as world ``points [M, 3]`` standing at height ``support``
+    (module docstring): the same as :func:`~.keypoints.object_keypoints` gives for its true pose, up to perception's
+    error."""
+    pos, rot, half = pose_from_box(kind, fit_footprint_box(points, voxel, top_fraction), support)
+    return object_keypoints(kind, pos, rot, reference_yaw, half)
+
+
+class CameraKeypoints:
+    """The policy keypoints of a :class:`~.env.SuiteEnv` from its cameras (module docstring), with a sensor's errors.
+
+    Args:
+        cameras: which cameras and what image size (the environment must render).
+        noise: the sensor's errors (:class:`~kpflow.vision.noise.CameraNoise`; ``CameraNoise.off()``: the clean render).
+        segmenter: which pixels are which object (None: the renderer's instance segmentation of each object's geoms).
+        seed: seeds the noise; the same seed and scenes give the same keypoints.
+        erode, smooth, voxel, top_fraction: see :func:`object_points` and :func:`~kpflow.vision.boxes.fit_footprint_box`.
+    """
+
+    def __init__(self, cameras: SuiteCameras | None = None, noise: CameraNoise | None = None, segmenter: Segmenter | None = None,
+                 seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1) -> None:  # fmt: skip
+        self.cameras = cameras or SuiteCameras()
+        self.noise = CameraNoise() if noise is None else noise
+        self.segmenter, self.erode, self.smooth = segmenter, int(erode), int(smooth)
+        self.voxel, self.top_fraction = float(voxel), float(top_fraction)
+        self.rng = np.random.default_rng(seed)
+
+    def frames(self, env) -> list[CameraFrame]:
+        """The cameras' frames of the scene now, as the sensor gives them (noisy depth, the calibrated pose)."""
+        return [self.noise.frame(f, self.rng) for f in self.cameras.capture(env)]
+
+    def _segmenter(self, env) -> Segmenter:
+        if self.segmenter is not None:
+            return self.segmenter
+        names = [*env.object_body, *env.fixture_body]
+        return InstanceSegmenter({n: object_geoms(env, n) for n in names})
+
+    def scene_keypoints(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str, reference_yaw: float = 0.0,
+                        kind: str | None = None) -> np.ndarray:  # fmt: skip
+        """:func:`~.keypoints.scene_keypoints` of object or fixture ``name`` seen in ``frames``."""
+        segmenter = self._segmenter(env)
+        masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
+        try:
+            points, support = object_points(frames, masks, self.erode, self.smooth)
+            return perceived_object_keypoints(kind or spec.kinds[name], points, reference_yaw, support, self.voxel, self.top_fraction)
+        except ValueError as e:
+            raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
+
+    def policy_keypoints(self, env, spec: TaskSpec) -> np.ndarray:
+        """:func:`~.keypoints.policy_keypoints` with the objects seen by the cameras: the object to pick and its goal
+        from a fresh capture, the grip site and the finger pads from the robot."""
+        frames = self.frames(env)
+        jaws = yaw_of(env.ee_pose()[1])
+        names = [spec.grasp] + ([spec.target] if spec.target else [])
+        objects = [self.scene_keypoints(env, spec, frames, n, jaws) for n in names]
+        return np.concatenate(objects + [gripper_keypoints(env), env.finger_pads()])
