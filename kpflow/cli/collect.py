@@ -1,5 +1,7 @@
 """Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``, or for a Gymnasium task of your own
 (:class:`~kpflow.tasks.base.GymTask` with an expert) ``kpflow-collect --config-dir conf task=<task> n_episodes=50``.
+Push-T also collects a policy's own successful episodes (self-generated demonstrations):
+``kpflow-collect policy=transport data=pusht_human data.max_episodes=90 split=standard first_index=10000``.
 
 Rolls the task's scripted expert out on seeded configurations and commits each successful episode to an
 :class:`~kpflow.data.episode_store.EpisodeStore` (zarr, Diffusion Policy layout) in the run's output folder
@@ -29,7 +31,8 @@ KEYS = {
     "workers": Key(int, lo=1),
     "videos": Key(int, lo=0),
     "keep_failures": Key(bool),
-    "split": Key(str, choices=SPLITS),
+    "split": Key(str, choices=(*SPLITS, "standard")),
+    "first_index": Key(int, lo=0),
     "goal": Key(str, choices=GOAL_MODES),
     "condition": Key(str, nullable=True),
 }
@@ -40,6 +43,10 @@ KEYS = {
 def main(cfg: DictConfig) -> dict:
     if HydraConfig.get().runtime.choices.get("task") != "pusht":
         return collect_task(cfg)
+    policy = source = None
+    if cfg.get("policy") is not None:
+        source = f"policy:{HydraConfig.get().runtime.choices.get('policy')}"
+        policy = instantiate(cfg.policy)  # before the run folder: a bad policy leaves nothing behind
     out = start_run(cfg, KEYS)
     summary = collect_pusht(
         out / "episodes.zarr",
@@ -52,6 +59,9 @@ def main(cfg: DictConfig) -> dict:
         keep_failures=cfg.keep_failures,
         videos=cfg.videos,
         video_dir=out,
+        policy=policy,
+        source=source or "expert",
+        first_index=cfg.first_index,
     )
     write_json(out / "summary.json", summary)
     print(

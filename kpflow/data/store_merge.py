@@ -1,6 +1,7 @@
 """One episode store from several: :func:`merge_stores` copies the episodes of source stores into a new store, in a
 chosen order (store by store, or by an episode attribute such as a generation attempt's ``index``), with their
-per-episode attrs.
+per-episode attrs; :func:`combine_stores` makes one dataset of parts of different stores (the first episodes of
+each, the fields they share, their provenance recorded).
 
 The copy is exact: every episode is read through :meth:`~kpflow.data.episode_store.EpisodeStore.episode` (checked
 against its checksums, for sealed stores) and appended as it is stored, in the same dtypes, so the new store holds the
@@ -112,3 +113,44 @@ def _check_compatible(stores: Sequence[EpisodeStore]) -> None:
             names = sorted(n for n in set(la) | set(lb) if la.get(n) != lb.get(n))
             what = "; ".join(f"{n}: {la.get(n, 'absent')} in {a.path}, {lb.get(n, 'absent')} in {b.path}" for n in names)
             raise ValueError(f"the stores' fields differ ({what}): they cannot be merged without casting")
+
+
+def combine_stores(out: str | Path, sources: Sequence[tuple[str | Path, int | None]], fields: Sequence[str] | None = None) -> Path:
+    """Write a new store ``out`` of the first ``n`` episodes (None: all) of each ``(store, n)`` of ``sources`` in turn
+    (e.g. 90 human demonstrations and a policy's self-generated ones), holding ``fields`` (None: the fields every
+    source has). Each episode keeps its attrs and gains ``source`` (its store's place in ``sources``) and
+    ``source_episode``; the store's attrs record ``combined_from``: each source's path, episode count and attrs.
+
+    Raises:
+        FileExistsError: ``out`` exists.
+        ValueError: a source asked for more episodes than it holds, a field missing from a source or stored with
+            another dtype or trailing shape, or no field in common (nothing is written).
+    """
+    out = Path(out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists already: the combined store needs a new folder")
+    with contextlib.ExitStack() as stack:
+        stores = [(stack.enter_context(EpisodeStore(p)), n) for p, n in sources]
+        for store, n in stores:
+            if n is not None and not 0 <= int(n) <= store.n_episodes:
+                raise ValueError(f"{store.path} holds {store.n_episodes} episodes; {n} asked for")
+        layouts = [(store, _layout(store)) for store, _ in stores if store.n_episodes]
+        if fields is None:
+            fields = sorted(set.intersection(*(set(layout) for _, layout in layouts))) if layouts else []
+        if not fields:
+            raise ValueError(f"the stores {[str(s.path) for s, _ in stores]} have no field in common to combine")
+        for name in fields:
+            kinds = {str(store.path): layout.get(name) for store, layout in layouts}
+            if None in kinds.values():
+                raise ValueError(f"field {name!r} is missing from {[p for p, k in kinds.items() if k is None]}")
+            if len(set(kinds.values())) > 1:
+                raise ValueError(f"field {name!r} is stored differently: " + "; ".join(f"{k[0]} {k[1]} in {p}" for p, k in kinds.items()))
+        provenance = [{"path": str(store.path), "episodes": store.n_episodes if n is None else int(n), "attrs": _store_attrs(store)} for store, n in stores]
+        with atomic_dir(out) as tmp, EpisodeStore(tmp, mode="a") as combined:
+            combined.attrs.put({"combined_from": provenance})
+            for s, (store, n) in enumerate(stores):
+                for e in range(store.n_episodes if n is None else int(n)):
+                    episode = store.episode(e)
+                    attrs = {**(store.episode_attrs(e) or {}), "source": s, "source_episode": e}
+                    combined.add_episode({name: episode[name] for name in fields}, attrs=attrs)
+    return out

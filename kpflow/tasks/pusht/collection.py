@@ -1,4 +1,6 @@
-"""Collecting scripted-expert demonstrations into an :class:`EpisodeStore`, in parallel, with a progress bar."""
+"""Collecting demonstrations into an :class:`EpisodeStore`, in parallel, with a progress bar: the scripted expert's,
+or a policy's own successful episodes (self-generated demonstrations: no one demonstrates more, the simulator
+checks each episode and only the successes are kept)."""
 
 from __future__ import annotations
 
@@ -29,15 +31,30 @@ def expert_episode(
     return index, result
 
 
+def policy_episode(
+    policy, split: str, index: int, seed: int, goal: str, max_steps: int, success_threshold: float = 0.95, render: bool = False
+) -> tuple[int, EpisodeResult]:
+    """Roll out ``policy`` (``reset``/``act``) on configuration ``index`` of ``split`` (``standard``: Diffusion
+    Policy's start state for seed ``index``), reseeded by ``seed`` and ``index``."""
+    config = PushTTask().sample_scene(split, index, seed) if split == "standard" else split_config(split, index, seed, goal)
+    env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
+    result = run_episode(env, policy, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
+    return index, result
+
+
+#: the policy a collection rolls out instead of the expert (set before the worker processes fork, so they share it)
+_POLICY = None
+
+
 def _job(args) -> tuple[int, EpisodeResult]:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    return expert_episode(*args)
+    return expert_episode(*args) if _POLICY is None else policy_episode(_POLICY, *args)
 
 
-def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool) -> dict:
+def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool, source: str = "expert") -> dict:
     """The store attrs that identify a collection (including how many episodes it is meant to hold): a store is
     continued only by a collection with the same ones."""
-    return {"task": "pusht", "source": "expert", "n_episodes": n_episodes, "split": split, "goal": goal, "seed": seed,
+    return {"task": "pusht", "source": source, "n_episodes": n_episodes, "split": split, "goal": goal, "seed": seed,
             "max_steps": max_steps, "keep_failures": keep_failures}
 
 
@@ -53,10 +70,15 @@ def collect_pusht(
     videos: int = 0,
     video_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    policy=None,
+    source: str = "expert",
+    first_index: int = 0,
 ) -> dict:
-    """Collect ``n_episodes`` expert demonstrations of Push-T into the store at ``store_path``.
+    """Collect ``n_episodes`` expert demonstrations of Push-T into the store at ``store_path``; with ``policy``, that
+    policy's own episodes instead (``source`` names it in the store's attrs, e.g. ``"policy:transport"``), and with
+    ``split="standard"`` on Diffusion Policy's start states (config index = its env seed).
 
-    Configurations are taken in order (0, 1, 2, ... of the seeded ``split``); failed episodes are skipped unless
+    Configurations are taken in order (``first_index``, +1, +2, ... of the seeded ``split``); failed episodes are skipped unless
     ``keep_failures``, so the store holds exactly ``n_episodes``. Episodes are committed one by one in index order
     whatever the number of ``workers``, so the same arguments give the same store. That also makes an interrupted
     collection resumable: a store that holds fewer episodes of the same collection (same split, goal, seed,
@@ -70,11 +92,15 @@ def collect_pusht(
     for name, value, lo in (("n_episodes", n_episodes, 1), ("workers", workers, 1), ("max_steps", max_steps, 1), ("videos", videos, 0), ("seed", seed, 0)):
         Key(int, lo=lo).check(name, value)
     n_episodes, workers, max_steps, videos, seed = map(int, (n_episodes, workers, max_steps, videos, seed))  # plain ints for the attrs
-    if split not in SPLITS:
-        raise ValueError(f"unknown Push-T split {split!r}; choose one of {SPLITS}")
+    Key(int, lo=0).check("first_index", first_index)
+    splits = (*SPLITS, "standard") if policy is not None else SPLITS  # the expert plans for Table 1's workspaces only
+    if split not in splits:
+        raise ValueError(f"unknown Push-T split {split!r} for {'a policy' if policy is not None else 'the expert'}; choose one of {splits}")
     if goal not in GOAL_MODES:
         raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
-    want = collection_attrs(n_episodes, split, goal, seed, max_steps, bool(keep_failures))
+    if (policy is None) != (source == "expert"):
+        raise ValueError(f"source names who acts: 'expert' without a policy, another name with one; got source={source!r} and policy={policy!r}")
+    want = collection_attrs(n_episodes, split, goal, seed, max_steps, bool(keep_failures), source)
     if (Path(store_path) / "meta" / "episode_ends").exists():
         check_collection(EpisodeStore(store_path), want)  # before the write lock repairs anything
     with EpisodeStore(store_path, mode="a", wait=None) as store:
@@ -82,8 +108,13 @@ def collect_pusht(
         check_collection(store, want)
         if not have:
             store.attrs.update(want)
-        start = store.episode_attrs(have - 1)["config_index"] + 1 if have else 0
-        return _collect(store, n_episodes, have, start, want, workers, videos, video_dir, progress)
+        start = store.episode_attrs(have - 1)["config_index"] + 1 if have else int(first_index)
+        global _POLICY
+        _POLICY = policy
+        try:
+            return _collect(store, n_episodes, have, start, want, workers, videos, video_dir, progress)
+        finally:
+            _POLICY = None
 
 
 def check_collection(store: EpisodeStore, want: dict) -> None:
@@ -112,7 +143,7 @@ def _collect(store, n_episodes, have, start, want, workers, videos, video_dir, p
     kept, attempts, successes, steps, video_paths = have, 0, 0, [], []
     pool = mp.get_context("fork").Pool(workers) if workers > 1 and kept < n_episodes else None
     results = pool.imap(_job, jobs) if pool is not None else map(_job, jobs)
-    bar = tqdm(total=n_episodes, initial=have, desc=f"collect pusht/{split}", unit="ep", disable=not progress)
+    bar = tqdm(total=n_episodes, initial=have, desc=f"collect pusht/{split} ({want['source']})", unit="ep", disable=not progress)
     try:
         while kept < n_episodes:
             index, result = next(results)
