@@ -14,3 +14,17 @@ torch.set_num_threads(1)
 settings.register_profile("kpflow", derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("explore", derandomize=False, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "kpflow"))
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def walk_store(tmp_path_factory):
+    """A store of synthetic Push-T episodes in which the agent walks straight to the block
+    (:func:`tests.helpers.walk_to_block_store`), for the tests that only read it."""
+    from tests.helpers import walk_to_block_store
+
+    path = tmp_path_factory.mktemp("walk") / "demos.zarr"
+    walk_to_block_store(path)
+    return path

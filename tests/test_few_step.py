@@ -12,7 +12,6 @@ from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import load_checkpoint
-from tests.helpers import walk_to_block_store
 
 H = 8
 SMALL = dict(horizon=H, down_dims=(16, 32), time_dim=16, lr=3e-3)
@@ -35,16 +34,9 @@ def _error(model: KCFM, batch, steps: int, solver=None) -> float:
     return float((pred - batch["actions"]).norm(dim=-1)[batch["mask"]].median())
 
 
-@pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    path = tmp_path_factory.mktemp("few_step") / "demos.zarr"
-    walk_to_block_store(path)
-    return path
-
-
-def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(store, tmp_path):
+def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(walk_store, tmp_path):
     model = KCFM(N_KEYPOINTS, objective="meanflow", sample_steps=1, **SMALL)
-    path, batch = _fit(model, store, tmp_path, 150, "meanflow")
+    path, batch = _fit(model, walk_store, tmp_path, 150, "meanflow")
     fresh = KCFM(**model.hparams)
     fresh.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False)
     one_step, untrained = _error(model, batch, 1), _error(fresh, batch, 1)
@@ -55,12 +47,12 @@ def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(store, 
     assert torch.equal(loaded.sample(batch["obs"][:4], generator=g()), model.sample(batch["obs"][:4], 1, g()))
 
 
-def test_reflow_distils_a_teacher_into_one_call_and_reloads_without_it(store, tmp_path):
+def test_reflow_distils_a_teacher_into_one_call_and_reloads_without_it(walk_store, tmp_path):
     teacher = KCFM(N_KEYPOINTS, **SMALL)
-    teacher_path, batch = _fit(teacher, store, tmp_path, 200, "teacher")
+    teacher_path, batch = _fit(teacher, walk_store, tmp_path, 200, "teacher")
     student = KCFM(N_KEYPOINTS, objective="reflow", objective_options={"teacher": str(teacher_path), "teacher_steps": 8, "t_grid": 1},
                    sample_steps=1, **SMALL)  # fmt: skip
-    path, _ = _fit(student, store, tmp_path, 100, "student")
+    path, _ = _fit(student, walk_store, tmp_path, 100, "student")
     # the student took the teacher's normalisation; its one call lands nearer the teacher's 8-call chunks than the
     # teacher's own single call does
     for name in ("kp_mean", "kp_std", "action_center", "action_scale"):
@@ -76,7 +68,7 @@ def test_reflow_distils_a_teacher_into_one_call_and_reloads_without_it(store, tm
     assert torch.equal(loaded.sample(batch["obs"][:4], generator=g()), student.sample(batch["obs"][:4], generator=g()))
 
 
-def test_a_teacher_of_another_layout_is_refused(store, tmp_path):
+def test_a_teacher_of_another_layout_is_refused(tmp_path):
     teacher = KCFM(N_KEYPOINTS, **{**SMALL, "horizon": 4})
     path = tmp_path / "teacher.ckpt"
     torch.save({"state_dict": teacher.state_dict(), "hyper_parameters": dict(teacher.hparams)}, path)

@@ -12,21 +12,14 @@ from kpflow.data.store_merge import combine_stores
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.geometry import observation_keypoints
 from kpflow.tasks.pusht.scene import standard_config
-from tests.helpers import compose_config, walk_to_block_store
+from tests.helpers import compose_config
 
 
-@pytest.fixture(scope="module")
-def demos(tmp_path_factory):
-    path = tmp_path_factory.mktemp("selfgen") / "demos.zarr"
-    walk_to_block_store(path)
-    return path
-
-
-def test_a_policy_collects_its_own_episodes_on_the_standard_start_states(demos, tmp_path):
+def test_a_policy_collects_its_own_episodes_on_the_standard_start_states(walk_store, tmp_path):
     """``kpflow-collect policy=transport ... split=standard first_index=7`` composes; its policy's episodes start
     at Diffusion Policy's start states for seeds 7, 8, ..., are recorded with their config index and the policy as
     their source, and the store is continued only by the same collection."""
-    cfg = compose_config("collect", ["policy=transport", "data=pusht_store", f"data.path={demos}", "split=standard", "first_index=7"], tmp_path)
+    cfg = compose_config("collect", ["policy=transport", "data=pusht_store", f"data.path={walk_store}", "split=standard", "first_index=7"], tmp_path)
     policy = instantiate(cfg.policy)
     path = tmp_path / "own.zarr"
     kwargs = dict(split="standard", goal="fixed", max_steps=12, keep_failures=True, progress=False, policy=policy, source="policy:transport",
