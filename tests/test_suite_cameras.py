@@ -6,12 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.suite.cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
 from kpflow.tasks.suite.env import SuiteEnv
 from kpflow.tasks.suite.keypoints import cube_half, scene_keypoints
-from kpflow.tasks.suite.perception import CameraKeypoints, object_points
+from kpflow.tasks.suite.perception import NUT_TOP, CameraKeypoints, object_points, pose_from_box
 from kpflow.tasks.suite.scene import sample_scene
 from kpflow.tasks.suite.specs import task_spec
+from kpflow.vision.boxes import fit_footprint_box
 from kpflow.vision.noise import CameraNoise
 
 SPEC = task_spec("lift")
@@ -84,3 +86,24 @@ class _Nothing:
 
     def masks(self, frame, names):
         return [np.zeros(frame.shape, bool) for _ in names]
+
+
+def _slab(x, y, half, z_top, n, rng) -> np.ndarray:
+    """Points on the top of an axis-aligned slab centred at (x, y) with half sides ``half``, up to height ``z_top``."""
+    local = rng.uniform(-1, 1, (n, 2)) * half
+    return np.c_[local + [x, y], np.full(n, z_top)]
+
+
+@pytest.mark.parametrize("yaw", [0.4, 2.5, -2.0])
+def test_a_nuts_ring_end_and_yaw_come_from_its_footprint(yaw):
+    """A square nut's top (a ring of outer half side 4.2 cm and a handle bar along its +x) turned by ``yaw``: the pose
+    puts the body at the ring's centre and its x axis along the handle, whichever way the rectangle's axis points."""
+    rng = np.random.default_rng(0)
+    ring = _slab(0.0, 0.0, np.array([0.042, 0.042]), 0.9, 3000, rng)
+    ring = ring[np.abs(ring[:, :2]).max(1) > 0.02]  # the hole
+    handle = _slab(0.06, 0.0, np.array([0.019, 0.016]), 0.9, 800, rng)
+    turn = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    points = np.concatenate([ring, handle]) @ turn.T + [0.1, -0.05, 0.0]
+    pos, rot, half = pose_from_box("nut", fit_footprint_box(points))
+    np.testing.assert_allclose(pos, [0.1, -0.05, 0.9 - NUT_TOP], atol=3e-3)
+    assert abs((yaw_of(rot) - yaw + np.pi) % (2 * np.pi) - np.pi) < np.radians(2) and half is None
