@@ -31,7 +31,7 @@ BAD = [
     ("evaluate", "workers=0", "config key workers must be an integer >= 1; got 0"),
     ("evaluate", "split=bogus", "config key split must be one of in_distribution, .*standard, all; got 'bogus'"),
     ("collect", "n_episodes=abc", "config key n_episodes must be an integer >= 1; got 'abc'"),
-    ("collect", "split=bogus", "config key split must be one of in_distribution, robot_ood, object_ood; got 'bogus'"),
+    ("collect", "split=bogus", "config key split must be one of in_distribution, robot_ood, object_ood, standard; got 'bogus'"),
     ("collect", "keep_failures=maybe", "config key keep_failures must be true or false; got 'maybe'"),
     ("correct", "rounds=abc", "config key rounds must be an integer >= 1; got 'abc'"),
     ("correct", "rounds=0", "config key rounds must be an integer >= 1; got 0"),
