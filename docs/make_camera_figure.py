@@ -1,7 +1,7 @@
 """Draw docs/guides/robot-tasks.md's camera figure: one Stack and one Square scene as the front camera sees them, with
 the simulator's keypoints (circles) and the ones perceived from the cameras with the default sensor noise (crosses).
 
-Run: ``MUJOCO_GL=osmesa python docs/make_camera_figure.py`` (writes docs/img/camera_keypoints.png).
+Run: ``MUJOCO_GL=osmesa python docs/make_camera_figure.py`` (writes results/camera_keypoints.png).
 """
 
 from pathlib import Path
@@ -21,7 +21,7 @@ from kpflow.tasks.suite.specs import task_spec  # noqa: E402
 from kpflow.utils.io import atomic_path  # noqa: E402
 from kpflow.vision.lifting import project_points  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "img" / "camera_keypoints.png"
+OUT = Path(__file__).resolve().parents[1] / "results" / "camera_keypoints.png"
 
 
 def main() -> None:
