@@ -560,7 +560,8 @@ class KCFM(lightning.LightningModule):
             ValueError: naming the first keypoint outside, its coordinates, the accepted interval and the box.
         """
         kp = self._check_keypoints(keypoints)
-        self._check_range(kp, self._stats_frame(kp), input_margin)
+        if input_margin is not None:
+            self._check_range(kp, self._stats_frame(kp), input_margin)
         return kp
 
     def _check_range(self, kp: torch.Tensor, stats_frame: torch.Tensor, input_margin: float | None) -> None:

@@ -20,25 +20,16 @@ from kpflow.utils.config_checks import Key
 from kpflow.utils.video import write_video
 
 
-def expert_episode(
-    split: str, index: int, seed: int, goal: str, max_steps: int, success_threshold: float = 0.95, render: bool = False
-) -> tuple[int, EpisodeResult]:
-    """Roll out the expert on configuration ``index`` of ``split`` (expert seeded by ``seed`` and ``index``)."""
-    config = split_config(split, index, seed, goal)
-    env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
-    expert = PushTTask().demonstrator(config)
-    result = run_episode(env, expert, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
-    return index, result
-
-
-def policy_episode(
+def collect_episode(
     policy, split: str, index: int, seed: int, goal: str, max_steps: int, success_threshold: float = 0.95, render: bool = False
 ) -> tuple[int, EpisodeResult]:
-    """Roll out ``policy`` (``reset``/``act``) on configuration ``index`` of ``split`` (``standard``: Diffusion
-    Policy's start state for seed ``index``), reseeded by ``seed`` and ``index``."""
+    """Roll out ``policy`` (``reset``/``act``; None: the scripted expert planned for the configuration) on
+    configuration ``index`` of ``split`` (``standard``: Diffusion Policy's start state for seed ``index``), reseeded by
+    ``seed`` and ``index``, and record it."""
     config = PushTTask().sample_scene(split, index, seed) if split == "standard" else split_config(split, index, seed, goal)
     env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
-    result = run_episode(env, policy, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
+    actor = PushTTask().demonstrator(config) if policy is None else policy
+    result = run_episode(env, actor, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
     return index, result
 
 
@@ -48,7 +39,7 @@ _POLICY = None
 
 def _job(args) -> tuple[int, EpisodeResult]:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    return expert_episode(*args) if _POLICY is None else policy_episode(_POLICY, *args)
+    return collect_episode(_POLICY, *args)
 
 
 def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool, source: str = "expert") -> dict:
