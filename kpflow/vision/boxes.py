@@ -32,7 +32,6 @@ class FootprintBox:
         yaw: the direction of its longer axis (rad, in ``(-pi/2, pi/2]``; a square's is either axis).
         half: ``[2]`` half sides along the longer and the shorter axis.
         top: the top's height.
-        bottom: the lowest voxel's height.
         voxels: ``[M, 3]`` the voxel centres it was fitted on.
     """
 
@@ -40,7 +39,6 @@ class FootprintBox:
     yaw: float
     half: np.ndarray
     top: float
-    bottom: float
     voxels: np.ndarray
 
     @property
@@ -103,7 +101,7 @@ def fit_footprint_box(
     yaw = yaw - np.pi if yaw > np.pi / 2 else yaw + np.pi if yaw <= -np.pi / 2 else yaw
     z = np.sort(v[:, 2])
     top = float(np.median(z[-max(1, int(round(top_fraction * len(z)))) :]))
-    return FootprintBox(centre, yaw, np.sort(lengths)[::-1] / 2, top, float(z[0]), v)
+    return FootprintBox(centre, yaw, np.sort(lengths)[::-1] / 2, top, v)
 
 
 def _degenerate(xy: np.ndarray) -> np.ndarray:
