@@ -172,6 +172,15 @@ def test_pose_error_has_the_configured_size_and_masks_move_by_whole_pixels():
     assert sizes == {6 * 6, 8 * 8, 10 * 10, 10 * 10 + 4 * 10, 10 * 10 + 4 * 10 + 4 * 10 + 4}
 
 
+def test_a_calibration_stream_keeps_the_pose_error_fixed_across_captures():
+    """``frame(..., calibration)``: the pose error comes from the calibration's generator (seeded the same at every
+    capture, the same error: one calibration), the depth noise from the frame's stream (new at every capture)."""
+    f, noise, rng = frame(np.full((H, W), 2.0)), CameraNoise(), np.random.default_rng(0)
+    a, b = (noise.frame(f, rng, np.random.default_rng([7, 1, 0])) for _ in range(2))
+    np.testing.assert_array_equal(a.cam_to_world, b.cam_to_world)
+    assert not np.array_equal(a.depth, b.depth) and not np.array_equal(a.cam_to_world, f.cam_to_world)
+
+
 def test_no_noise_changes_nothing():
     f = frame(np.full((H, W), 2.0))
     rng = np.random.default_rng(0)

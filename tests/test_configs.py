@@ -29,6 +29,7 @@ ENTRIES = {
     "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store", "store"], "train"),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
+    "keypoints": dict.fromkeys(["sim", "camera", "camera_clean"], "generate"),
     "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"], "evaluate"),
@@ -173,6 +174,37 @@ def test_generation_tasks_and_transports_build_from_the_generate_config(name, tm
     env = task.make_env()
     scenes = [task.sample_scene(env, "wide", i).as_dict() for i in (0, 0, 1)]
     assert scenes[0] == scenes[1] != scenes[2]
+
+
+# every entry point that builds a robosuite task or packing: keypoints=... switches where their keypoints come from
+KEYPOINT_ENTRIES = [
+    *[("generate", [f"task={t}"]) for t in ("lift", "stack", "can", "square")],
+    ("evaluate", ["experiment=suite_policy", "task=lift", "policy.checkpoint=model.ckpt"]),
+    ("evaluate", ["experiment=packing"]),
+    ("release", ["task=square", "src=a.ckpt", "dst=b.ckpt"]),
+    ("serve", ["task=can", "checkpoint=model.ckpt"]),
+]
+
+
+@pytest.mark.parametrize(("entry", "overrides"), KEYPOINT_ENTRIES, ids=lambda v: v if isinstance(v, str) else "-".join(v))
+@pytest.mark.parametrize("keypoints", sorted(ENTRIES["keypoints"]))
+def test_keypoint_options_switch_every_entry_points_task(entry, overrides, keypoints, tmp_path):
+    from kpflow.tasks.packing.perception import PackingCamera
+    from kpflow.tasks.suite.keypoints import SimulatorPoses
+    from kpflow.tasks.suite.perception import CameraKeypoints
+
+    cfg = compose_config(entry, [*overrides, f"keypoints={keypoints}", "logger=none"] if entry == "evaluate" else
+                         [*overrides, f"keypoints={keypoints}"], tmp_path)  # fmt: skip
+    task = instantiate(cfg.task, _convert_="all")
+    camera = keypoints != "sim"
+    assert task.keypoints.kind == ("camera" if camera else "sim")
+    assert task.keypoints.noise.mask_px == (2 if keypoints == "camera" else 0) or not camera
+    if task.name == "packing":
+        assert isinstance(task.camera, PackingCamera) if camera else task.camera is None
+        assert task.keypoint_sources == (task.keypoints.kind,)
+    else:
+        assert isinstance(task.perception, CameraKeypoints if camera else SimulatorPoses)
+        assert not camera or task.perception.cameras.names == ("frontview", "birdview", "agentview")
 
 
 def square_kcfm(tmp_path) -> Path:

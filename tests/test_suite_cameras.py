@@ -10,7 +10,7 @@ from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.suite.cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
 from kpflow.tasks.suite.env import SuiteEnv
 from kpflow.tasks.suite.keypoints import cube_half, scene_keypoints
-from kpflow.tasks.suite.perception import NUT_TOP, CameraKeypoints, object_points, pose_from_box
+from kpflow.tasks.suite.perception import NUT_TOP, CameraKeypoints, completed_cube, object_points, pose_from_box
 from kpflow.tasks.suite.scene import sample_scene
 from kpflow.tasks.suite.specs import task_spec
 from kpflow.vision.boxes import fit_footprint_box
@@ -94,6 +94,19 @@ def _slab(x, y, half, z_top, n, rng) -> np.ndarray:
     return np.c_[local + [x, y], np.full(n, z_top)]
 
 
+@pytest.mark.parametrize("yaw", [0.3, -1.2])
+def test_a_cube_seen_in_part_is_completed_away_from_the_cameras(yaw):
+    """A 4 cm cube turned by ``yaw`` whose far half (from a viewpoint on the +x side) is hidden: its visible
+    footprint is 4 x 2 cm, and completing it with the known side puts the centre back where it was."""
+    rng = np.random.default_rng(1)
+    turn = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    top = _slab(0.0, 0.0, np.array([0.02, 0.02]), 0.9, 4000, rng) @ turn.T
+    visible = top[top[:, 0] > 0]  # the half facing the viewpoint at +x
+    pos, rot, half = completed_cube(fit_footprint_box(visible + [0.3, 0.1, 0.0]), 0.02, np.array([2.0, 0.1]))
+    np.testing.assert_allclose(pos, [0.3, 0.1, 0.88], atol=3e-3)
+    assert half == 0.02 and abs((yaw_of(rot) - yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4) < np.radians(3)
+
+
 @pytest.mark.parametrize("yaw", [0.4, 2.5, -2.0])
 def test_a_nuts_ring_end_and_yaw_come_from_its_footprint(yaw):
     """A square nut's top (a ring of outer half side 4.2 cm and a handle bar along its +x) turned by ``yaw``: the pose
@@ -107,3 +120,85 @@ def test_a_nuts_ring_end_and_yaw_come_from_its_footprint(yaw):
     pos, rot, half = pose_from_box("nut", fit_footprint_box(points))
     np.testing.assert_allclose(pos, [0.1, -0.05, 0.9 - NUT_TOP], atol=3e-3)
     assert abs((yaw_of(rot) - yaw + np.pi) % (2 * np.pi) - np.pi) < np.radians(2) and half is None
+
+
+# ---------------------------------------------------------------------------------------- keypoints=camera in use
+_ALIVE: list = []  # rendering environments built by a test stay alive to the module's end (see the env fixture)
+
+
+class CountingCameras(CameraKeypoints):
+    """The real camera perception, counting its captures."""
+
+    captures = 0
+
+    def frames(self, env):
+        self.captures += 1
+        return super().frames(env)
+
+
+def test_a_policy_reads_the_cameras_only_where_it_decides(env):
+    """The released Lift K-CFM in closed loop on camera keypoints: the cameras are read at the steps whose
+    observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
+    is the same for the same seed."""
+    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.tasks.suite.rollout import run_policy_episode
+
+    policy = KCFMPolicy.from_checkpoint("release/suite_lift_kcfm.ckpt", steps=2, execute=8)
+    scene = sample_scene(SPEC, env, "d0", 0, seed=20_000)
+    runs = []
+    for _ in range(2):
+        perception = CountingCameras(SuiteCameras(("frontview", "agentview")), seed=3)
+        frames: list = []
+        episode = run_policy_episode(env, policy, scene, max_steps=20, seed=0, frames=frames, frame_every=10, perception=perception)
+        runs.append((episode, perception.captures, env.ee_pose()[0].copy()))
+    (episode, captures, tip), (again, captures_again, tip_again) = runs
+    assert episode.steps == 20 and episode.decisions == 3  # steps 0, 8, 16
+    assert captures == 1 + 2 + 2 == captures_again  # step 0, then steps 6-7 and 14-15 before the next two chunks
+    assert again == episode
+    np.testing.assert_array_equal(tip, tip_again)
+
+
+def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():
+    """keypoints=camera in generation: a Lift attempt succeeds on perceived keypoints, and the noise is drawn per
+    attempt (an attempt's record and episode do not depend on which attempts the worker ran before)."""
+    from kpflow.eval.generation import Generator
+    from kpflow.maps import AffineMap
+    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.tasks.suite.task import SuiteTask
+    from kpflow.vision.keypoint_source import KeypointSource
+
+    task = SuiteTask("lift", KeypointSource("camera", cameras=("frontview", "agentview")))
+    generator = Generator(task, {"rigid": SegmentTransport(lambda: AffineMap("rigid"))})
+    generator.setup()
+    _ALIVE.append(generator)
+    first, episode = generator.attempt("wide", 1, "rigid")
+    generator.attempt("d0", 0, "rigid")
+    again, episode_again = generator.attempt("wide", 1, "rigid")
+    assert first["success"] and first == again
+    np.testing.assert_array_equal(episode["action"], episode_again["action"])
+    assert isinstance(task.perception, CameraKeypoints) and task.make_env  # the worker's env renders (it perceived)
+
+
+def test_a_held_cube_is_completed_with_the_side_seen_standing():
+    """The ring around a held cube's mask is fingers and floor, not what it stands on: the support is not trusted,
+    and the cube, seen only in part, is completed with the side seen while it stood (:func:`completed_cube`): the
+    in-hand keypoints within a centimetre of the simulator's."""
+    from kpflow.tasks.arm.motion import yaw_of as yaw
+    from kpflow.tasks.suite.demonstrator import plan_segment
+    from kpflow.tasks.suite.keypoints import in_hand_keypoints
+    from kpflow.tasks.suite.task import SuiteTask
+
+    task = SuiteTask("lift")
+    env = _ALIVE[0].env if _ALIVE else SuiteEnv(SPEC, render=True)
+    env.reset_to(sample_scene(SPEC, env, "d0", 2))
+    perception = CameraKeypoints(noise=CameraNoise.off())
+    standing = perception.poses(env, SPEC, ["cube"])["cube"]
+    assert perception.sides == {"cube": standing.half} and abs(standing.half - cube_half(env, "cube")) < 0.002
+    task.run_segment(env, plan_segment(env, SPEC, "pick", yaw(env.home_pose[1])))
+    assert env.grasping("cube")
+    frames = perception.frames(env)
+    masks = [perception._segmenter(env).masks(f, ["cube"])[0] for f in frames]
+    _, support = object_points(frames, masks)
+    assert support is None
+    seen = in_hand_keypoints(env, SPEC, 0.0, perception.poses(env, SPEC, ["cube"])["cube"])
+    assert np.linalg.norm(seen - in_hand_keypoints(env, SPEC, 0.0), axis=1).max() < 0.01

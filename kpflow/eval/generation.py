@@ -82,7 +82,8 @@ class Generator:
         import torch
 
         torch.set_num_threads(1)
-        self.env = self.task.make_env(render=self.render)
+        if self.env is None:  # one simulator per worker: a rendering one freed while another renders breaks that one
+            self.env = self.task.make_env(render=self.render)
         self.sources = []
         for i in range(self.n_sources):
             scene = self.task.sample_scene(self.env, "d0", i, SOURCE_SEED + self.seed)
@@ -113,11 +114,16 @@ class Generator:
         task, env, transport = self.task, self.env, self.families[family]
         scene = task.sample_scene(env, variant, index, self.seed)
         env.reset_to(scene)
+        task.perception.reseed(task.variants.index(variant), index)
         source_id = self.choose_source(transport, index)
         segments = self.sources[source_id]
         runs, failure, trajectory = [], None, None
         for segment in segments:
-            now = task.observe(env, segment.name, reference=segment.start)
+            try:
+                now = task.observe(env, segment.name, reference=segment.start)
+            except ValueError:  # the cameras did not see the object (keypoints=camera)
+                failure = failure or "not perceived"
+                break
             try:
                 trajectory = transport.plan(segment, now, *env.ee_pose())
             except (ValueError, RuntimeError) as error:  # a map that cannot be fitted on these keypoints

@@ -2,7 +2,8 @@
 
 The conditions are the task's variants (``d0``: robosuite's placement as it ships; ``wide``). Scenes come from
 the evaluation seed stream ``EVAL_SEED + seed``, which neither the source demonstrations (``SOURCE_SEED``) nor the
-generated ones (``seed``) use. Success is robosuite's own check within ``max_steps`` control steps.
+generated ones (``seed``) use. Success is robosuite's own check within ``max_steps`` control steps. The objects'
+keypoints come from the task's perception (``keypoints=sim`` or ``keypoints=camera``).
 """
 
 from __future__ import annotations
@@ -36,10 +37,10 @@ class SuitePolicyTrial:
 
     def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
         scene = self.task.sample_scene(self.env, condition, index, EVAL_SEED + seed)
-        episode = run_policy_episode(self.env, self.policy, scene, self.max_steps, seed=index, frames=frames)
+        episode = run_policy_episode(self.env, self.policy, scene, self.max_steps, seed=index, frames=frames, perception=self.task.perception)
         failure = None if episode.success else "time limit"
         scores = {"steps": episode.steps, "decisions": episode.decisions}
         return TrialResult(condition, index, dict(variant), scene.as_dict(), episode.success, failure, scores)
 
     def describe(self) -> dict:
-        return {"policy": self.policy_name, "max_steps": self.max_steps}
+        return {"policy": self.policy_name, "max_steps": self.max_steps, "keypoints": self.task.keypoints.kind}

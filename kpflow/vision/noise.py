@@ -101,7 +101,10 @@ class CameraNoise:
             return ndimage.binary_dilation(m, iterations=k)
         return ndimage.binary_erosion(m, iterations=-k) if k < 0 else m
 
-    def frame(self, frame: CameraFrame, rng: np.random.Generator) -> CameraFrame:
-        """The frame the sensor gives: noisy depth and the pose its calibration reports (colour and instance ids as
-        rendered; masks get their error from :meth:`mask` when a segmenter reads them)."""
-        return replace(frame, depth=self.depth(frame.depth, rng), cam_to_world=self.pose(frame.cam_to_world, rng))
+    def frame(self, frame: CameraFrame, rng: np.random.Generator, calibration: np.random.Generator | None = None) -> CameraFrame:
+        """The frame the sensor gives: noisy depth and the pose its calibration reports, drawn from ``calibration``
+        (None: ``rng``; a generator seeded the same way at every capture keeps a camera's error fixed, as one
+        calibration does); colour and instance ids as rendered, masks get their error from :meth:`mask` when a
+        segmenter reads them."""
+        depth = self.depth(frame.depth, rng)
+        return replace(frame, depth=depth, cam_to_world=self.pose(frame.cam_to_world, rng if calibration is None else calibration))

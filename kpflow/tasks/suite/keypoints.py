@@ -20,6 +20,9 @@ The end effector's keypoint is the grip site's position (:func:`gripper_keypoint
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
 from kpflow.policies.base import PolicyLayout
@@ -87,12 +90,42 @@ def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw:
     return np.stack(_square(pos, yaw, *BIN_HALF))
 
 
-def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
-    """Keypoints of object or fixture ``name`` in ``env`` now (``kind`` overrides the task's, e.g. ``nut_ring``)."""
+@dataclass(frozen=True)
+class ObjectPose:
+    """An object's body pose, ``pos [3]`` and ``rot [3, 3]`` (world), and for a cube its ``half`` side (m)."""
+
+    pos: np.ndarray
+    rot: np.ndarray
+    half: float | None = None
+
+
+def object_pose(env, spec: TaskSpec, name: str) -> ObjectPose:
+    """The simulator's pose of object or fixture ``name`` now."""
     pos, rot = env.object_pose(name)
-    kind = kind or spec.kinds[name]
-    half = cube_half(env, name) if kind == "cube" else None
-    return object_keypoints(kind, pos, rot, reference_yaw, half)
+    return ObjectPose(pos, rot, cube_half(env, name) if spec.kinds[name] == "cube" else None)
+
+
+class SimulatorPoses:
+    """Objects' poses read from the simulator (``keypoints=sim``): exact, and cheap enough to read every step."""
+
+    per_step = True  #: read at every control step (a camera is read only where a policy decides)
+
+    def reseed(self, *keys: int) -> None:
+        """Nothing to seed: the simulator's poses are exact."""
+
+    def poses(self, env, spec: TaskSpec, names: Sequence[str]) -> dict[str, ObjectPose]:
+        return {n: object_pose(env, spec, n) for n in names}
+
+
+def pose_keypoints(spec: TaskSpec, name: str, pose: ObjectPose, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
+    """:func:`object_keypoints` of object ``name`` at ``pose`` (``kind`` overrides the task's, e.g. ``nut_ring``)."""
+    return object_keypoints(kind or spec.kinds[name], pose.pos, pose.rot, reference_yaw, pose.half)
+
+
+def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
+    """Keypoints of object or fixture ``name`` in ``env`` now, from the simulator (``kind`` as in
+    :func:`pose_keypoints`)."""
+    return pose_keypoints(spec, name, object_pose(env, spec, name), reference_yaw, kind)
 
 
 def cube_half(env, name: str, home: bool = False) -> float:
@@ -104,12 +137,13 @@ def cube_half(env, name: str, home: bool = False) -> float:
     return float(sizes[geoms[0]][0])
 
 
-def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float) -> np.ndarray:
+def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float, pose: ObjectPose | None = None) -> np.ndarray:
     """The held object's placement keypoints (:attr:`~.specs.TaskSpec.hand_kinds`) in the grip site's frame
     ``[N, 3]``, symmetric ones ordered by the turn nearest ``reference_yaw`` (the object's yaw relative to the
-    jaws)."""
+    jaws); the object at ``pose`` (None: the simulator's)."""
     ee_pos, ee_rot = env.ee_pose()
-    world = scene_keypoints(env, spec, spec.grasp, reference_yaw + yaw_of(ee_rot), spec.hand_kind)
+    pose = object_pose(env, spec, spec.grasp) if pose is None else pose
+    world = pose_keypoints(spec, spec.grasp, pose, reference_yaw + yaw_of(ee_rot), spec.hand_kind)
     return (world - ee_pos) @ ee_rot
 
 
@@ -127,9 +161,8 @@ def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
     task), its goal (``goals``: the target's keypoints, where the task has one) and ``gripper`` (``robot``: the grip
     site and the finger pads), all 3-D (counted on a unit pose); actions of ``action_dim`` values: position, 6-D
     rotation, gripper."""
-    names = [spec.grasp] + ([spec.target] if spec.target else [])
     groups, start = {}, 0
-    for name in names:
+    for name in policy_objects(spec):
         n = len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0))
         groups[name], start = tuple(range(start, start + n)), start + n
     groups["gripper"] = tuple(range(start, start + GRIPPER_KEYPOINTS))
@@ -137,10 +170,16 @@ def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
     return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True)
 
 
-def policy_keypoints(env, spec: TaskSpec) -> np.ndarray:
+def policy_objects(spec: TaskSpec) -> list[str]:
+    """The objects a policy observes: the one to pick, then its goal (where the task has one)."""
+    return [spec.grasp] + ([spec.target] if spec.target else [])
+
+
+def policy_keypoints(env, spec: TaskSpec, poses: dict[str, ObjectPose] | None = None) -> np.ndarray:
     """What a policy observes ``[K, 3]``: the keypoints of the object to pick and of its goal (symmetric ones
-    ordered by the turn nearest the jaws' yaw, as a grasp would choose), the grip site and the two finger pads
-    (which carry the jaws' yaw and opening)."""
+    ordered by the turn nearest the jaws' yaw, as a grasp would choose) at ``poses`` (None: the simulator's), the
+    grip site and the two finger pads (which carry the jaws' yaw and opening)."""
     jaws = yaw_of(env.ee_pose()[1])
-    names = [spec.grasp] + ([spec.target] if spec.target else [])
-    return np.concatenate([scene_keypoints(env, spec, n, jaws) for n in names] + [gripper_keypoints(env), env.finger_pads()])
+    names = policy_objects(spec)
+    poses = {n: object_pose(env, spec, n) for n in names} if poses is None else poses
+    return np.concatenate([pose_keypoints(spec, n, poses[n], jaws) for n in names] + [gripper_keypoints(env), env.finger_pads()])

@@ -28,15 +28,25 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
-from kpflow.tasks.arm.motion import yaw_of
 from kpflow.vision.boxes import FootprintBox, fit_footprint_box
 from kpflow.vision.cameras import CameraFrame
 from kpflow.vision.depth_filter import smooth_depth
+from kpflow.vision.keypoint_source import KeypointSource
 from kpflow.vision.noise import CameraNoise
 from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
 
-from .cameras import SuiteCameras, object_geoms
-from .keypoints import CAN_HALF_HEIGHT, PEG_HEIGHT, SYMMETRY, gripper_keypoints, object_keypoints, yaw_rotation
+from .cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
+from .keypoints import (
+    CAN_HALF_HEIGHT,
+    PEG_HEIGHT,
+    SYMMETRY,
+    ObjectPose,
+    object_keypoints,
+    policy_keypoints,
+    policy_objects,
+    pose_keypoints,
+    yaw_rotation,
+)
 from .specs import TaskSpec
 
 NUT_TOP = 0.01  # the nut's top above its body origin (m; robosuite 1.5's SquareNut is 2 cm thick)
@@ -50,8 +60,10 @@ def object_points(frames: Sequence[CameraFrame], masks: Sequence[np.ndarray], er
     The pixels of its mask in each frame, ``erode`` pixels in from the mask's edge (an edge pixel's depth may be the
     surface behind the object, and a segmenter's mask may spill over), their depth smoothed within the mask
     (:func:`~kpflow.vision.depth_filter.smooth_depth`, ``smooth x smooth`` windows; 1: as measured), lifted and
-    stacked. The support's height is the median height of the points in a ring 3 to 8 pixels around the masks; with
-    ``support_margin``, the object's points less than that far above it are dropped."""
+    stacked. The support's height is the median height of the points in a ring 3 to 8 pixels around the masks,
+    trusted only where the object's lowest points (their 2nd percentile) lie within ``support_margin`` + 1 cm of it
+    (a held object's ring is the fingers and the floor far below: None); with ``support_margin``, the object's points
+    less than that far above it are dropped."""
     if len(frames) != len(masks):
         raise ValueError(f"one mask per frame: got {len(masks)} masks for {len(frames)} frames")
     masks = [np.asarray(m, bool) for m in masks]
@@ -61,7 +73,9 @@ def object_points(frames: Sequence[CameraFrame], masks: Sequence[np.ndarray], er
     smoothed = [replace(f, depth=smooth_depth(f.depth, m, smooth)) for f, m in zip(frames, masks)]
     points = np.concatenate([f.points(m) for f, m in zip(smoothed, masks)] or [np.zeros((0, 3))])
     ring = np.concatenate([f.points(r) for f, r in zip(frames, rings)] or [np.zeros((0, 3))])
-    support = float(np.median(ring[:, 2])) if len(ring) >= 10 else None
+    support = float(np.median(ring[:, 2])) if len(ring) >= 10 and len(points) >= 10 else None
+    if support is not None and abs(np.percentile(points[:, 2], 2) - support) > (support_margin or 0.0) + 0.01:
+        support = None  # it does not stand on what surrounds it in the images
     if support_margin is not None and support is not None:
         points = points[points[:, 2] > support + support_margin]
     return points, support
@@ -94,6 +108,19 @@ def pose_from_box(kind: str, box: FootprintBox, support: float | None = None) ->
     return np.r_[centre, box.top - BIN_RIM], yaw_rotation(box.yaw - np.pi / 2), None  # its longer sides run along its y
 
 
+def completed_cube(box: FootprintBox, half: float, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(pos, rot, half)`` of a cube of known ``half`` side seen only in part (held in the air, the jaws and the
+    hand hiding what faces away from the cameras): along each axis of the visible footprint ``box`` the cube's
+    centre lies the missing extent further from ``viewpoint [2]`` (the cameras' mean position, x and y), its body
+    half a side below the top."""
+    centre = np.asarray(box.centre, float).copy()
+    axes = (box.axis, np.array([-box.axis[1], box.axis[0]]))
+    for axis, seen in zip(axes, box.half):
+        away = -np.sign((np.asarray(viewpoint, float) - centre) @ axis) or 1.0
+        centre += away * max(half - float(seen), 0.0) * axis
+    return np.r_[centre, box.top - half], yaw_rotation(box.yaw), float(half)
+
+
 def perceived_object_keypoints(kind: str, points: np.ndarray, reference_yaw: float = 0.0, support: float | None = None,
                                voxel: float = 0.002, top_fraction: float = 0.1) -> np.ndarray:  # fmt: skip
     """Keypoints ``[N, 3]`` of an object of ``kind`` seen as world ``points [M, 3]`` standing at height ``support``
@@ -104,15 +131,20 @@ def perceived_object_keypoints(kind: str, points: np.ndarray, reference_yaw: flo
 
 
 class CameraKeypoints:
-    """The policy keypoints of a :class:`~.env.SuiteEnv` from its cameras (module docstring), with a sensor's errors.
+    """The objects' poses and keypoints in a :class:`~.env.SuiteEnv` seen by its cameras (module docstring), with a
+    sensor's errors (``keypoints=camera``).
 
     Args:
         cameras: which cameras and what image size (the environment must render).
         noise: the sensor's errors (:class:`~kpflow.vision.noise.CameraNoise`; ``CameraNoise.off()``: the clean render).
+            Each camera's calibration error is drawn once from ``seed`` (a calibration is done once); depth and mask
+            errors are drawn afresh for every frame, from a stream that :meth:`reseed` restarts.
         segmenter: which pixels are which object (None: the renderer's instance segmentation of each object's geoms).
         seed: seeds the noise; the same seed and scenes give the same keypoints.
         erode, smooth, voxel, top_fraction: see :func:`object_points` and :func:`~kpflow.vision.boxes.fit_footprint_box`.
     """
+
+    per_step = False  #: a capture costs about a second: read where a policy decides, not at every control step
 
     def __init__(self, cameras: SuiteCameras | None = None, noise: CameraNoise | None = None, segmenter: Segmenter | None = None,
                  seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1) -> None:  # fmt: skip
@@ -120,11 +152,30 @@ class CameraKeypoints:
         self.noise = CameraNoise() if noise is None else noise
         self.segmenter, self.erode, self.smooth = segmenter, int(erode), int(smooth)
         self.voxel, self.top_fraction = float(voxel), float(top_fraction)
-        self.rng = np.random.default_rng(seed)
+        self.seed = int(seed)
+        self.reseed()
+
+    @classmethod
+    def from_source(cls, source: KeypointSource) -> CameraKeypoints:
+        """The perception a :class:`~kpflow.vision.keypoint_source.KeypointSource` (``kind="camera"``) describes."""
+        cameras = SuiteCameras(source.cameras or DEFAULT_CAMERAS, source.height, source.width)
+        return cls(cameras, source.noise, source.segmenter, source.seed)
+
+    def reseed(self, *keys: int) -> None:
+        """Start a new scene: restart the depth and mask errors' stream at ``(seed, *keys)`` (e.g. an attempt's
+        index), so that what a scene shows does not depend on which scenes were seen before, and forget the sizes
+        seen."""
+        self.rng = np.random.default_rng([self.seed, *map(int, keys)])
+        self.sides: dict[str, float] = {}  # cubes' half sides seen standing in this scene
 
     def frames(self, env) -> list[CameraFrame]:
         """The cameras' frames of the scene now, as the sensor gives them (noisy depth, the calibrated pose)."""
-        return [self.noise.frame(f, self.rng) for f in self.cameras.capture(env)]
+        return self.sense(self.cameras.capture(env))
+
+    def sense(self, frames: Sequence[CameraFrame]) -> list[CameraFrame]:
+        """Rendered ``frames`` (one per camera, in :attr:`cameras`' order) as the sensor gives them."""
+        calibrations = [np.random.default_rng([self.seed, 1, i]) for i in range(len(frames))]  # the same error at every capture
+        return [self.noise.frame(f, self.rng, c) for f, c in zip(frames, calibrations)]
 
     def _segmenter(self, env) -> Segmenter:
         if self.segmenter is not None:
@@ -132,22 +183,36 @@ class CameraKeypoints:
         names = [*env.object_body, *env.fixture_body]
         return InstanceSegmenter({n: object_geoms(env, n) for n in names})
 
+    def pose(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str) -> ObjectPose:
+        """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`). A cube seen standing
+        leaves its side for later: seen again off any support (held), it is :func:`completed_cube` with that side."""
+        segmenter = self._segmenter(env)
+        masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
+        kind = spec.kinds[name]
+        try:
+            points, support = object_points(frames, masks, self.erode, self.smooth)
+            box = fit_footprint_box(points, self.voxel, self.top_fraction)
+        except ValueError as e:
+            raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
+        if kind == "cube" and support is None and name in self.sides:
+            viewpoint = np.mean([f.cam_to_world[:2, 3] for f in frames], axis=0)
+            return ObjectPose(*completed_cube(box, self.sides[name], viewpoint))
+        pose = ObjectPose(*pose_from_box(kind, box, support))
+        if kind == "cube" and support is not None:
+            self.sides[name] = pose.half
+        return pose
+
+    def poses(self, env, spec: TaskSpec, names: Sequence[str]) -> dict[str, ObjectPose]:
+        """The poses of objects ``names`` from one fresh capture."""
+        frames = self.frames(env)
+        return {n: self.pose(env, spec, frames, n) for n in names}
+
     def scene_keypoints(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str, reference_yaw: float = 0.0,
                         kind: str | None = None) -> np.ndarray:  # fmt: skip
         """:func:`~.keypoints.scene_keypoints` of object or fixture ``name`` seen in ``frames``."""
-        segmenter = self._segmenter(env)
-        masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
-        try:
-            points, support = object_points(frames, masks, self.erode, self.smooth)
-            return perceived_object_keypoints(kind or spec.kinds[name], points, reference_yaw, support, self.voxel, self.top_fraction)
-        except ValueError as e:
-            raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
+        return pose_keypoints(spec, name, self.pose(env, spec, frames, name), reference_yaw, kind)
 
     def policy_keypoints(self, env, spec: TaskSpec) -> np.ndarray:
         """:func:`~.keypoints.policy_keypoints` with the objects seen by the cameras: the object to pick and its goal
         from a fresh capture, the grip site and the finger pads from the robot."""
-        frames = self.frames(env)
-        jaws = yaw_of(env.ee_pose()[1])
-        names = [spec.grasp] + ([spec.target] if spec.target else [])
-        objects = [self.scene_keypoints(env, spec, frames, n, jaws) for n in names]
-        return np.concatenate(objects + [gripper_keypoints(env), env.finger_pads()])
+        return policy_keypoints(env, spec, self.poses(env, spec, policy_objects(spec)))

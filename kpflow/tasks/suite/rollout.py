@@ -1,6 +1,8 @@
 """One closed-loop episode of a policy on a robosuite benchmark task.
 
-At every control step the task's policy keypoints are observed (:func:`~.keypoints.policy_keypoints`) and the
+At every control step the task's policy keypoints are observed (:func:`~.keypoints.policy_keypoints`): the
+gripper's from the robot, the objects' from ``perception`` (the simulator's at every step; a camera's at the steps
+whose observations a decision reads, the last ``n_obs`` before the action queue runs dry, held in between) and the
 policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.rotations.rot6d_to_matrix`) and the gripper
 (closed when > 0). The episode ends at robosuite's success or after ``max_steps``.
@@ -14,7 +16,7 @@ from kpflow.policies.base import ClosedLoop, Policy
 from kpflow.rotations import rot6d_to_matrix
 
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import policy_keypoints
+from .keypoints import SimulatorPoses, policy_keypoints, policy_objects
 
 ACTION_DIM = 10
 
@@ -29,14 +31,19 @@ class PolicyEpisode:
 
 
 def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, seed: int = 0, frames: list | None = None,
-                       frame_every: int = 2) -> PolicyEpisode:  # fmt: skip
-    """Run ``policy`` in ``scene`` (module docstring)."""
+                       frame_every: int = 2, perception=None) -> PolicyEpisode:  # fmt: skip
+    """Run ``policy`` in ``scene`` (module docstring); ``perception`` reads the objects' poses
+    (:class:`~.keypoints.SimulatorPoses` when None; reseeded with ``seed``)."""
     env.reset_to(scene)
+    perception = SimulatorPoses() if perception is None else perception
+    perception.reseed(seed)
     loop = ClosedLoop(policy, ACTION_DIM)
     loop.reset(seed)
-    steps = 0
+    steps, poses, names = 0, None, policy_objects(env.spec)
     while steps < max_steps:
-        obs = {"keypoints": policy_keypoints(env, env.spec)}
+        if poses is None or perception.per_step or len(loop.queue) < loop.n_obs:
+            poses = perception.poses(env, env.spec, names)
+        obs = {"keypoints": policy_keypoints(env, env.spec, poses)}
         loop.observe(obs)
         action = loop.action(obs)
         env.command(action[:3], rot6d_to_matrix(action[3:9]), CLOSED if action[9] > 0 else OPEN)

@@ -16,10 +16,20 @@ import numpy as np
 from kpflow.rotations import matrix_to_rot6d
 from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.base import Segment, SegmentStart, Trajectory
+from kpflow.vision.keypoint_source import KeypointSource
 
 from .demonstrator import path_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import SYMMETRY, gripper_keypoints, in_hand_keypoints, policy_keypoints, policy_layout, scene_keypoints
+from .keypoints import (
+    SYMMETRY,
+    SimulatorPoses,
+    gripper_keypoints,
+    in_hand_keypoints,
+    policy_keypoints,
+    policy_layout,
+    pose_keypoints,
+)
+from .perception import CameraKeypoints
 from .rollout import ACTION_DIM
 from .scene import Scene, sample_scene
 from .specs import task_spec
@@ -45,16 +55,22 @@ class SegmentRun:
 
 
 class SuiteTask:
-    """robosuite's ``lift``, ``stack``, ``can`` or ``square`` (:data:`~.specs.TASKS`) with the Panda."""
+    """robosuite's ``lift``, ``stack``, ``can`` or ``square`` (:data:`~.specs.TASKS`) with the Panda; its objects'
+    keypoints from the simulator or from cameras (``keypoints``, :class:`~kpflow.vision.keypoint_source.KeypointSource`;
+    None: the simulator's)."""
 
-    def __init__(self, name: str = "lift"):
+    def __init__(self, name: str = "lift", keypoints: KeypointSource | None = None):
         self.spec = task_spec(name)
         self.name = self.spec.name
         self.variants = self.spec.variants
         self.policy_layout = policy_layout(self.spec, ACTION_DIM)  #: what its learned policies observe and return
+        self.keypoints = keypoints or KeypointSource()
+        #: reads the objects' poses: :class:`~.keypoints.SimulatorPoses` or :class:`~.perception.CameraKeypoints`
+        self.perception = CameraKeypoints.from_source(self.keypoints) if self.keypoints.camera else SimulatorPoses()
 
     def make_env(self, render: bool = False) -> SuiteEnv:
-        return SuiteEnv(self.spec, render=render)
+        """A simulator for this task (rendering when asked, or when its keypoints come from cameras)."""
+        return SuiteEnv(self.spec, render=render or self.keypoints.camera)
 
     def sample_scene(self, env: SuiteEnv, variant: str, index: int, seed: int = 0) -> Scene:
         return sample_scene(self.spec, env, variant, index, seed)
@@ -69,23 +85,29 @@ class SuiteTask:
         keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
         (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
         :func:`~.demonstrator.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
-        start's yaws (the recorded source's; its own without one)."""
+        start's yaws (the recorded source's; its own without one). The objects' poses come from :attr:`perception`:
+        every object's and fixture's from the simulator, the reference object's and the held one's from cameras."""
         spec = self.spec
-        poses = {n: env.object_pose(n) for n in (*spec.object_bodies, *spec.fixture_bodies)}
+        name = self.reference_object(segment)
+        names = (*spec.object_bodies, *spec.fixture_bodies) if self.perception.per_step else dict.fromkeys((name, spec.grasp))
+        seen = self.perception.poses(env, spec, list(names))
+        poses = {n: (p.pos, p.rot) for n, p in seen.items()}
         yaws = {n: yaw_of(r) for n, (_, r) in poses.items()}
         yaws["hand"] = yaws[spec.grasp] - yaw_of(env.ee_pose()[1])
         ref = reference.yaws if reference is not None else yaws
-        name = self.reference_object(segment)
-        keypoints = {name: scene_keypoints(env, spec, name, ref[name], spec.grasp_kind if segment == "pick" else None)}
+        keypoints = {name: pose_keypoints(spec, name, seen[name], ref[name], spec.grasp_kind if segment == "pick" else None)}
         in_hand = None
         if segment == "place":
             order = max(SYMMETRY[spec.hand_kind], 1)
-            in_hand = np.stack([in_hand_keypoints(env, spec, ref["hand"] + 2 * np.pi * k / order) for k in range(order)])
+            turns = [ref["hand"] + 2 * np.pi * k / order for k in range(order)]
+            in_hand = np.stack([in_hand_keypoints(env, spec, turn, seen[spec.grasp]) for turn in turns])
         return SegmentStart(poses, keypoints, yaws, gripper_keypoints(env), in_hand, path_cost(env))
 
     # ------------------------------------------------------------------------------------------ acting
     def run_segment(self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2) -> SegmentRun:
-        """Command every step of ``trajectory`` and say whether the arm got there."""
+        """Command every step of ``trajectory`` and say whether the arm got there. The keypoints recorded at every
+        step (what a policy trained on the episode observes) are the simulator's whatever :attr:`perception` is: a
+        camera capture per control step would cost about a second each."""
         tip, states, keypoints, actions = [], [], [], []
         for t in range(len(trajectory)):
             states.append(env.sim.get_state().flatten())

@@ -1,0 +1,53 @@
+"""Where a task reads its keypoints from (the config group ``keypoints``): the simulator's object poses, or
+cameras with a sensor's errors.
+
+``keypoints=sim`` (the default) reads every object's pose from the simulator; ``keypoints=camera`` renders RGB-D
+frames and perceives the objects in them (for the robosuite tasks :class:`~kpflow.tasks.suite.perception.CameraKeypoints`,
+for packing its top-down camera), with :class:`~kpflow.vision.noise.CameraNoise`'s errors. A task turns this
+description into its own perception; the gripper's keypoints always come from the robot's kinematics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .noise import CameraNoise
+from .segmentation import Segmenter
+
+KINDS = ("sim", "camera")
+
+
+@dataclass(frozen=True)
+class KeypointSource:
+    """``kind``: ``"sim"`` or ``"camera"``; for cameras which ones (``cameras``; None: the task's own), the
+    image size ``height x width``, the sensor's ``noise``, the ``seed`` that draws it (the same seed and scenes
+    give the same keypoints) and the ``segmenter`` that finds each object's pixels
+    (:class:`~kpflow.vision.segmentation.Segmenter`, e.g. :class:`~kpflow.vision.grounded_sam.GroundedSAM`; None:
+    the renderer's instance masks)."""
+
+    kind: str = "sim"
+    cameras: tuple[str, ...] | None = None
+    height: int = 480
+    width: int = 640
+    noise: CameraNoise = field(default_factory=CameraNoise)
+    seed: int = 0
+    segmenter: Segmenter | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"keypoints must come from one of {list(KINDS)}; got {self.kind!r}")
+        if self.cameras is not None:
+            if isinstance(self.cameras, str) or not len(self.cameras):
+                raise ValueError(f"cameras must be a non-empty list of camera names (or null); got {self.cameras!r}")
+            object.__setattr__(self, "cameras", tuple(str(c) for c in self.cameras))
+        if int(self.height) < 16 or int(self.width) < 16:
+            raise ValueError(f"camera images must be at least 16 x 16 pixels; got {self.height} x {self.width}")
+        if not isinstance(self.noise, CameraNoise):
+            object.__setattr__(self, "noise", CameraNoise(**dict(self.noise)))
+        if self.segmenter is not None and not isinstance(self.segmenter, Segmenter):
+            raise TypeError(f"segmenter must have masks(frame, names); got {type(self.segmenter).__name__}")
+
+    @property
+    def camera(self) -> bool:
+        """Whether the keypoints come from cameras."""
+        return self.kind == "camera"
