@@ -16,12 +16,13 @@ from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.packing import PackingReport, box_corner_error
 from kpflow.maps import AffineMap, GPMap, ILWRMap
 from kpflow.policies.demo_transport import DemoTransportPolicy
+from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.base import Keypoints
 from kpflow.tasks.packing.demonstrator import execute
 from kpflow.tasks.packing.env import START_POS
 from kpflow.tasks.packing.keypoints import GROUPS, LIFT, N_KEYPOINTS, packing_keypoints
 from kpflow.tasks.packing.objects import OBJECT_TYPES
-from kpflow.tasks.packing.perception import backproject, box_corners, canonical_box
+from kpflow.tasks.packing.perception import box_corners, canonical_box, object_box, topdown_frame
 from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
 from kpflow.tasks.packing.task import PackingTask
 
@@ -74,7 +75,8 @@ def test_backprojection_and_box_geometry():
     pose = np.eye(4)
     pose[:3, 3] = (1.0, 2.0, 3.0)
     depth = np.full((48, 64), 2.0)
-    pts = backproject(depth, k, pose).reshape(48, 64, 3)
+    image = {"rgb": np.zeros((48, 64, 3), np.uint8), "depth": depth, "intrinsics": k, "camera_to_world": pose}
+    pts = topdown_frame(image).points().reshape(48, 64, 3)
     np.testing.assert_allclose(pts[24, 32], (1.0 + 0.5 * 2 / 100, 2.0 + 0.5 * 2 / 100, 5.0))  # pixel centre
     assert np.allclose(pts[..., 2], 5.0) and pts[0, 1, 0] - pts[0, 0, 0] == pytest.approx(0.02)
     centre, size, yaw = canonical_box((0.0, 0.0), (0.02, 0.06), 0.1, reference_yaw=0.0)
@@ -110,14 +112,38 @@ def test_env_resets_to_a_scene_and_steps(env):
 def test_object_box_from_the_camera_matches_the_simulator(env, kind):
     scene = Scene(kind, (-0.05, -0.2, 0.9), SOURCE_SCENE.container_pose)
     env.reset_to(scene)
-    kp = packing_keypoints(env)
-    box, (centre, _, half) = kp["box"], env.object_box()
+    box, (centre, _, half) = object_box(env.render_topdown(), TABLE_TOP), env.object_box()
+    pos, rot = env.container_frame()
+    kp = {"keypoints": packing_keypoints(env.ee_pose(), box, pos, yaw_of(rot))}
     assert kp["keypoints"].shape == (N_KEYPOINTS, 3)
     assert abs(box["top"] - (centre[2] + half[2])) < 3e-3  # mm-level top height
     assert np.linalg.norm(box["centre"] - centre[:2]) < 4e-3
     if kind.startswith("box") or kind == "cereal":  # boxes: every corner within a few mm
         assert 1e3 * box_corner_error(box["corners"], env.object_box()) < 3.0
     np.testing.assert_allclose(kp["keypoints"][GROUPS["lifted"]] - kp["keypoints"][GROUPS["object"]], np.tile([0, 0, LIFT], (8, 1)))
+
+
+def test_keypoints_from_the_simulator_or_the_noisy_camera(env):
+    """keypoints=sim reads the object's box and the container from the simulator; keypoints=camera perceives both in
+    the noisy top-down image, the same for the same scene whichever scenes came before."""
+    from kpflow.vision.keypoint_source import KeypointSource
+
+    scene, other = sample_scene("full", 3), sample_scene("full", 4)
+    view = TASK._view(env, scene, 0.0)
+    assert box_corner_error(view.box["corners"], view.true_box) < 5e-4  # the bottom at the table top, the object 0.1 mm off it
+    camera = PackingTask(keypoints=KeypointSource("camera", seed=2))
+    assert camera.keypoint_sources == ("camera",)
+    seen = camera._view(env, scene, 0.0, view.container_yaw)
+    camera._view(env, other, 0.0)
+    np.testing.assert_array_equal(seen.keypoints, camera._view(env, scene, 0.0, view.container_yaw).keypoints)
+    container = GROUPS["container"]
+    assert 0 < np.linalg.norm(seen.keypoints[container] - view.keypoints[container], axis=1).max() < 0.015
+    assert abs(seen.container_yaw - view.container_yaw) < np.radians(2)
+    assert 1e3 * box_corner_error(seen.box["corners"], seen.true_box) < 20  # mm: the D435's noise and calibration
+    with pytest.raises(ValueError, match="reads its keypoints from 'camera', not 'sim'"):
+        camera.observe(env, scene, None, "sim")
+    with pytest.raises(ValueError, match="packing's camera is its one top-down camera"):
+        PackingTask(keypoints=KeypointSource("camera", cameras=("frontview",)))
 
 
 # ----------------------------------------------------------------------------------- demonstration, transport
@@ -149,7 +175,7 @@ def test_identical_scenes_reproduce_the_demonstration(source, make_map):
 def test_a_transported_demonstration_packs_a_moved_object(env, source):
     runner = DemoTransportTrial(TASK, PackingReport(), {"gp": GPMap})
     runner.env, runner.source = env, source  # the module's simulator and recording (what setup() would build)
-    trial = runner.run_scene(sample_scene("relocation", 0), "camera", GPMap, variant={"map": "gp"})
+    trial = runner.run_scene(sample_scene("relocation", 0), "sim", GPMap, variant={"map": "gp"})
     assert trial.success, trial.failure
     assert trial.scores["box_error_mm"] < 3.0 and trial.record()["map"] == "gp"
     tip = trial.artefacts["execution"].tip

@@ -307,9 +307,9 @@ class SuctionArmEnv(ManipulationEnv):
         return np.ascontiguousarray(rgb[::-1])
 
     def render_topdown(self) -> dict:
-        """The top-down camera now: ``rgb [H, W, 3]`` uint8, ``depth [H, W]`` (m), ``masks`` (object name -> the
-        object's pixels ``[H, W]`` bool), ``intrinsics [3, 3]`` and ``camera_to_world [4, 4]`` (OpenCV axes); row 0
-        is the image's top."""
+        """The top-down camera now: ``rgb [H, W, 3]`` uint8, ``depth [H, W]`` (m), ``geom_ids [H, W]`` (the MuJoCo
+        geom seen at each pixel, -1: none), ``masks`` (object name -> the object's pixels ``[H, W]`` bool),
+        ``intrinsics [3, 3]`` and ``camera_to_world [4, 4]`` (OpenCV axes); row 0 is the image's top."""
         h, w = self.camera_size
         rgb, depth = self.sim.render(camera_name=CAMERA, width=w, height=h, depth=True)
         seg = self.sim.render(camera_name=CAMERA, width=w, height=h, segmentation=True)
@@ -317,6 +317,7 @@ class SuctionArmEnv(ManipulationEnv):
         is_geom = seg[..., 0] == int(mujoco.mjtObj.mjOBJ_GEOM)
         masks = {k: is_geom & np.isin(seg[..., 1], g) for k, g in self.object_geoms.items()}
         return {
+            "geom_ids": np.ascontiguousarray(np.where(is_geom, seg[..., 1], -1)),
             "rgb": np.ascontiguousarray(rgb),
             "depth": camera_utils.get_real_depth_map(self.sim, np.ascontiguousarray(depth)),
             "masks": masks,

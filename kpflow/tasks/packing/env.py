@@ -100,7 +100,9 @@ class PackingEnv(SuctionArmEnv):
         return bool(np.all(np.abs(local[:2]) < inner) and local[2] - half[2] < rim and not self.holding())
 
     def render_topdown(self) -> dict:
-        """:meth:`SuctionArmEnv.render_topdown` plus ``mask [H, W]``: the scene's object's pixels."""
+        """:meth:`SuctionArmEnv.render_topdown` plus ``mask [H, W]`` and ``container_mask [H, W]``: the scene's
+        object's pixels and the container's."""
         image = super().render_topdown()
         image["mask"] = image["masks"][self.grasp_object]
+        image["container_mask"] = np.isin(image["geom_ids"], sorted(self.container_geoms))
         return image
