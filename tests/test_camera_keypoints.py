@@ -181,6 +181,20 @@ def test_a_calibration_stream_keeps_the_pose_error_fixed_across_captures():
     assert not np.array_equal(a.depth, b.depth) and not np.array_equal(a.cam_to_world, f.cam_to_world)
 
 
+def test_temporal_mean_averages_returns_and_keeps_holes():
+    from kpflow.vision.depth_filter import temporal_mean
+
+    a, b = np.full((2, 3), 1.0), np.full((2, 3), 3.0)
+    b[0, 0], a[1, 1], b[1, 1] = 0.0, np.nan, -1.0
+    out = temporal_mean([a, b])
+    np.testing.assert_array_equal(out, [[1.0, 2.0, 2.0], [2.0, 0.0, 2.0]])  # one return: itself; none: a hole
+    rng = np.random.default_rng(0)
+    noisy = [1.0 + 0.01 * rng.standard_normal((50, 50)) for _ in range(16)]
+    assert np.std(temporal_mean(noisy)) == pytest.approx(0.01 / 4, rel=0.1)  # sqrt(16)
+    with pytest.raises(ValueError, match="depths must be \\[N, H, W\\]"):
+        temporal_mean(np.zeros((3, 3)))
+
+
 def test_no_noise_changes_nothing():
     f = frame(np.full((H, W), 2.0))
     rng = np.random.default_rng(0)

@@ -21,7 +21,8 @@ KINDS = ("sim", "camera")
 class KeypointSource:
     """``kind``: ``"sim"`` or ``"camera"``; for cameras which ones (``cameras``; None: the task's own), the
     image size ``height x width``, the sensor's ``noise``, the ``seed`` that draws it (the same seed and scenes
-    give the same keypoints) and the ``segmenter`` that finds each object's pixels
+    give the same keypoints), the depth frames averaged per capture (``temporal``) and the ``segmenter`` that finds
+    each object's pixels
     (:class:`~kpflow.vision.segmentation.Segmenter`, e.g. :class:`~kpflow.vision.grounded_sam.GroundedSAM`; None:
     the renderer's instance masks)."""
 
@@ -31,6 +32,7 @@ class KeypointSource:
     width: int = 640
     noise: CameraNoise = field(default_factory=CameraNoise)
     seed: int = 0
+    temporal: int = 1
     segmenter: Segmenter | None = None
 
     def __post_init__(self) -> None:

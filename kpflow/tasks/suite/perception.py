@@ -30,7 +30,7 @@ from scipy import ndimage
 
 from kpflow.vision.boxes import FootprintBox, fit_footprint_box
 from kpflow.vision.cameras import CameraFrame
-from kpflow.vision.depth_filter import smooth_depth
+from kpflow.vision.depth_filter import smooth_depth, temporal_mean
 from kpflow.vision.keypoint_source import KeypointSource
 from kpflow.vision.noise import CameraNoise
 from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
@@ -142,12 +142,18 @@ class CameraKeypoints:
         segmenter: which pixels are which object (None: the renderer's instance segmentation of each object's geoms).
         seed: seeds the noise; the same seed and scenes give the same keypoints.
         erode, smooth, voxel, top_fraction: see :func:`object_points` and :func:`~kpflow.vision.boxes.fit_footprint_box`.
+        temporal: depth frames averaged per capture (the scene is still where the cameras are read: a segment's
+            start, a policy's decision).
     """
 
     per_step = False  #: a capture costs about a second: read where a policy decides, not at every control step
 
     def __init__(self, cameras: SuiteCameras | None = None, noise: CameraNoise | None = None, segmenter: Segmenter | None = None,
-                 seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1) -> None:  # fmt: skip
+                 seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1,
+                 temporal: int = 1) -> None:  # fmt: skip
+        if int(temporal) != temporal or temporal < 1:
+            raise ValueError(f"temporal must be a whole number of frames >= 1; got {temporal!r}")
+        self.temporal = int(temporal)
         self.cameras = cameras or SuiteCameras()
         self.noise = CameraNoise() if noise is None else noise
         self.segmenter, self.erode, self.smooth = segmenter, int(erode), int(smooth)
@@ -159,7 +165,7 @@ class CameraKeypoints:
     def from_source(cls, source: KeypointSource) -> CameraKeypoints:
         """The perception a :class:`~kpflow.vision.keypoint_source.KeypointSource` (``kind="camera"``) describes."""
         cameras = SuiteCameras(source.cameras or DEFAULT_CAMERAS, source.height, source.width)
-        return cls(cameras, source.noise, source.segmenter, source.seed)
+        return cls(cameras, source.noise, source.segmenter, source.seed, temporal=source.temporal)
 
     def reseed(self, *keys: int) -> None:
         """Start a new scene: restart the depth and mask errors' stream at ``(seed, *keys)`` (e.g. an attempt's
@@ -173,9 +179,17 @@ class CameraKeypoints:
         return self.sense(self.cameras.capture(env))
 
     def sense(self, frames: Sequence[CameraFrame]) -> list[CameraFrame]:
-        """Rendered ``frames`` (one per camera, in :attr:`cameras`' order) as the sensor gives them."""
-        calibrations = [np.random.default_rng([self.seed, 1, i]) for i in range(len(frames))]  # the same error at every capture
-        return [self.noise.frame(f, self.rng, c) for f, c in zip(frames, calibrations)]
+        """Rendered ``frames`` (one per camera, in :attr:`cameras`' order) as the sensor gives them: with
+        ``temporal`` > 1, that many noisy frames of the still scene averaged (:func:`~kpflow.vision.depth_filter.temporal_mean`)."""
+        out = []
+        for i, frame in enumerate(frames):
+            calibration = np.random.default_rng([self.seed, 1, i])  # the same error at every capture
+            sensed = self.noise.frame(frame, self.rng, calibration)
+            if self.temporal > 1:
+                depths = [sensed.depth] + [self.noise.depth(frame.depth, self.rng) for _ in range(self.temporal - 1)]
+                sensed = replace(sensed, depth=temporal_mean(depths))
+            out.append(sensed)
+        return out
 
     def _segmenter(self, env) -> Segmenter:
         if self.segmenter is not None:

@@ -85,12 +85,11 @@ class SuiteTask:
         keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
         (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
         :func:`~.demonstrator.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
-        start's yaws (the recorded source's; its own without one). The objects' poses come from :attr:`perception`:
-        every object's and fixture's from the simulator, the reference object's and the held one's from cameras."""
+        start's yaws (the recorded source's; its own without one). The poses of the reference object and of the one
+        picked come from :attr:`perception` (the simulator, or one capture of the cameras)."""
         spec = self.spec
         name = self.reference_object(segment)
-        names = (*spec.object_bodies, *spec.fixture_bodies) if self.perception.per_step else dict.fromkeys((name, spec.grasp))
-        seen = self.perception.poses(env, spec, list(names))
+        seen = self.perception.poses(env, spec, list(dict.fromkeys((name, spec.grasp))))
         poses = {n: (p.pos, p.rot) for n, p in seen.items()}
         yaws = {n: yaw_of(r) for n, (_, r) in poses.items()}
         yaws["hand"] = yaws[spec.grasp] - yaw_of(env.ee_pose()[1])
