@@ -141,7 +141,7 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
     is the same for the same seed."""
     from kpflow.policies.kcfm_policy import KCFMPolicy
-    from kpflow.tasks.suite.rollout import run_policy_episode
+    from kpflow.tasks.suite.rollout import PolicyEpisode, run_policy_episode
 
     policy = KCFMPolicy.from_checkpoint("release/suite_lift_kcfm.ckpt", steps=2, execute=8)
     scene = sample_scene(SPEC, env, "d0", 0, seed=20_000)
@@ -154,8 +154,10 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     (episode, captures, tip), (again, captures_again, tip_again) = runs
     assert episode.steps == 20 and episode.decisions == 3  # steps 0, 8, 16
     assert captures == 1 + 2 + 2 == captures_again  # step 0, then steps 6-7 and 14-15 before the next two chunks
-    assert again == episode
+    assert again == episode and episode.failure == "time limit" and episode.unseen == 0
     np.testing.assert_array_equal(tip, tip_again)
+    blind = CameraKeypoints(SuiteCameras(("agentview",)), segmenter=_Nothing())  # never sees the cube: no pose to keep
+    assert run_policy_episode(env, policy, scene, max_steps=20, perception=blind) == PolicyEpisode(False, 0, 0, 1, "not perceived")
 
 
 def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():

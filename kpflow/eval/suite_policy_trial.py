@@ -38,8 +38,8 @@ class SuitePolicyTrial:
     def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
         scene = self.task.sample_scene(self.env, condition, index, EVAL_SEED + seed)
         episode = run_policy_episode(self.env, self.policy, scene, self.max_steps, seed=index, frames=frames, perception=self.task.perception)
-        failure = None if episode.success else "time limit"
-        scores = {"steps": episode.steps, "decisions": episode.decisions}
+        scores = {"steps": episode.steps, "decisions": episode.decisions, "unseen_reads": episode.unseen}
+        failure = episode.failure
         return TrialResult(condition, index, dict(variant), scene.as_dict(), episode.success, failure, scores)
 
     def describe(self) -> dict:

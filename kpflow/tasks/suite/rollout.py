@@ -2,8 +2,8 @@
 
 At every control step the task's policy keypoints are observed (:func:`~.keypoints.policy_keypoints`): the
 gripper's from the robot, the objects' from ``perception`` (the simulator's at every step; a camera's at the steps
-whose observations a decision reads, the last ``n_obs`` before the action queue runs dry, held in between) and the
-policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
+whose observations a decision reads, the last ``n_obs`` before the action queue runs dry, held in between; an
+object the cameras cannot place in a read keeps its last seen pose) and the policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.rotations.rot6d_to_matrix`) and the gripper
 (closed when > 0). The episode ends at robosuite's success or after ``max_steps``.
 """
@@ -23,11 +23,15 @@ ACTION_DIM = 10
 
 @dataclass(frozen=True)
 class PolicyEpisode:
-    """``success``, the control ``steps`` taken and the ``decisions`` (chunks asked for)."""
+    """``success``, the control ``steps`` taken, the ``decisions`` (chunks asked for), the ``unseen`` reads that
+    could not place an object (the poses last seen were kept) and the ``failure`` (None, ``"time limit"``, or
+    ``"not perceived"``: the objects were never placed)."""
 
     success: bool
     steps: int
     decisions: int
+    unseen: int = 0
+    failure: str | None = None
 
 
 def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, seed: int = 0, frames: list | None = None,
@@ -39,10 +43,15 @@ def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, see
     perception.reseed(seed)
     loop = ClosedLoop(policy, ACTION_DIM)
     loop.reset(seed)
-    steps, poses, names = 0, None, policy_objects(env.spec)
+    steps, poses, names, unseen = 0, None, policy_objects(env.spec), 0
     while steps < max_steps:
         if poses is None or perception.per_step or len(loop.queue) < loop.n_obs:
-            poses = perception.poses(env, env.spec, names)
+            try:
+                poses = perception.poses(env, env.spec, names)
+            except ValueError:  # an object hidden (by the arm, the jaws) in this read: keep what was seen last
+                unseen += 1
+                if poses is None:
+                    return PolicyEpisode(False, steps, loop.decisions, unseen, "not perceived")
         obs = {"keypoints": policy_keypoints(env, env.spec, poses)}
         loop.observe(obs)
         action = loop.action(obs)
@@ -51,5 +60,5 @@ def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, see
         if frames is not None and steps % frame_every == 0:
             frames.append(env.render_view())
         if env.success():
-            return PolicyEpisode(True, steps, loop.decisions)
-    return PolicyEpisode(False, steps, loop.decisions)
+            return PolicyEpisode(True, steps, loop.decisions, unseen)
+    return PolicyEpisode(False, steps, loop.decisions, unseen, "time limit")
