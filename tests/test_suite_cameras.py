@@ -204,3 +204,31 @@ def test_a_held_cube_is_completed_with_the_side_seen_standing():
     assert support is None
     seen = in_hand_keypoints(env, SPEC, 0.0, perception.poses(env, SPEC, ["cube"])["cube"])
     assert np.linalg.norm(seen - in_hand_keypoints(env, SPEC, 0.0), axis=1).max() < 0.01
+
+
+def test_a_grasped_object_is_carried_from_where_it_was_last_seen():
+    """After grasped() the object's pose moves with the grip site from where the cameras last saw it, relative to
+    the commanded grasp pose; released() gives it back to the cameras; reseed() forgets both."""
+    from kpflow.tasks.suite.keypoints import ObjectPose
+
+    class Hand:  # the grip site's pose, as a SuiteEnv reports it
+        def __init__(self, pos, rot):
+            self.pose = (np.asarray(pos, float), np.asarray(rot, float))
+
+        def ee_pose(self):
+            return self.pose
+
+    perception = CameraKeypoints(noise=CameraNoise.off())
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    perception.last["cube"] = ObjectPose(np.array([0.1, 0.0, 0.82]), np.eye(3), 0.02)
+    perception.grasped(Hand([9, 9, 9], np.eye(3)), "cube", at=(np.array([0.1, 0.0, 0.83]), np.eye(3)))
+    now = Hand([0.0, 0.2, 1.0], turn)  # moved and turned a quarter
+    carried = perception.poses(now, SPEC, ["cube"])["cube"]  # no capture: the held object is not looked for
+    np.testing.assert_allclose(carried.pos, [0.0, 0.2, 0.99])
+    np.testing.assert_allclose(carried.rot, turn)
+    assert carried.half == 0.02
+    perception.released("cube")
+    assert perception.held == {}
+    perception.grasped(now, "cube", at=now.pose)
+    perception.reseed(4)
+    assert perception.held == perception.last == {}

@@ -116,6 +116,12 @@ class SimulatorPoses:
     def poses(self, env, spec: TaskSpec, names: Sequence[str]) -> dict[str, ObjectPose]:
         return {n: object_pose(env, spec, n) for n in names}
 
+    def grasped(self, env, name: str, at: tuple[np.ndarray, np.ndarray]) -> None:
+        """Nothing to remember: a held object's pose is read like any other."""
+
+    def released(self, name: str) -> None:
+        """Nothing to forget."""
+
 
 def pose_keypoints(spec: TaskSpec, name: str, pose: ObjectPose, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
     """:func:`object_keypoints` of object ``name`` at ``pose`` (``kind`` overrides the task's, e.g. ``nut_ring``)."""

@@ -169,10 +169,12 @@ class CameraKeypoints:
 
     def reseed(self, *keys: int) -> None:
         """Start a new scene: restart the depth and mask errors' stream at ``(seed, *keys)`` (e.g. an attempt's
-        index), so that what a scene shows does not depend on which scenes were seen before, and forget the sizes
-        seen."""
+        index), so that what a scene shows does not depend on which scenes were seen before, and forget what was
+        seen and held."""
         self.rng = np.random.default_rng([self.seed, *map(int, keys)])
         self.sides: dict[str, float] = {}  # cubes' half sides seen standing in this scene
+        self.last: dict[str, ObjectPose] = {}  # each object's pose when last seen
+        self.held: dict[str, ObjectPose] = {}  # held objects' poses in the grip site's frame
 
     def frames(self, env) -> list[CameraFrame]:
         """The cameras' frames of the scene now, as the sensor gives them (noisy depth, the calibrated pose)."""
@@ -199,7 +201,8 @@ class CameraKeypoints:
 
     def pose(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str) -> ObjectPose:
         """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`). A cube seen standing
-        leaves its side for later: seen again off any support (held), it is :func:`completed_cube` with that side."""
+        leaves its side for later: seen again off any support (lifted without :meth:`grasped`), it is
+        :func:`completed_cube` with that side."""
         segmenter = self._segmenter(env)
         masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
         kind = spec.kinds[name]
@@ -210,16 +213,39 @@ class CameraKeypoints:
             raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
         if kind == "cube" and support is None and name in self.sides:
             viewpoint = np.mean([f.cam_to_world[:2, 3] for f in frames], axis=0)
-            return ObjectPose(*completed_cube(box, self.sides[name], viewpoint))
-        pose = ObjectPose(*pose_from_box(kind, box, support))
-        if kind == "cube" and support is not None:
-            self.sides[name] = pose.half
+            pose = ObjectPose(*completed_cube(box, self.sides[name], viewpoint))
+        else:
+            pose = ObjectPose(*pose_from_box(kind, box, support))
+            if kind == "cube" and support is not None:
+                self.sides[name] = pose.half
+        self.last[name] = pose
         return pose
 
     def poses(self, env, spec: TaskSpec, names: Sequence[str]) -> dict[str, ObjectPose]:
-        """The poses of objects ``names`` from one fresh capture."""
-        frames = self.frames(env)
-        return {n: self.pose(env, spec, frames, n) for n in names}
+        """The poses of objects ``names`` from one fresh capture; a held one's (:meth:`grasped`) carried by the jaws
+        from where it was last seen, since the hand hides a held object from the cameras."""
+        held = {n: self.carried(env, n) for n in names if n in self.held}
+        frames = self.frames(env) if len(held) < len(names) else []
+        return {n: held[n] if n in held else self.pose(env, spec, frames, n) for n in names}
+
+    def grasped(self, env, name: str, at: tuple[np.ndarray, np.ndarray]) -> None:
+        """The jaws close on ``name`` with the grip site commanded to ``at`` (position, rotation): from here on it
+        moves with them, sitting where it was last seen relative to that pose (the grasp as planned; the arm's own
+        pose lags the command by up to a centimetre while it closes)."""
+        if name in self.last:
+            pos, rot = at
+            seen = self.last[name]
+            self.held[name] = ObjectPose(rot.T @ (seen.pos - pos), rot.T @ seen.rot, seen.half)
+
+    def released(self, name: str) -> None:
+        """The jaws open: ``name`` is seen by the cameras again."""
+        self.held.pop(name, None)
+
+    def carried(self, env, name: str) -> ObjectPose:
+        """Where held object ``name`` is now, carried by the jaws since :meth:`grasped`."""
+        pos, rot = env.ee_pose()
+        local = self.held[name]
+        return ObjectPose(pos + rot @ local.pos, rot @ local.rot, local.half)
 
     def scene_keypoints(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str, reference_yaw: float = 0.0,
                         kind: str | None = None) -> np.ndarray:  # fmt: skip

@@ -3,7 +3,8 @@
 At every control step the task's policy keypoints are observed (:func:`~.keypoints.policy_keypoints`): the
 gripper's from the robot, the objects' from ``perception`` (the simulator's at every step; a camera's at the steps
 whose observations a decision reads, the last ``n_obs`` before the action queue runs dry, held in between; an
-object the cameras cannot place in a read keeps its last seen pose) and the policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
+object the cameras cannot place in a read keeps its last seen pose; the object picked, once the jaws close on it, is
+carried with them from where it was last seen) and the policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.rotations.rot6d_to_matrix`) and the gripper
 (closed when > 0). The episode ends at robosuite's success or after ``max_steps``.
 """
@@ -43,7 +44,7 @@ def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, see
     perception.reseed(seed)
     loop = ClosedLoop(policy, ACTION_DIM)
     loop.reset(seed)
-    steps, poses, names, unseen = 0, None, policy_objects(env.spec), 0
+    steps, poses, names, unseen, closed = 0, None, policy_objects(env.spec), 0, False
     while steps < max_steps:
         if poses is None or perception.per_step or len(loop.queue) < loop.n_obs:
             try:
@@ -55,7 +56,13 @@ def run_policy_episode(env: SuiteEnv, policy: Policy, scene, max_steps: int, see
         obs = {"keypoints": policy_keypoints(env, env.spec, poses)}
         loop.observe(obs)
         action = loop.action(obs)
-        env.command(action[:3], rot6d_to_matrix(action[3:9]), CLOSED if action[9] > 0 else OPEN)
+        closing, target = bool(action[9] > 0), (action[:3], rot6d_to_matrix(action[3:9]))
+        if closing and not closed:  # the jaws close on the object to pick: a camera carries its pose with them
+            perception.grasped(env, env.spec.grasp, target)
+        elif closed and not closing:
+            perception.released(env.spec.grasp)
+        closed = closing
+        env.command(*target, CLOSED if closing else OPEN)
         steps += 1
         if frames is not None and steps % frame_every == 0:
             frames.append(env.render_view())
