@@ -108,19 +108,6 @@ def pose_from_box(kind: str, box: FootprintBox, support: float | None = None) ->
     return np.r_[centre, box.top - BIN_RIM], yaw_rotation(box.yaw - np.pi / 2), None  # its longer sides run along its y
 
 
-def completed_cube(box: FootprintBox, half: float, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(pos, rot, half)`` of a cube of known ``half`` side seen only in part (held in the air, the jaws and the
-    hand hiding what faces away from the cameras): along each axis of the visible footprint ``box`` the cube's
-    centre lies the missing extent further from ``viewpoint [2]`` (the cameras' mean position, x and y), its body
-    half a side below the top."""
-    centre = np.asarray(box.centre, float).copy()
-    axes = (box.axis, np.array([-box.axis[1], box.axis[0]]))
-    for axis, seen in zip(axes, box.half):
-        away = -np.sign((np.asarray(viewpoint, float) - centre) @ axis) or 1.0
-        centre += away * max(half - float(seen), 0.0) * axis
-    return np.r_[centre, box.top - half], yaw_rotation(box.yaw), float(half)
-
-
 def perceived_object_keypoints(kind: str, points: np.ndarray, reference_yaw: float = 0.0, support: float | None = None,
                                voxel: float = 0.002, top_fraction: float = 0.1) -> np.ndarray:  # fmt: skip
     """Keypoints ``[N, 3]`` of an object of ``kind`` seen as world ``points [M, 3]`` standing at height ``support``
@@ -172,7 +159,6 @@ class CameraKeypoints:
         index), so that what a scene shows does not depend on which scenes were seen before, and forget what was
         seen and held."""
         self.rng = np.random.default_rng([self.seed, *map(int, keys)])
-        self.sides: dict[str, float] = {}  # cubes' half sides seen standing in this scene
         self.last: dict[str, ObjectPose] = {}  # each object's pose when last seen
         self.held: dict[str, ObjectPose] = {}  # held objects' poses in the grip site's frame
 
@@ -200,9 +186,8 @@ class CameraKeypoints:
         return InstanceSegmenter({n: object_geoms(env, n) for n in names})
 
     def pose(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str) -> ObjectPose:
-        """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`). A cube seen standing
-        leaves its side for later: seen again off any support (lifted without :meth:`grasped`), it is
-        :func:`completed_cube` with that side."""
+        """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`), remembered as where it
+        was last seen."""
         segmenter = self._segmenter(env)
         masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
         kind = spec.kinds[name]
@@ -211,13 +196,7 @@ class CameraKeypoints:
             box = fit_footprint_box(points, self.voxel, self.top_fraction)
         except ValueError as e:
             raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
-        if kind == "cube" and support is None and name in self.sides:
-            viewpoint = np.mean([f.cam_to_world[:2, 3] for f in frames], axis=0)
-            pose = ObjectPose(*completed_cube(box, self.sides[name], viewpoint))
-        else:
-            pose = ObjectPose(*pose_from_box(kind, box, support))
-            if kind == "cube" and support is not None:
-                self.sides[name] = pose.half
+        pose = ObjectPose(*pose_from_box(kind, box, support))
         self.last[name] = pose
         return pose
 
