@@ -21,7 +21,7 @@ RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 
 # group -> {option: entry point that composes it}
 ENTRIES = {
-    "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_matern", "flow", "mlp", "ensemble", "learned"], "evaluate"),
+    "map": dict.fromkeys(["affine", "ilwr", "gp", "gp_ml", "flow", "mlp", "ensemble", "learned"], "evaluate"),
     "logger": dict.fromkeys(["csv", "default", "none"], "train"),
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp", "ddp_cpu"], "train"),
     "hydra/launcher": dict.fromkeys(["pool", "local", "slurm"], "train"),

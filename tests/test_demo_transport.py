@@ -12,7 +12,7 @@ from kpflow.tasks.base import Keypoints, Trajectory
 
 def _line_demo(n: int = 41):
     x = torch.linspace(0.0, 4.0, n, dtype=torch.float64)
-    positions = torch.stack([x, 0.2 * x, 0.1 + 0 * x], -1).numpy()  # from the keypoints (near 0) out to x = 4
+    positions = torch.stack([0.15 + x, 0.15 + 0.2 * x, 0.15 + 0 * x], -1).numpy()  # from the keypoints' centre out to x = 4
     rotations = np.repeat(np.eye(3)[None], n, 0)
     return Trajectory(positions, rotations, np.zeros(n, bool), np.array(["move"] * n))
 

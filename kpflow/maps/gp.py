@@ -3,7 +3,16 @@
 phi(x) = A x + t + f(x),  f ~ GP(0, k) fitted on the residuals target_i - (A source_i + t),
 
 so far from every keypoint f -> 0 and phi falls back to the affine (by default rigid) motion: the
-zero-transport prior. ``predict`` gives the posterior mean and latent variance of f (the uncertainty of phi),
+zero-transport prior.
+
+Default hyper-parameters come from the keypoints' own geometry, not from the marginal likelihood: a Matern 3/2 kernel
+whose length-scale is ``LENGTHSCALE`` = 1.6 times the source keypoints' RMS spread about their centroid, a noise
+variance of 1 % of the residuals' mean square, an output variance equal to it (``iters=0``: nothing is optimised). The
+marginal likelihood of ten keypoints says little about how the space between two groups of them should bend: free
+maximum likelihood picked length-scales that left a path between a start and a goal frame turned independently
+with the compromise rotation (median Frechet 1.45 times the authors' GP settings on the multi-frame benchmark's
+tuning scenes, against 0.72 with this prior; ``benchmarks/map_suite.py``, results/maps_suite.md). ``iters > 0`` fits
+them by maximum likelihood from these values (``lengthscale_bounds`` and ``restarts`` then apply). ``predict`` gives the posterior mean and latent variance of f (the uncertainty of phi),
 ``jacobian`` the Jacobian of the mean, ``jacobian_variance`` the variance of each Jacobian entry, and ``sample``
 joint posterior draws (one smooth map per sample). The inverse is solved by Newton iterations from the affine
 inverse; it exists where J stays non-singular, which the GP does not guarantee (``exact_inverse = False``).
@@ -19,19 +28,27 @@ from kpflow.maps.base import jacobian_autograd, newton_inverse
 from kpflow.maps.gp_regression import GPRegressor
 
 
+#: the default length-scale, in units of the source keypoints' RMS spread (module docstring)
+LENGTHSCALE = 1.6
+#: the default noise variance, as a fraction of the residuals' mean square
+NOISE = 1e-2
+
+
 class GPMap(AlignedMap):
     """Affine alignment plus a gpytorch GP on the residual (module docstring).
 
     Args:
         alignment: ``"rigid"``, ``"similarity"``, ``"affine"``, ``"translation"`` or ``"none"``.
-        kernel, mean, likelihood: gpytorch modules (templates, copied at each fit; default a scaled RBF kernel, a
-            zero mean and a Gaussian likelihood), e.g. ``kernel=gpytorch.kernels.MaternKernel(nu=2.5)``.
+        kernel, mean, likelihood: gpytorch modules (templates, copied at each fit; default a scaled Matern 3/2
+            kernel, a zero mean and a Gaussian likelihood), e.g. ``kernel=gpytorch.kernels.RBFKernel()``.
+        lengthscale: the kernel's length-scale in units of the source keypoints' RMS spread (module docstring).
+        noise: the noise variance as a fraction of the residuals' mean square.
+        iters: L-BFGS iterations of maximum likelihood from those values (0: the geometric prior as it is).
         lengthscale_bounds: ``(low, high)`` of the length-scale in keypoint units (e.g. ``(10, 50)`` where a
-            frame's keypoints are 5 apart: the map then deforms smoothly between keypoint groups).
+            frame's keypoints are 5 apart), for ``iters > 0``.
         restarts: further hyper-parameter optimisations from other length-scales; the best likelihood is kept.
-        lengthscale, noise, min_noise, fixed_noise, iters, max_sample_bytes: see
-            :class:`~kpflow.maps.gp_regression.GPRegressor` (checked at construction: a value out of range raises
-            ``ValueError`` naming it).
+        min_noise, fixed_noise, max_sample_bytes: see :class:`~kpflow.maps.gp_regression.GPRegressor` (checked at
+            construction: a value out of range raises ``ValueError`` naming it).
     """
 
     exact_inverse = False
@@ -39,11 +56,11 @@ class GPMap(AlignedMap):
     def __init__(
         self,
         alignment: str = "rigid",
-        lengthscale: float | None = None,
-        noise: float = 1e-4,
+        lengthscale: float | None = LENGTHSCALE,
+        noise: float = NOISE,
         min_noise: float | None = None,
         fixed_noise: bool = False,
-        iters: int = 6,
+        iters: int = 0,
         max_sample_bytes: int | None = None,
         kernel: gpytorch.kernels.Kernel | None = None,
         mean: gpytorch.means.Mean | None = None,
@@ -52,6 +69,7 @@ class GPMap(AlignedMap):
         restarts: int = 0,
     ) -> None:
         super().__init__(alignment)
+        kernel = kernel if kernel is not None else gpytorch.kernels.MaternKernel(nu=1.5)
         self.gp = GPRegressor(
             lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters,
             max_sample_bytes=max_sample_bytes, kernel=kernel, mean=mean, likelihood=likelihood,
