@@ -3,8 +3,9 @@
 A task's *pair sampler* (``sampler(n, rng) -> (source, target)``, arrays ``[n, N, D]``; Push-T's is
 :class:`~kpflow.tasks.pusht.pairs.PushTPairs`) draws the pairs. For each pair this module adds ``n_queries`` query
 points, half near the source keypoints (Gaussian, ``jitter`` times the source's RMS spread) and half uniform over
-the sources' bounding box widened by half its size, and where a reference map fitted on the pair carries them
-(:class:`~kpflow.maps.ilwr.ILWRMap`, batched): the distillation targets of the loss. The pairs are drawn once, in
+the sources' bounding box widened by half its size, and where a reference map fitted on the pair carries them (the
+``teacher``: :class:`~kpflow.maps.ilwr.ILWRMap` by default, fitted in batches; another map family, e.g. the GP, pair
+by pair): the distillation targets of the loss. The pairs are drawn once, in
 ``setup``, from ``seed``: the same config gives the same data.
 """
 
@@ -17,6 +18,7 @@ import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
 
+from ..maps.base import TransportMap
 from ..maps.ilwr import ILWRMap
 from ..maps.map_module import KeypointPairs
 
@@ -24,8 +26,8 @@ PairSampler = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray]
 
 
 def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.random.Generator, jitter: float = 0.1,
-                chunk: int = 2000) -> KeypointPairs:
-    """The pairs with their query points and reference (ILWR) targets (module docstring), as float32 tensors."""
+                chunk: int = 2000, teacher: Callable[[], TransportMap] = ILWRMap) -> KeypointPairs:
+    """The pairs with their query points and the ``teacher``'s targets (module docstring), as float32 tensors."""
     src, tgt = torch.from_numpy(np.asarray(source, np.float64)), torch.from_numpy(np.asarray(target, np.float64))
     b, _, d = src.shape
     centre = src.mean(1, keepdim=True)
@@ -38,10 +40,11 @@ def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.
     box = lo + (hi - lo) * torch.from_numpy(rng.random((b, n_queries - n_near, d)))
     queries = torch.cat([near, box], 1)
     targets = torch.empty_like(queries)
+    batched = teacher().supports_batch
     with torch.no_grad():
-        for i in range(0, b if n_queries else 0, chunk):
-            s = slice(i, i + chunk)
-            targets[s] = ILWRMap().fit(src[s], tgt[s])(queries[s])
+        for i in range(0, b if n_queries else 0, chunk if batched else 1):
+            s = slice(i, i + chunk) if batched else i
+            targets[s] = teacher().fit(src[s], tgt[s])(queries[s])
     return KeypointPairs(src.float(), tgt.float(), queries.float(), targets.float())
 
 
@@ -64,6 +67,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
         n_pairs: pairs drawn (``val_fraction`` of them held out for validation).
         n_queries: query points per pair, for the distillation term (``model.distill_weight > 0``); 0: none.
         jitter: spread of the near-keypoint queries, relative to the source's RMS spread.
+        teacher: factory of the map whose values at the queries are the distillation targets (default ILWR).
     """
 
     def __init__(
@@ -75,6 +79,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
         jitter: float = 0.1,
         batch_size: int = 256,
         seed: int = 0,
+        teacher: Callable[[], TransportMap] | None = None,
     ) -> None:
         super().__init__()
         if n_pairs < 2:
@@ -85,6 +90,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
             raise ValueError(f"n_queries must be >= 0, got {n_queries}")
         self.sampler, self.n_pairs, self.val_fraction = sampler, n_pairs, val_fraction
         self.n_queries, self.jitter, self.batch_size, self.seed = n_queries, jitter, batch_size, seed
+        self.teacher = teacher if teacher is not None else ILWRMap
         self.train_set: KeypointPairs | None = None
         self.val_set: KeypointPairs | None = None
 
@@ -98,7 +104,7 @@ class KeypointPairDataModule(lightning.LightningDataModule):
             raise ValueError(f"the pair sampler must return source and target [{self.n_pairs}, N, D]; got {source.shape} and {target.shape}")
         if not (np.isfinite(source).all() and np.isfinite(target).all()):
             raise ValueError("the pair sampler returned NaN or inf keypoints")
-        pairs = add_queries(source, target, self.n_queries, rng, self.jitter)
+        pairs = add_queries(source, target, self.n_queries, rng, self.jitter, teacher=self.teacher)
         n_val = max(1, round(self.val_fraction * self.n_pairs))
         self.val_set, self.train_set = pairs[:n_val], pairs[n_val:]
 

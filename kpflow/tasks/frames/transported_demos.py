@@ -33,19 +33,27 @@ def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], Tran
     j's demonstration goes through it (:func:`kpflow.transport.transport_trajectory`: x -> phi_j(x), v -> J v,
     R -> polar(J) R). The policy's training velocities are the look-ahead velocities of the transported path at the
     target demonstration's duration (:func:`~kpflow.tasks.frames.scene.lookahead_velocity`, ``horizon`` of its
-    length).
+    length). A map family that fits batches (ILWR, affine, learned) fits every phi_j at once and carries every
+    demonstration in one pass.
     """
     goal = scenes[target]
     target_kp = goal.keypoints(frame_size)
     duration = float(goal.demo.times[-1] - goal.demo.times[0])
-    out = []
-    for j, scene in enumerate(scenes):
-        if j == target:
-            continue
-        phi = make_map().fit(scene.keypoints(frame_size), target_kp)
-        moved = transport_trajectory(phi, scene.demo.positions, scene.demo.velocities, scene.demo.orientations)
-        out.append(TransportedDemo(j, moved, lookahead_velocity(moved.positions, duration, horizon)))
-    return out
+    others = [j for j in range(len(scenes)) if j != target]
+    if make_map().supports_batch and len({len(scenes[j].demo) for j in others}) == 1:  # one fit for all of them
+        demos = [scenes[j].demo for j in others]
+        sources = torch.stack([scenes[j].keypoints(frame_size) for j in others])
+        phi = make_map().fit(sources, target_kp.expand_as(sources))
+        batch = transport_trajectory(phi, *(torch.stack([getattr(d, f) for d in demos]) for f in ("positions", "velocities", "orientations")))
+        moved = [TransportedTrajectory(**{f: None if getattr(batch, f) is None else getattr(batch, f)[i] for f in batch.__dataclass_fields__})
+                 for i in range(len(others))]  # fmt: skip
+    else:
+        moved = []
+        for j in others:
+            scene = scenes[j]
+            phi = make_map().fit(scene.keypoints(frame_size), target_kp)
+            moved.append(transport_trajectory(phi, scene.demo.positions, scene.demo.velocities, scene.demo.orientations))
+    return [TransportedDemo(j, m, lookahead_velocity(m.positions, duration, horizon)) for j, m in zip(others, moved)]
 
 
 class TransportedDemosDataModule(lightning.LightningDataModule):
