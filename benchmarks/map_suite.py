@@ -318,16 +318,18 @@ LASA_TUNING = 12
 
 def candidate_maps() -> dict[str, Transport]:
     """The grid the defaults were chosen from (``--candidates``, on the tuning split): GP kernels, length-scales (x the
-    keypoints' RMS spread), noise (x the residuals' mean square) and alignments; ILWR's alignments and steps."""
+    keypoints' diameter or RMS spread) and noise (x the residuals' mean square), the default on a similarity alignment and fitted
+    by maximum likelihood; ILWR's alignments and steps."""
     kernels = {"Matern 5/2": lambda: gpytorch.kernels.MaternKernel(nu=2.5), "Matern 3/2": lambda: gpytorch.kernels.MaternKernel(nu=1.5)}
     maps = {"similarity": kpflow_map(lambda: AffineMap("similarity")), AUTHORS: authors_gp}
     for kname, kernel in kernels.items():
-        for scale in (0.8, 1.2, 1.6):
-            for noise in (1e-3, 1e-2):
-                for alignment in ("rigid", "similarity"):
-                    maps[f"GPMap {kname}, {scale} x spread, noise {noise:g}, {alignment}"] = kpflow_map(
-                        functools.partial(lambda k, **kw: GPMap(kernel=k(), **kw), kernel, lengthscale=scale, noise=noise, alignment=alignment)
-                    )
+        for unit, scales in (("diameter", (0.6, 0.8, 1.0, 1.3)), ("spread", (1.2, 1.6, 2.0, 2.4))):
+            for scale in scales:
+                for noise in (1e-6, 1e-2):
+                    maps[f"GPMap {kname}, {scale} x {unit}, noise {noise:g}"] = kpflow_map(functools.partial(
+                        lambda k, **kw: GPMap(kernel=k(), **kw), kernel, lengthscale=scale, noise=noise, lengthscale_unit=unit))  # fmt: skip
+    maps["GPMap (default), similarity alignment"] = kpflow_map(functools.partial(GPMap, alignment="similarity"))
+    maps["GPMap Matern 3/2, maximum likelihood from the default"] = kpflow_map(functools.partial(GPMap, iters=6))
     for alignment in ("rigid", "similarity", "translation", "affine"):
         for steps in (30, 100):
             maps[f"ILWRMap {alignment}, {steps} steps"] = kpflow_map(functools.partial(ILWRMap, n_steps=steps, alignment=alignment))

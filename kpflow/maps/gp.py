@@ -6,13 +6,16 @@ so far from every keypoint f -> 0 and phi falls back to the affine (by default r
 zero-transport prior.
 
 Default hyper-parameters come from the keypoints' own geometry, not from the marginal likelihood: a Matern 3/2 kernel
-whose length-scale is ``LENGTHSCALE`` = 1.6 times the source keypoints' RMS spread about their centroid, a noise
-variance of 1 % of the residuals' mean square, an output variance equal to it (``iters=0``: nothing is optimised). The
-marginal likelihood of ten keypoints says little about how the space between two groups of them should bend: free
-maximum likelihood picked length-scales that left a path between a start and a goal frame turned independently
-with the compromise rotation (median Frechet 1.45 times the authors' GP settings on the multi-frame benchmark's
-tuning scenes, against 0.72 with this prior; ``benchmarks/map_suite.py``, results/maps_suite.md). ``iters > 0`` fits
-them by maximum likelihood from these values (``lengthscale_bounds`` and ``restarts`` then apply). ``predict`` gives the posterior mean and latent variance of f (the uncertainty of phi),
+whose length-scale is ``LENGTHSCALE`` = 0.8 times the source keypoints' diameter (their largest pairwise distance: the
+distance between the farthest groups, which one far keypoint, a gripper beside an object, does not shrink as it
+shrinks an RMS spread), an output variance equal to the residuals' mean square and a noise variance ``NOISE`` = 1e-6
+of it, so the map interpolates its keypoints (``iters=0``: nothing is optimised, and a fit is one Cholesky
+factorisation). The marginal likelihood of ten keypoints says little about how the space between two groups of them
+should bend: free maximum likelihood picked length-scales that left a path between a start and a goal frame turned
+independently with the compromise rotation (median Frechet 1.45 times the authors' GP settings on the multi-frame
+benchmark's tuning scenes, against 0.84 with this prior; ``benchmarks/map_suite.py --split tuning --candidates``,
+results/maps_suite.md). ``iters > 0`` fits them
+by maximum likelihood from these values (``lengthscale_bounds`` and ``restarts`` then apply). ``predict`` gives the posterior mean and latent variance of f (the uncertainty of phi),
 ``jacobian`` the Jacobian of the mean, ``jacobian_variance`` the variance of each Jacobian entry, and ``sample``
 joint posterior draws (one smooth map per sample). The inverse is solved by Newton iterations from the affine
 inverse; it exists where J stays non-singular, which the GP does not guarantee (``exact_inverse = False``).
@@ -27,11 +30,10 @@ from kpflow.maps.affine import AlignedMap
 from kpflow.maps.base import jacobian_autograd, newton_inverse
 from kpflow.maps.gp_regression import GPRegressor
 
-
-#: the default length-scale, in units of the source keypoints' RMS spread (module docstring)
-LENGTHSCALE = 1.6
+#: the default length-scale, in units of the source keypoints' diameter (module docstring)
+LENGTHSCALE = 0.8
 #: the default noise variance, as a fraction of the residuals' mean square
-NOISE = 1e-2
+NOISE = 1e-6
 
 
 class GPMap(AlignedMap):
@@ -41,7 +43,9 @@ class GPMap(AlignedMap):
         alignment: ``"rigid"``, ``"similarity"``, ``"affine"``, ``"translation"`` or ``"none"``.
         kernel, mean, likelihood: gpytorch modules (templates, copied at each fit; default a scaled Matern 3/2
             kernel, a zero mean and a Gaussian likelihood), e.g. ``kernel=gpytorch.kernels.RBFKernel()``.
-        lengthscale: the kernel's length-scale in units of the source keypoints' RMS spread (module docstring).
+        lengthscale: the kernel's length-scale in units of ``lengthscale_unit`` (module docstring).
+        lengthscale_unit: ``"diameter"`` (the source keypoints' largest pairwise distance) or ``"spread"`` (their RMS
+            distance from their centroid).
         noise: the noise variance as a fraction of the residuals' mean square.
         iters: L-BFGS iterations of maximum likelihood from those values (0: the geometric prior as it is).
         lengthscale_bounds: ``(low, high)`` of the length-scale in keypoint units (e.g. ``(10, 50)`` where a
@@ -67,13 +71,14 @@ class GPMap(AlignedMap):
         likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None,
         lengthscale_bounds: tuple[float, float] | None = None,
         restarts: int = 0,
+        lengthscale_unit: str = "diameter",
     ) -> None:
         super().__init__(alignment)
         kernel = kernel if kernel is not None else gpytorch.kernels.MaternKernel(nu=1.5)
         self.gp = GPRegressor(
             lengthscale=lengthscale, noise=noise, min_noise=min_noise, fixed_noise=fixed_noise, iters=iters,
             max_sample_bytes=max_sample_bytes, kernel=kernel, mean=mean, likelihood=likelihood,
-            lengthscale_bounds=lengthscale_bounds, restarts=restarts,
+            lengthscale_bounds=lengthscale_bounds, restarts=restarts, lengthscale_unit=lengthscale_unit,
         )  # fmt: skip
 
     def _fit(self, source: torch.Tensor, target: torch.Tensor) -> None:

@@ -79,8 +79,10 @@ class GPRegressor(nn.Module):
             ``RBFKernel() + MaternKernel(nu=1.5)`` or a product; wrapped in a ``ScaleKernel`` unless it is one.
         mean: a gpytorch mean (template; default ``ZeroMean()``: far from the data f -> 0).
         likelihood: a gpytorch Gaussian likelihood (template; default one with the noise bounded by ``min_noise``).
-        lengthscale: initial length-scale in standardised input units (``None``: 1.0, or the bounds' geometric
-            mean).
+        lengthscale: initial length-scale in units of ``lengthscale_unit`` (``None``: 1.0 standardised unit, or the
+            bounds' geometric mean).
+        lengthscale_unit: ``"spread"``: the training inputs' RMS spread about their mean (the standardised unit);
+            ``"diameter"``: their largest pairwise distance.
         lengthscale_bounds: ``(low, high)`` of every length-scale, in the units of the inputs (the keypoints'),
             or None (positive, unbounded).
         outputscale: initial output variance (standardised units).
@@ -111,9 +113,13 @@ class GPRegressor(nn.Module):
         likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None,
         lengthscale_bounds: tuple[float, float] | None = None,
         restarts: int = 0,
+        lengthscale_unit: str = "spread",
     ) -> None:
         super().__init__()
         check_positive("lengthscale", lengthscale, optional=True, what=" (the initial length-scale; None: 1.0)")
+        if lengthscale_unit not in ("spread", "diameter"):
+            raise ValueError(f"lengthscale_unit must be 'spread' or 'diameter', got {lengthscale_unit!r}")
+        self.lengthscale_unit = lengthscale_unit
         check_positive("outputscale", outputscale, what=" (the initial output variance)")
         check_positive("noise", noise, what=" (the initial noise variance)")
         check_positive("min_noise", min_noise, optional=True, what=" (the noise variance's lower bound; None: default)")
@@ -149,7 +155,10 @@ class GPRegressor(nn.Module):
         xs = ((x - self.x_mean) / self.x_scale).expand(d_out, n, x.shape[-1])
         ys = (y / self.y_scale).T.contiguous()
         bounds = None if self.lengthscale_bounds is None else tuple(b / float(self.x_scale) for b in self.lengthscale_bounds)
-        start = self.init_lengthscale or (math.sqrt(bounds[0] * bounds[1]) if bounds else 1.0)
+        unit = 1.0
+        if self.lengthscale_unit == "diameter" and self.init_lengthscale:
+            unit = float(torch.pdist(x.detach()).max() / self.x_scale) if n > 1 else 1.0
+        start = self.init_lengthscale * unit if self.init_lengthscale else (math.sqrt(bounds[0] * bounds[1]) if bounds else 1.0)
         offsets = sorted((u for u in torch.linspace(-1, 1, self.restarts + 2).tolist() if abs(u) > 1e-9), key=lambda u: (-abs(u), u))
         starts = [start] + [start * 10.0**u for u in offsets[: self.restarts]]  # a decade down and up first, then between
         if bounds:
