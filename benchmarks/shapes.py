@@ -86,7 +86,7 @@ def _gp(kernel_factory=gpytorch.kernels.MaternKernel, **kw):
 MAPS: dict[str, Transport] = {
     "similarity": _kpflow(lambda: AffineMap("similarity")),
     BASELINE: functools.partial(authors_gp, return_std=True),
-    "GPMap (default: Matern 3/2, length-scale 1.6 x spread)": _kpflow(GPMap),
+    "GPMap (default: Matern 3/2, length-scale 0.8 x diameter)": _kpflow(GPMap),
     "GPMap (previous default: RBF, maximum likelihood)": _kpflow(_gp(**PREVIOUS_GP)),
     "GPMap Matern 5/2, maximum likelihood": _kpflow(_gp(lengthscale=None, noise=1e-4, iters=6)),
     "GPMap Matern 5/2, ML, length-scale in [10, 50] mm": _kpflow(_gp(lengthscale=None, noise=1e-4, iters=6, lengthscale_bounds=(10.0, 50.0))),
