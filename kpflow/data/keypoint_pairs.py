@@ -17,6 +17,7 @@ import lightning
 import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+from tqdm import tqdm
 
 from ..maps.base import TransportMap
 from ..maps.ilwr import ILWRMap
@@ -41,8 +42,9 @@ def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.
     queries = torch.cat([near, box], 1)
     targets = torch.empty_like(queries)
     batched = teacher().supports_batch
-    with torch.no_grad():
-        for i in range(0, b if n_queries else 0, chunk if batched else 1):
+    steps = range(0, b if n_queries else 0, chunk if batched else 1)
+    with torch.no_grad():  # a teacher that fits one pair at a time (the GP: ~3 ms each) shows its progress
+        for i in tqdm(steps, desc="distillation targets", unit="pair", disable=batched or len(steps) < 1000, mininterval=5.0):
             s = slice(i, i + chunk) if batched else i
             targets[s] = teacher().fit(src[s], tgt[s])(queries[s])
     return KeypointPairs(src.float(), tgt.float(), queries.float(), targets.float())
