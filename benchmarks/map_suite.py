@@ -73,7 +73,6 @@ class Case:
     ``path [T, D]`` and the target's ``truth [T', D]``; in 3-D their orientations ``rotations [T, 3, 3]`` and
     ``truth_rotations [T', 3, 3]`` and the reference object's symmetry ``turns`` (yaw order, 1: none)."""
 
-    group: str
     source: np.ndarray
     target: np.ndarray
     path: np.ndarray
@@ -104,7 +103,7 @@ def lasa_cases(shapes: slice = slice(None)) -> list[Case]:
     cases = []
     for shape in shapes:
         demos = demonstrations(shape)
-        cases += [Case(shape, demos[i][1], demos[j][1], demos[i][0], demos[j][0]) for i in range(N_DEMOS) for j in range(N_DEMOS) if i != j]
+        cases += [Case(demos[i][1], demos[j][1], demos[i][0], demos[j][0]) for i in range(N_DEMOS) for j in range(N_DEMOS) if i != j]
     return cases
 
 
@@ -114,13 +113,13 @@ def multiframe_cases(n_families: int = 12, seed: int = 0, frame_size: float = 0.
     from kpflow.tasks.frames.turns import turned_families
 
     cases = []
-    for f, family in enumerate(turned_families(n_families, seed=seed)):
+    for family in turned_families(n_families, seed=seed):
         kps = [scene_keypoints(list(config), frame_size).numpy() for config in family.configs]
         n = len(family.configs)
         for i in range(n):
             for j in range(n):
                 if i != j:
-                    cases += [Case(f"family {f}", kps[i], kps[j], family.demos[i][k].positions.numpy(), family.demos[j][k].positions.numpy())
+                    cases += [Case(kps[i], kps[j], family.demos[i][k].positions.numpy(), family.demos[j][k].positions.numpy())
                               for k in range(len(family.demos[i]))]  # fmt: skip
     return cases
 
@@ -138,7 +137,7 @@ def suite_cases(tasks: list[str], n_scenes: int, seed: int, cache: Path) -> list
                     continue
                 for seg_a, seg_b in zip(a.segments, b.segments):
                     source, target = suite_recordings.keypoint_pair(task, seg_a, seg_b)
-                    cases.append(Case(task, source, target, seg_a.positions, seg_b.positions, seg_a.rotations, seg_b.rotations, seg_a.turns))
+                    cases.append(Case(source, target, seg_a.positions, seg_b.positions, seg_a.rotations, seg_b.rotations, seg_a.turns))
     return cases
 
 
@@ -198,7 +197,7 @@ def polar(j: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0] * (j.shape[0] - 1) + [d]) @ vh
 
 
-def final_orientation(transport: Transport, case: Case, moved_end: np.ndarray, h: float) -> np.ndarray:
+def final_orientation(transport: Transport, case: Case, h: float) -> np.ndarray:
     """The source's final orientation carried by the polar factor of the map's central-difference Jacobian."""
     x = case.path[-1]
     d = x.shape[0]
@@ -234,7 +233,7 @@ def score(transport: Transport, case: Case) -> dict[str, float]:
         diff = float(end_heading(a, -1) - end_heading(b, -1))
         row["final_heading"] = abs(math.atan2(math.sin(diff), math.cos(diff)))
     else:
-        r = final_orientation(transport, case, moved[-1], 1e-3 * spacing(case.source))
+        r = final_orientation(transport, case, 1e-3 * spacing(case.source))
         row["final_heading"] = rotation_error(r, case.truth_rotations[-1], case.turns)
     return row
 
