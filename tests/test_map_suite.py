@@ -11,7 +11,6 @@ import pytest
 import torch
 
 from kpflow.maps import GPMap, ILWRMap
-from kpflow.tasks.frames import demonstrate
 from kpflow.tasks.frames.pairs import FramesPairs
 from kpflow.tasks.frames.turns import turned_configs, turned_families
 
@@ -78,13 +77,6 @@ def test_distillation_targets_come_from_the_teacher_given():
     with torch.no_grad():
         expected = ILWRMap().fit(torch.as_tensor(src), torch.as_tensor(tgt))(ilwr.queries.double()).float()
     assert torch.allclose(ilwr.query_targets, expected, atol=1e-5)
-
-
-def test_demonstrate_with_one_generator_seed_gives_one_style():
-    base = turned_families(1, seed=3)[0].configs[0]
-    a = demonstrate(*base, generator=torch.Generator().manual_seed(9))
-    b = demonstrate(*base, generator=torch.Generator().manual_seed(9))
-    assert torch.equal(a.positions, b.positions)
 
 
 def test_map_suite_quick_writes_one_table_against_the_authors_gp(tmp_path):
