@@ -60,6 +60,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from kpflow.eval import metrics  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap, LearnedMap  # noqa: E402
 from kpflow.maps.base import TransportMap  # noqa: E402
+from kpflow.rotations import nearest_rotation  # noqa: E402
 from kpflow.tasks.frames import end_heading  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 
@@ -136,7 +137,7 @@ def suite_cases(tasks: list[str], n_scenes: int, seed: int, cache: Path) -> list
                 if i == j:
                     continue
                 for seg_a, seg_b in zip(a.segments, b.segments):
-                    source, target = suite_recordings.keypoint_pair(task, seg_a, seg_b)
+                    source, target = suite_recordings.keypoint_pair(seg_a, seg_b)
                     cases.append(Case(source, target, seg_a.positions, seg_b.positions, seg_a.rotations, seg_b.rotations, seg_a.turns))
     return cases
 
@@ -176,6 +177,11 @@ def authors_gp(src, tgt, x, return_std: bool = False):
     return mean * unit, (np.repeat(std[:, None], x.shape[1], 1) if std.ndim == 1 else std) * unit
 
 
+def previous_gp() -> GPMap:
+    """The GP map's default before the map suite: an RBF kernel fitted by maximum likelihood (6 L-BFGS steps)."""
+    return GPMap(lengthscale=None, noise=1e-4, iters=6, kernel=gpytorch.kernels.RBFKernel())
+
+
 def default_maps() -> dict[str, Transport]:
     """The maps every benchmark runs: kpflow's defaults, the authors' GP settings, a similarity map (what a map must
     beat to be worth its cost) and the GP default before the suite (an RBF kernel fitted by maximum likelihood)."""
@@ -183,20 +189,12 @@ def default_maps() -> dict[str, Transport]:
         "similarity": kpflow_map(lambda: AffineMap("similarity")),
         AUTHORS: authors_gp,
         "GPMap (default)": kpflow_map(GPMap),
-        "GPMap (previous default: RBF, maximum likelihood)": kpflow_map(
-            lambda: GPMap(lengthscale=None, noise=1e-4, iters=6, kernel=gpytorch.kernels.RBFKernel())
-        ),
+        "GPMap (previous default: RBF, maximum likelihood)": kpflow_map(previous_gp),
         "ILWRMap (default)": kpflow_map(ILWRMap),
     }
 
 
 # ---------------------------------------------------------------------------------------------------- scoring
-def polar(j: np.ndarray) -> np.ndarray:
-    u, _, vh = np.linalg.svd(j)
-    d = np.sign(np.linalg.det(u @ vh))
-    return u @ np.diag([1.0] * (j.shape[0] - 1) + [d]) @ vh
-
-
 def final_orientation(transport: Transport, case: Case, h: float) -> np.ndarray:
     """The source's final orientation carried by the polar factor of the map's central-difference Jacobian."""
     x = case.path[-1]
@@ -204,23 +202,17 @@ def final_orientation(transport: Transport, case: Case, h: float) -> np.ndarray:
     probes = np.concatenate([x + h * np.eye(d), x - h * np.eye(d)])
     out = transport(case.source, case.target, probes)
     jac = (out[:d] - out[d:]).T / (2 * h)
-    return polar(jac) @ case.rotations[-1]
-
-
-def yaw_turn(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return nearest_rotation(torch.as_tensor(jac)).numpy() @ case.rotations[-1]
 
 
 def rotation_error(r: np.ndarray, truth: np.ndarray, turns: int) -> float:
-    """Angle of ``truth^T r``, the least over the ``turns`` yaw turns that leave the reference object looking the same
-    (``turns`` 0: any yaw, searched in steps of half a degree)."""
+    """Angle between ``r`` and ``truth``, the least over the ``turns`` yaw turns that leave the reference object looking
+    the same (``turns`` 0: any yaw, searched in steps of half a degree)."""
+    from kpflow.tasks.suite.keypoints import yaw_rotation  # robosuite's package: only for the suite's cases
+
     n = turns if turns > 0 else 720
-    best = math.pi
-    for k in range(n):
-        rel = truth.T @ yaw_turn(2 * math.pi * k / n) @ r
-        best = min(best, math.acos(float(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
-    return best
+    turned = np.stack([yaw_rotation(2 * math.pi * k / n) @ r for k in range(n)])
+    return float(metrics.rotation_angle_error(torch.as_tensor(truth).expand(n, 3, 3), torch.as_tensor(turned)).min())
 
 
 def score(transport: Transport, case: Case) -> dict[str, float]:

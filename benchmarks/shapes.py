@@ -50,7 +50,7 @@ from tqdm import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from map_suite import authors_gp  # noqa: E402
+from map_suite import authors_gp, previous_gp  # noqa: E402
 
 from kpflow.eval import metrics  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
@@ -83,8 +83,7 @@ MAPS: dict[str, Transport] = {
     "similarity": _kpflow(lambda: AffineMap("similarity")),
     BASELINE: functools.partial(authors_gp, return_std=True),
     "GPMap (default: Matern 3/2, length-scale 0.8 x diameter)": _kpflow(GPMap),
-    # the GP default before the map suite (benchmarks/map_suite.py): an RBF kernel fitted by maximum likelihood
-    "GPMap (previous default: RBF, maximum likelihood)": _kpflow(lambda: GPMap(kernel=gpytorch.kernels.RBFKernel(), lengthscale=None, noise=1e-4, iters=6)),
+    "GPMap (previous default: RBF, maximum likelihood)": _kpflow(previous_gp),
     "GPMap Matern 5/2, maximum likelihood": _kpflow(_matern52()),
     "GPMap Matern 5/2, ML, length-scale in [10, 50] mm": _kpflow(_matern52(lengthscale_bounds=(10.0, 50.0))),
     "GPMap, similarity alignment": _kpflow(lambda: GPMap(alignment="similarity")),

@@ -18,6 +18,7 @@ import numpy as np
 from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.suite.keypoints import SYMMETRY, object_keypoints
 from kpflow.tasks.suite.specs import task_spec
+from kpflow.utils.formats import read_npz
 from kpflow.utils.io import atomic_path
 
 VARIANT = "wide"
@@ -55,11 +56,20 @@ class Recording:
     segments: list[RecordedSegment]
 
 
-def keypoint_pair(task: str, a: RecordedSegment, b: RecordedSegment) -> tuple[np.ndarray, np.ndarray]:
+def keypoint_pair(a: RecordedSegment, b: RecordedSegment) -> tuple[np.ndarray, np.ndarray]:
     """Source and target keypoints of carrying segment ``a`` into ``b``'s scene, both ordered by ``a``'s yaw (as a
     generator orders what it observes by the recorded source's: the least turn that looks the same)."""
     yaw = yaw_of(a.rot)
     return a.keypoints(yaw), b.keypoints(yaw)
+
+
+def reference(task_name: str, segment: str) -> tuple[str, str]:
+    """The object segment ``segment`` of ``task_name`` acts relative to and its keypoint kind (the object picked with the
+    grasp's kind, or the goal of a place with its own)."""
+    spec = task_spec(task_name)
+    if segment == "pick":
+        return spec.grasp, spec.grasp_kind
+    return spec.target, spec.kinds[spec.target]
 
 
 def record(task_name: str, n_scenes: int, seed: int) -> list[Recording]:
@@ -79,8 +89,7 @@ def record(task_name: str, n_scenes: int, seed: int) -> list[Recording]:
         if success:
             recorded = []
             for seg in segments:
-                name = task.reference_object(seg.name)
-                kind = spec.grasp_kind if seg.name == "pick" else spec.kinds[name]
+                name, kind = reference(task_name, seg.name)
                 pos, rot = seg.start.poses[name]
                 half = cube_half(env, name) if spec.kinds[name] == "cube" else math.nan
                 recorded.append(RecordedSegment(name, kind, seg.trajectory.positions, seg.trajectory.rotations, pos, rot, half, seg.start.gripper[0]))
@@ -94,35 +103,35 @@ def _path(cache: Path, task: str, n_scenes: int, seed: int) -> Path:
 
 
 def save(path: Path, recordings: list[Recording]) -> None:
-    arrays = {"index": np.array([r.index for r in recordings])}
+    arrays = {"index": np.array([r.index for r in recordings]), "n_segments": np.array([len(r.segments) for r in recordings])}
     for i, rec in enumerate(recordings):
         for k, seg in enumerate(rec.segments):
             for f in FIELDS:
                 arrays[f"{i}/{k}/{f}"] = np.asarray(getattr(seg, f))
-            arrays[f"{i}/{k}/names"] = np.array([seg.name, seg.kind])
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
 
 
-def load(path: Path) -> list[Recording]:
-    with np.load(path, allow_pickle=False) as data:
-        out = []
-        for i, index in enumerate(data["index"]):
-            segs, k = [], 0
-            while f"{i}/{k}/names" in data:
-                name, kind = (str(s) for s in data[f"{i}/{k}/names"])
-                v = {f: data[f"{i}/{k}/{f}"] for f in FIELDS}
-                segs.append(RecordedSegment(name, kind, v["positions"], v["rotations"], v["pos"], v["rot"], float(v["half"]), v["gripper"]))
-                k += 1
-            out.append(Recording(int(index), segs))
+def load(path: Path, task_name: str) -> list[Recording]:
+    """The recordings of ``task_name`` that :func:`save` wrote, read through :func:`kpflow.utils.formats.read_npz`
+    (members checked); segment k of a recording is the task's k-th segment."""
+    head = read_npz(path, ("index", "n_segments"))
+    members = [(i, k) for i, n in enumerate(head["n_segments"]) for k in range(int(n))]
+    data = read_npz(path, [f"{i}/{k}/{f}" for i, k in members for f in FIELDS])
+    out = [Recording(int(index), []) for index in head["index"]]
+    segments = task_spec(task_name).segments
+    for i, k in members:
+        v = {f: data[f"{i}/{k}/{f}"] for f in FIELDS}
+        name, kind = reference(task_name, segments[k])
+        out[i].segments.append(RecordedSegment(name, kind, v["positions"], v["rotations"], v["pos"], v["rot"], float(v["half"]), v["gripper"]))
     return out
 
 
 def load_or_record(task: str, n_scenes: int, seed: int, cache: Path) -> list[Recording]:
     path = _path(Path(cache), task, n_scenes, seed)
     if path.exists():
-        return load(path)
+        return load(path, task)
     recordings = record(task, n_scenes, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
     save(path, recordings)

@@ -104,7 +104,7 @@ def test_suite_recordings_round_trip_and_pair_in_the_sources_order(tmp_path):
         for sa, sb in zip(a.segments, b.segments):
             assert sa.name == sb.name and sa.kind == sb.kind and np.array_equal(sa.positions, sb.positions)
             assert np.array_equal(sa.rotations, sb.rotations) and sa.half == sb.half
-    source, target = sr.keypoint_pair("lift", recs[0].segments[0], recs[1].segments[0])
+    source, target = sr.keypoint_pair(recs[0].segments[0], recs[1].segments[0])
     assert source.shape == target.shape == (9, 3)  # the cube's 8 corners and the grip site
     # ordered by the source's yaw: the rigid fit of the corners turns by at most 45 degrees
     from kpflow.maps.affine import fit_affine

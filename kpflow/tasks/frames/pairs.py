@@ -28,14 +28,14 @@ class FramesPairs:
             raise ValueError(f"max_turn_deg must be in [0, 360] or None, got {max_turn_deg}")
         self.frame_size, self.min_distance, self.max_turn_deg, self.shift = float(frame_size), float(min_distance), max_turn_deg, float(shift)
 
-    def _pair(self, g: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
-        if self.max_turn_deg is None:
-            configs = [random_frames(g, self.min_distance) for _ in range(2)]
-        else:
-            configs = turned_configs(random_frames(g, self.min_distance), 2, g, math.radians(self.max_turn_deg), self.shift)
-        return tuple(scene_keypoints(list(c), self.frame_size).numpy() for c in configs)
+    def _keypoints(self, configs) -> np.ndarray:
+        return scene_keypoints(list(configs), self.frame_size).numpy()
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         g = torch.Generator().manual_seed(int(rng.integers(2**63 - 1)))
-        pairs = [self._pair(g) for _ in range(n)]
-        return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+        if self.max_turn_deg is None:  # all sources, then all targets (the draws of the sampler before max_turn_deg)
+            source = np.stack([self._keypoints(random_frames(g, self.min_distance)) for _ in range(n)])
+            return source, np.stack([self._keypoints(random_frames(g, self.min_distance)) for _ in range(n)])
+        turn = math.radians(self.max_turn_deg)
+        pairs = [turned_configs(random_frames(g, self.min_distance), 2, g, turn, self.shift) for _ in range(n)]
+        return np.stack([self._keypoints(p[0]) for p in pairs]), np.stack([self._keypoints(p[1]) for p in pairs])

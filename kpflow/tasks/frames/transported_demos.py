@@ -45,8 +45,7 @@ def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], Tran
         sources = torch.stack([scenes[j].keypoints(frame_size) for j in others])
         phi = make_map().fit(sources, target_kp.expand_as(sources))
         batch = transport_trajectory(phi, *(torch.stack([getattr(d, f) for d in demos]) for f in ("positions", "velocities", "orientations")))
-        moved = [TransportedTrajectory(**{f: None if getattr(batch, f) is None else getattr(batch, f)[i] for f in batch.__dataclass_fields__})
-                 for i in range(len(others))]  # fmt: skip
+        moved = [TransportedTrajectory(batch.positions[i], batch.std[i], batch.velocities[i], batch.orientations[i]) for i in range(len(others))]
     else:
         moved = []
         for j in others:
