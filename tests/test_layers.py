@@ -14,7 +14,7 @@ LAYERS = [
     {"transport", "rotations"},
     {"vision"},
     {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
-    {"tasks", "policies.base"},  # the policy contract sits beside the task contract: tasks declare their layout with it
+    {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it
     {"policies"},
     {"eval", "serving"},
     {"cli", "conf", "__init__"},  # the commands (kpflow/cli/) and the package's front door
@@ -47,7 +47,7 @@ def imports(path: Path) -> set[str]:
 
 def layer(module: str) -> str:
     parts = module.split(".")
-    if parts[1:3] == ["policies", "base"]:
+    if parts[1:3] in (["policies", "base"], ["policies", "phases"]):
         return "policies.base"
     return parts[1] if len(parts) > 1 else "__init__"
 

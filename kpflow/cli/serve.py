@@ -32,6 +32,7 @@ KEYS = {
     "transport": Key(str, choices=tuple(TRANSPORT_MAPS), nullable=True),
     "steps": Key(int, lo=1, nullable=True),
     "solver": Key(str, nullable=True),
+    "segments": Key(bool),
     "execute": Key(int, lo=1),
     "control_hz": Key(float, lo=0),
     "reach": Key(float, lo=0, nullable=True),
@@ -57,6 +58,7 @@ def main(cfg: DictConfig) -> None:
     deployment = load_deployment(
         cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
         cfg.reach, cfg.turn_deg, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms), cfg.solver,
+        cfg.segments,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     batching = f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait" if cfg.batch.max_size > 1 else "no batching"

@@ -6,13 +6,16 @@
   ``keypoint_dim``-D, named keypoint ``groups`` with their roles (``objects``, ``goals``, ``robot``), and actions of
   ``action_dim`` values whose first ``keypoint_dim`` are a position in the keypoints' space, followed by a 6-D
   rotation (:mod:`kpflow.rotations`) when ``rotation`` is set; the rest (a gripper) is not spatial. A task declares
-  it (``task.policy_layout``); transporting policies read from it what a map moves and what it leaves alone.
+  it (``task.policy_layout``); transporting policies read from it what a map moves and what it leaves alone, and,
+  where the task declares them, its ``phases`` (:mod:`.phases`: which object the transport follows before and after
+  a grasp).
 * :class:`ClosedLoop`: a policy at 1 action per control step. It owns the observation history (the last ``n_obs``
   keypoint sets, oldest first, the episode's first repeated before its start, as training pads) and the action
   queue (a chunk is executed open loop; the policy is asked again when it runs out). Every task's episode loop
   (Push-T's and the robosuite tasks') runs its policy through it.
 
-This module imports nothing else of kpflow: tasks import it to declare their layout.
+This module imports nothing else of kpflow but :mod:`.phases` (which imports none): tasks import it to declare their
+layout.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from dataclasses import dataclass, field
 from typing import Mapping, Protocol, runtime_checkable
 
 import numpy as np
+
+from .phases import Phases
 
 ROLES = ("objects", "goals", "robot")
 
@@ -54,6 +59,7 @@ class PolicyLayout:
     groups: Mapping[str, tuple[int, ...]] = field(default_factory=dict, compare=False)
     roles: Mapping[str, tuple[str, ...]] = field(default_factory=dict, compare=False)
     rotation: bool = field(default=False, compare=False)
+    phases: Phases | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         seen = sorted(i for idx in self.groups.values() for i in idx)
@@ -66,6 +72,13 @@ class PolicyLayout:
         if self.action_dim < self.keypoint_dim or spatial > self.action_dim:
             raise ValueError(f"actions of {self.action_dim} values cannot start with a {self.keypoint_dim}-D position"
                              + (" and a 6-D rotation" if self.rotation else ""))  # fmt: skip
+        if self.phases is not None:
+            grip = self.phases.grip
+            if not all(0 <= i < self.n_keypoints for i in (*grip.pads, *grip.grasp_point)):
+                raise ValueError(f"the grip's keypoints {grip.pads}, {grip.grasp_point} must be in 0..{self.n_keypoints - 1}")
+            for phase in self.phases.phases:
+                for name in phase.names():
+                    self.indices(name)  # raises naming an unknown group
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -124,11 +124,12 @@ def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: in
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
                           steps: int | None = None, execute: int = 8, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
-                          solver: str | None = None, **choice):  # fmt: skip
-    """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`)."""
+                          solver: str | None = None, segments: bool = False, **choice):  # fmt: skip
+    """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`), phase
+    by phase with ``segments`` (the layout's phases)."""
     from .transported_kcfm import TransportedKCFMPolicy
 
-    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, **choice)
+    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
     return within_reach(policy, layout, reach, turn_deg)
 
 
@@ -166,10 +167,11 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int = 8, reac
 def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
                      steps: int | None = None, execute: int = 8, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
                      fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
-                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, **options):  # fmt: skip
+                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False, **options):  # fmt: skip
     """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the
     index saved beside the checkpoint, :func:`source_index_path`, searched with ``weights`` and ``frame``)
-    (:func:`make_transported_kcfm`), its map fitted on ``fit_on``; ``options``: the source choice. The checkpoint
+    (:func:`make_transported_kcfm`), its map fitted on ``fit_on`` (with ``segments``: phase by phase, each phase's
+    map, search frame and weights as the task declares them); ``options``: the source choice. The checkpoint
     is checked against the task and a learned map against the keypoints it is fitted on, before the
     demonstrations are built (the config is not instantiated recursively: a refused file collects nothing)."""
     from .kcfm_policy import KCFMPolicy
@@ -185,4 +187,5 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
         index = SourceIndex(saved.keypoints, saved.chunks, layout.weights(weights), frame_indices(layout, frame))
     else:
         index = source_index(demos, layout, int(model.hparams.horizon), weights, frame)
-    return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, **options)
+    return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, segments,
+                                 **options)  # fmt: skip

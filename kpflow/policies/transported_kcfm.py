@@ -35,6 +35,14 @@ the first 8 targets against the demonstrated chunk is 46.3 / 191.6 px with all k
 transportation and 18.3 / 40.2 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
 agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
 
+Segment-aware transport (``phases``, :mod:`.phases`): where the task declares phases and the policy is asked to
+follow them, steps 1-3 follow the phase of the observation, read from its keypoints (the jaws holding the object
+or not): the source is searched among the training configurations of the same phase, relative to that phase's
+``frame`` with its ``weights``; ``phi`` is fitted on the phase's ``fit_on`` keypoints (before a grasp the object to
+pick, after it the target); the robot and the phase's ``carried`` keypoints (the held object) are pulled back.
+Each phase is then carried in the frame of the object that matters in it, as a demonstration generator carries
+each segment, and the map never has to stretch the space between two objects that moved independently.
+
 The observation is held to the K-CFM's training range before anything is fitted, and the K-CFM's input after the
 pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that come out NaN or inf are refused
 (:func:`~kpflow.policies.checks.check_actions`), as :class:`~kpflow.policies.kcfm_policy.KCFMPolicy` does.
@@ -42,6 +50,7 @@ pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -56,9 +65,38 @@ from .checks import INPUT_MARGIN, check_actions
 from .chunk_transport import fitted_keypoints, layout_or_default, transport_chunk
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
+from .phases import Phase, Phases
 from .source_choice import SourceChoice
 
 PULL_BACK = ("agent", "all")
+
+
+@dataclass(frozen=True)
+class PhaseTransport:
+    """What a decision in one phase uses: the ``phase`` (None: one phase for the whole task), the source ``choice``
+    over its training configurations (``members``: their rows in the full index), the keypoints the map is
+    ``fit_on`` and those ``pulled`` back (the robot and what it carries)."""
+
+    phase: Phase | None
+    choice: SourceChoice
+    members: np.ndarray
+    fit_on: slice | np.ndarray
+    pulled: np.ndarray
+
+
+def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict) -> list[PhaseTransport]:
+    """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase (read by the
+    same rule as an observation's) searched relative to its ``frame`` with its ``weights``."""
+    which = phases.index(index.keypoints)
+    out = []
+    for i, phase in enumerate(phases.phases):
+        members = np.flatnonzero(which == i)
+        if not len(members):
+            raise ValueError(f"no training configuration of the source index is in phase {phase.name!r}: it cannot be transported segment by segment")
+        sub = SourceIndex(index.keypoints[members], index.chunks[members], layout.weights(phase.weights), layout.indices(*phase.frame))
+        pulled = np.asarray(sorted({*layout.indices("robot"), *(layout.indices(*phase.carried) if phase.carried else ())}))
+        out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, np.asarray(layout.indices(*phase.fit_on)), pulled))
+    return out
 
 
 class TransportedKCFMPolicy:
@@ -79,10 +117,12 @@ class TransportedKCFMPolicy:
             (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`); None: no range check.
         layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation);
             None: the last keypoint is the robot and actions are position targets (Push-T).
+        segments: follow the layout's phases (module docstring; ``fit_on`` and the index's weights and frame are then
+            each phase's own); the layout must declare them.
         choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
 
-    After :meth:`act`, ``last_source`` (index of ``S``), ``last_map`` (``phi``) and ``last_pullback``
-    (the K-CFM's input) describe the decision.
+    After :meth:`act`, ``last_source`` (index of ``S`` in ``index``), ``last_map`` (``phi``), ``last_phase`` (the
+    phase's name, None without phases) and ``last_pullback`` (the K-CFM's input) describe the decision.
     """
 
     def __init__(
@@ -97,6 +137,7 @@ class TransportedKCFMPolicy:
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,
         solver: str | None = None,
+        segments: bool = False,
         **choice,
     ) -> None:
         self.policy = KCFMPolicy(model, steps, execute, input_margin, solver)  # validates steps, solver, execute and input_margin
@@ -104,12 +145,22 @@ class TransportedKCFMPolicy:
         k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
         if index.keypoints.shape[1:] != (k, d):
             raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, {d})")
-        self.robot, self.rotation = layout_or_default(layout, k)
+        robot, self.rotation = layout_or_default(layout, k)
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
-        self.source, self.fit_on = SourceChoice(index, **choice), fitted_keypoints(fit_on, k)
+        self.phases = None
+        if segments:
+            if layout is None or layout.phases is None:
+                raise ValueError("segments=true follows the phases a task declares (PolicyLayout.phases); this task declares none")
+            self.phases = layout.phases
+            self.transports = phase_transports(index, layout, layout.phases, choice)
+        else:
+            whole = PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fitted_keypoints(fit_on, k), robot)
+            self.transports = [whole]
+        self.last_transport = self.transports[0]
         self.last_source: int | None = None
+        self.last_phase: str | None = None
         self.last_map: TransportMap | None = None
         self.last_pullback: np.ndarray | None = None
 
@@ -126,11 +177,12 @@ class TransportedKCFMPolicy:
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,
         solver: str | None = None,
+        segments: bool = False,
         **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin, solver)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, **choice)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
 
     @property
     def model(self) -> KCFM:
@@ -144,11 +196,18 @@ class TransportedKCFMPolicy:
     def execute(self) -> int:
         return self.policy.execute
 
+    @property
+    def source(self) -> SourceChoice:
+        """The source choice of the last decision's phase (the first phase's before any; the only one without phases)."""
+        return self.last_transport.choice
+
     def reset(self, seed: int | None = None) -> None:
         """Reseed the K-CFM's sampling noise and the source draw with ``seed`` (0 when None) and forget the last decision."""
         self.policy.reset(seed)
-        self.source.reset(seed)
-        self.last_source, self.last_map, self.last_pullback = None, None, None
+        for transport in self.transports:
+            transport.choice.reset(seed)
+        self.last_source, self.last_phase, self.last_map, self.last_pullback = None, None, None, None
+        self.last_transport = self.transports[0]
 
     def act(self, obs: dict) -> np.ndarray:
         """The first ``execute`` actions ``[execute, A]`` (float64) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``
@@ -167,20 +226,22 @@ class TransportedKCFMPolicy:
             self.model.check_in_range(obs["keypoints_history"], self.policy.input_margin)
             frames = list(np.asarray(obs["keypoints_history"], dtype=np.float64))
         target = frames[-1]
-        i = self.source.choose(target)
+        transport = self.transports[0] if self.phases is None else self.transports[int(self.phases.index(target[None])[0])]
+        i = int(transport.members[transport.choice.choose(target)])
         target_t = torch.from_numpy(target)
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
-        phi = self.make_map().fit(source_t[self.fit_on], target_t[self.fit_on])
+        phi = self.make_map().fit(source_t[transport.fit_on], target_t[transport.fit_on])
         with torch.no_grad():  # one inverse for every frame: the last one is the current observation
             back = phi.inverse(torch.from_numpy(np.stack(frames))).to(torch.float64)  # [n_obs, K, D]
             if self.pull_back == "all":
                 pullback = back[-1]
             else:
                 pullback = source_t.clone()
-                pullback[self.robot] = back[-1][self.robot]
+                pullback[transport.pulled] = back[-1][transport.pulled]
             if self.n_obs > 1:
                 pullback = pullback + (back - back[-1])
         chunk = self.policy.act({"keypoints" if self.n_obs == 1 else "keypoints_history": pullback.numpy()})
         out = transport_chunk(phi, chunk, target.shape[1], self.rotation)
         self.last_source, self.last_map, self.last_pullback = i, phi, pullback.numpy()
+        self.last_transport, self.last_phase = transport, transport.phase.name if transport.phase else None
         return check_actions(out, "the transported K-CFM")

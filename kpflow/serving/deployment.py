@@ -59,12 +59,14 @@ def load_deployment(
     max_batch: int = 1,
     max_wait_ms: float = DEFAULT_MAX_WAIT_MS,
     solver: str | None = None,
+    segments: bool = False,
 ) -> Deployment:
     """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit; None: a policy trained on
     data of no kpflow task, served with the keypoints and actions its checkpoint declares), ready to serve,
     transported online through a ``transport`` map (``"ilwr"``, ``"gp"``, ``"rigid"``; the source index is read from
     beside the checkpoint) or as it is (None). Built by the one policy builder (:mod:`kpflow.policies.factory`):
-    a transported one fits its map on ``fit_on`` (group or role names of the task's layout, or ``"all"``) and
+    a transported one fits its map on ``fit_on`` (group or role names of the task's layout, or ``"all"``; with
+    ``segments``, phase by phase as the task declares its phases) and
     chooses its source with the :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the
     nearest, no stuck detection, when None). ``reach`` and ``turn_deg`` (planar tasks) show the policy its goal
     within that distance and turn of its object (:class:`~kpflow.policies.subgoal.SubgoalPolicy`). ``input_margin``:
@@ -105,7 +107,8 @@ def load_deployment(
         make_map, fit, options = TRANSPORT_MAPS[transport], fit_on_indices(layout, fit_on), dict(choice or {})
 
         def make_policy() -> Policy:
-            return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, **options)
+            return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver,
+                                         segments, **options)  # fmt: skip
         name = f"transported_kcfm/{transport}"
     network = None
     if max_batch > 1:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpflow.policies.base import PolicyLayout
+from kpflow.policies.phases import Grip, Phase, Phases
 from kpflow.tasks.arm.motion import yaw_of
 
 from .specs import TaskSpec
@@ -160,20 +161,41 @@ def gripper_keypoints(env) -> np.ndarray:
 
 #: keypoints after the objects' in a policy's observation: the grip site and the two finger pads
 GRIPPER_KEYPOINTS = 3
+#: where the jaws close on an object of each kind: the mean of these of its keypoints (a cube's and the can's centre,
+#: the middle of the nut's handle)
+GRASP_POINT = {"cube": tuple(range(8)), "can": (0, 1), "nut": (5, 6)}
+#: the Panda's finger pads are 0.085 m apart open and 0.037-0.056 m closed on the nut's handle, a cube or the can; the
+#: grasp point is within 1 cm of their midpoint when held (the released checkpoints' training data)
+PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH = 0.07, 0.01, 0.025
+
+
+def task_phases(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> Phases:
+    """The task's phases (:mod:`kpflow.policies.phases`) over the groups of :func:`policy_layout`: ``pick`` while
+    the jaws do not hold the object (the map on the object to pick, the source searched relative to it, its goal
+    not compared), then, for a task with a target, ``place`` while they do (the map on the target, the source
+    searched relative to it, the held object pulled back with the gripper)."""
+    pads = groups["gripper"][1:]
+    grip = Grip((pads[0], pads[1]), tuple(groups[spec.grasp][i] for i in GRASP_POINT[spec.kinds[spec.grasp]]),
+                PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH)  # fmt: skip
+    if spec.target is None:
+        return Phases(grip, (Phase("pick", (spec.grasp,), (spec.grasp,), {"gripper": 4.0}),))
+    pick = Phase("pick", (spec.grasp,), (spec.grasp,), {spec.target: 0.0, "gripper": 4.0}, holding=False)
+    place = Phase("place", (spec.target,), (spec.target,), {"gripper": 4.0}, carried=(spec.grasp,), holding=True)
+    return Phases(grip, (pick, place))
 
 
 def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
     """The layout of :func:`policy_keypoints` for ``spec``: the object picked (role ``objects``, named as in the
     task), its goal (``goals``: the target's keypoints, where the task has one) and ``gripper`` (``robot``: the grip
     site and the finger pads), all 3-D (counted on a unit pose); actions of ``action_dim`` values: position, 6-D
-    rotation, gripper."""
+    rotation, gripper; its phases are :func:`task_phases`."""
     groups, start = {}, 0
     for name in policy_objects(spec):
         n = len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0))
         groups[name], start = tuple(range(start, start + n)), start + n
     groups["gripper"] = tuple(range(start, start + GRIPPER_KEYPOINTS))
     roles = {"objects": (spec.grasp,), "goals": (spec.target,) if spec.target else (), "robot": ("gripper",)}
-    return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True)
+    return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True, phases=task_phases(spec, groups))
 
 
 def policy_objects(spec: TaskSpec) -> list[str]:
