@@ -1,7 +1,8 @@
 """Decision latency of the robosuite tasks' policies on one CPU thread: the bare K-CFM (the baseline, same run), the
 transported K-CFM (Eq. 5: source search + map fit on the objects' keypoints + pull-back of the robot and of the
-observation history + K-CFM + push-forward of positions and orientations) with ILWR and with a rigid map, and
-policy transportation.
+observation history + K-CFM + push-forward of positions and orientations) with ILWR and with a rigid map, segment by
+segment (``policy.segments``: the phase read from the keypoints, the source searched among that phase's, the map on
+the phase's object), and policy transportation.
 
 Run::
 
@@ -90,15 +91,16 @@ def main() -> str:
         ("K-CFM, 10 Euler steps (baseline)", make_kcfm(model, layout)),
         ("transported K-CFM, ILWR", make_transported_kcfm(model, index, layout, ILWRMap, fit_on=fit)),
         ("transported K-CFM, rigid map", make_transported_kcfm(model, index, layout, lambda: AffineMap(kind="rigid"), fit_on=fit)),
+        ("transported K-CFM, ILWR, segment by segment", make_transported_kcfm(model, index, layout, ILWRMap, segments=True)),
         ("policy transportation, ILWR (8 actions)", TransportPolicy(chunked, ILWRMap, 8, fit_on=fit, layout=layout)),
     ]
     base = None
     lines = [f"Decision latency on {args.task} ({len(index)} sources, {args.reps} decisions, one thread)", "",
-             "| policy | median ms per decision | ratio to the K-CFM |", "|---|---|---|"]  # fmt: skip
+             "| policy | median ms per decision | ratio to the K-CFM | ms over the K-CFM |", "|---|---|---|---|"]  # fmt: skip
     for name, policy in rows:
         ms = median_ms(policy.act, qs)
         base = base or ms
-        lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} |")
+        lines.append(f"| {name} | {ms:.2f} | {ms / base:.2f} | {ms - base:+.2f} |")
     lines += ["", "Stages of the transported K-CFM (ILWR), each timed alone on the same queries", "",
               "| stage | median ms |", "|---|---|", *stage_rows(model, index, layout, qs)]  # fmt: skip
     lines += ["", f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread."]

@@ -18,12 +18,12 @@ from kpflow.maps import ILWRMap
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.phases import Grip, Phase, Phases
-from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
+from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
 from kpflow.rotations import matrix_to_rot6d
 
 H, K = 8, 19
 CUBE_A, CUBE_B, GRIPPER = tuple(range(8)), tuple(range(8, 16)), (16, 17, 18)
-GRIP = Grip(pads=(17, 18), grasp_point=CUBE_A, closed_below=0.07, empty_below=0.01, reach=0.025)
+GRIP = Grip(pads=(17, 18), grasp_from=CUBE_A, grasp_to=CUBE_A, closed_below=0.07, empty_below=0.01, reach=0.025)
 PHASES = Phases(GRIP, (
     Phase("pick", ("cubeA",), ("cubeA",), {"cubeB": 0.0, "gripper": 4.0}, holding=False),
     Phase("place", ("cubeB",), ("cubeB",), {"gripper": 4.0}, carried=("cubeA",), holding=True),
@@ -88,6 +88,16 @@ def _policy(model, index, segments: bool = True) -> TransportedKCFMPolicy:
                                  fit_on=None if segments else LAYOUT.indices("objects", "goals"))  # fmt: skip
 
 
+def test_a_grip_on_a_segment_holds_anywhere_along_it():
+    """A handle from (0, 0, 0) to (0.05, 0, 0): jaws closed at either end or between hold it; beyond its end, or 3 cm
+    to its side, they do not (closed form: the distance to the segment)."""
+    grip = Grip((1, 2), (3,), (4,), closed_below=0.07, empty_below=0.01, reach=0.02)
+    handle = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    cases = {(0.0, 0.0): True, (0.05, 0.0): True, (0.025, 0.0): True, (0.065, 0.0): True, (0.075, 0.0): False, (0.025, 0.03): False}
+    keypoints = np.stack([np.concatenate([_gripper(np.array([x, y, 0.0]), 0.0, 0.037), handle]) for x, y in cases])
+    np.testing.assert_array_equal(grip.holding(keypoints), list(cases.values()))
+
+
 def test_the_grip_reads_holding_from_the_pads_and_the_grasp_point():
     cube = _cube([0.0, 0.0, 0.85], 0.3)
     at = np.array([0.0, 0.0, 0.85])
@@ -114,9 +124,9 @@ def test_phases_that_do_not_cover_both_states_or_name_unknown_groups_are_refused
     with pytest.raises(ValueError, match="unknown keypoint group 'cube'"):
         PolicyLayout(K, 3, 10, GROUPS, ROLES, rotation=True, phases=Phases(GRIP, (Phase("all", ("cube",), ("cubeA",)),)))
     with pytest.raises(ValueError, match="grip's keypoints"):
-        PolicyLayout(4, 3, 10, phases=Phases(Grip((2, 3), (7,), 0.07, 0.01, 0.02), (Phase("all", ("all",), ("all",)),)))
+        PolicyLayout(4, 3, 10, phases=Phases(Grip((2, 3), (7,), (0,), 0.07, 0.01, 0.02), (Phase("all", ("all",), ("all",)),)))
     with pytest.raises(ValueError, match="empty_below < closed_below"):
-        Grip((17, 18), CUBE_A, closed_below=0.01, empty_below=0.02, reach=0.02)
+        Grip((17, 18), CUBE_A, CUBE_A, closed_below=0.01, empty_below=0.02, reach=0.02)
 
 
 def test_segments_need_declared_phases_and_sources_in_every_phase(model, index):
@@ -127,6 +137,25 @@ def test_segments_need_declared_phases_and_sources_in_every_phase(model, index):
     only_picks = SourceIndex(index.keypoints[picks], index.chunks[picks])
     with pytest.raises(ValueError, match="in phase 'place'"):
         TransportedKCFMPolicy(model, only_picks, ILWRMap, steps=2, execute=H, layout=LAYOUT, segments=True)
+
+
+def test_a_configuration_after_its_episodes_first_hold_is_in_the_held_phase(index, tmp_path):
+    """Two episodes: open jaws, a hold, then the jaws open again (the release and retreat that end a place). Read
+    frame by frame the release looks like a pick; with the index's episodes it belongs to the place it ends, so a
+    policy about to pick never follows a demonstration that has already let go. The episodes survive save and load,
+    and an index saved without them loads without them."""
+    free, held = index.keypoints[0], index.keypoints[1]
+    keypoints = np.stack([free, free, held, held, free, free, held, free])
+    chunks = index.chunks[:8]
+    plain = SourceIndex(keypoints, chunks)
+    np.testing.assert_array_equal(source_phases(plain, PHASES), [0, 0, 1, 1, 0, 0, 1, 0])
+    episodes = SourceIndex(keypoints, chunks, episodes=np.array([0, 0, 0, 0, 0, 1, 1, 1]))
+    np.testing.assert_array_equal(source_phases(episodes, PHASES), [0, 0, 1, 1, 1, 0, 1, 1])
+    again = SourceIndex.load(episodes.save(tmp_path / "with.npz"))
+    np.testing.assert_array_equal(again.episodes, episodes.episodes)
+    assert SourceIndex.load(plain.save(tmp_path / "without.npz")).episodes is None
+    with pytest.raises(ValueError, match="one integer per source"):
+        SourceIndex(keypoints, chunks, episodes=np.zeros(3, np.int64))
 
 
 def _residual(phi, source: np.ndarray, target: np.ndarray, rows) -> float:

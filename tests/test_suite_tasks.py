@@ -116,7 +116,31 @@ def test_far_scenes_leave_every_generated_range_and_resized_ones_scale_the_objec
         half = kenv.home_half_height(name) * scale
         assert abs(kenv.object_pose(name)[0][2] - (kenv.env.table_offset[2] + half)) < 2e-3
     assert Scene.from_dict(square.sample_scene(senv, "far", 0).as_dict()).fixture_yaws == square.sample_scene(senv, "far", 0).fixture_yaws
-    assert stack.spec.variants == ("d0", "wide", "far", "resized") and square.spec.variants == ("d0", "wide", "far")
+    assert stack.spec.variants == ("d0", "wide", "far", "resized", "d1") and square.spec.variants == ("d0", "wide", "far", "d1", "d2")
+
+
+def test_mimicgens_d1_and_d2_draw_within_its_ranges_the_nut_clear_of_the_peg(worlds):
+    """MimicGen's Square_D1 / D2 and Stack_D1 (kpflow/tasks/suite/specs.py cites its task definitions): the nut within
+    +-0.115 x +-0.255 / +-0.25 m, the peg within its world ranges (as built in D1, turned 0-90 degrees in D2), their
+    centres more than 0.1326 m apart; Stack's cubes within +-0.2 m."""
+    square, senv, *_ = worlds["square"]
+    turns = []
+    for variant, (nut_x, nut_y), (peg_x, peg_y) in (("d1", (0.115, 0.255), ((-0.1, 0.3), (-0.2, 0.2))),
+                                                     ("d2", (0.25, 0.25), ((-0.25, 0.25), (-0.25, 0.25)))):  # fmt: skip
+        for i in range(8):
+            scene = square.sample_scene(senv, variant, i)
+            senv.reset_to(scene)
+            nut, peg = senv.object_pose("nut")[0], senv.object_pose("peg")[0]
+            assert abs(nut[0]) <= nut_x + 1e-9 and abs(nut[1]) <= nut_y + 1e-9
+            assert peg_x[0] - 1e-9 <= peg[0] <= peg_x[1] + 1e-9 and peg_y[0] - 1e-9 <= peg[1] <= peg_y[1] + 1e-9
+            assert np.linalg.norm((peg - nut)[:2]) > 0.0226 + 0.11
+            turns.append((variant, scene.fixture_yaws.get("peg", 0.0)))
+    assert all(t == 0.0 for v, t in turns if v == "d1") and all(0.0 <= t <= np.pi / 2 for v, t in turns if v == "d2")
+    assert len({t for v, t in turns if v == "d2"}) == 8
+    stack, kenv, *_ = worlds["stack"]
+    cubes = np.array([stack.sample_scene(kenv, "d1", i).objects[c][0][:2] for i in range(20) for c in ("cubeA", "cubeB")])
+    assert np.abs(cubes).max() <= 0.2 + 1e-9 and np.ptp(cubes[:, 0]) > 0.2
+    assert stack.sample_scene(kenv, "d1", 0).as_dict() != stack.sample_scene(kenv, "wide", 0).as_dict()  # other scenes, same ranges
 
 
 def test_bad_scenes_tasks_and_variants_are_refused_by_name(worlds):

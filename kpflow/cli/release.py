@@ -62,7 +62,7 @@ def release_source_index(dst: str | Path, layout, store: str | Path, episodes: i
     with EpisodeStore(store) as s:
         full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
-    index = SourceIndex(full.keypoints[keep], full.chunks[keep], layout.weights({"robot": 4.0}), frame_indices(layout, "objects"))
+    index = SourceIndex(full.keypoints[keep], full.chunks[keep], layout.weights({"robot": 4.0}), frame_indices(layout, "objects"), full.episodes[keep])
     return index.save(source_index_path(dst))
 
 

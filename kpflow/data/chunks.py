@@ -99,6 +99,10 @@ class ChunkDataset(Dataset):
         rows = row[..., None] + np.arange(self.horizon)
         return self.obs[row], self.actions[np.minimum(rows, end[..., None] - 1)], rows < end[..., None]
 
+    def episodes(self, items: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The store's episode index of each of ``items`` ``[n]``."""
+        return self._episode[items]
+
     def history(self, items: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Observation histories ``[n, n_obs, ...]`` of ``items``: rows ``t - n_obs + 1 .. t``, clamped to the episode start."""
         row, start = self._row[items], self._start[items]

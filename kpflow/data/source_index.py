@@ -29,7 +29,8 @@ from .hindsight import HindsightGoals
 
 
 class SourceIndex:
-    """Source keypoint sets ``[N, K, D]`` with the action chunk ``[N, H, A]`` demonstrated from each.
+    """Source keypoint sets ``[N, K, D]`` with the action chunk ``[N, H, A]`` demonstrated from each, and optionally
+    the demonstration each belongs to (``episodes [N]``: the rows of one episode are consecutive, in time order).
 
     :meth:`query` returns the index of the source nearest to a keypoint set under the weighted distance.
     """
@@ -40,6 +41,7 @@ class SourceIndex:
         chunks: np.ndarray,
         weights: np.ndarray | None = None,
         reference: tuple[int, ...] | None = None,
+        episodes: np.ndarray | None = None,
     ):
         keypoints = np.asarray(keypoints, dtype=np.float32)
         chunks = np.asarray(chunks, dtype=np.float32)
@@ -56,6 +58,12 @@ class SourceIndex:
         if not (np.isfinite(weights).all() and (weights >= 0).all() and weights.any()):
             raise ValueError(f"keypoint weights must be finite, >= 0 and not all 0 (every distance would be NaN or 0); got {weights.tolist()}")
         self.keypoints, self.chunks, self.weights = keypoints, chunks, weights
+        if episodes is not None:
+            episodes = np.asarray(episodes)
+            if episodes.shape != (len(keypoints),) or not np.issubdtype(episodes.dtype, np.integer):
+                raise ValueError(f"episodes must hold one integer per source ({len(keypoints)}), got {episodes.dtype} {episodes.shape}")
+            episodes = episodes.astype(np.int64)
+        self.episodes = episodes
         self.reference = None if reference is None else list(reference)
         if self.reference is not None and not (len(self.reference) >= 2 and all(0 <= r < k for r in self.reference)):
             raise ValueError(f"reference must list at least 2 keypoint indices in 0..{k - 1}, got {reference}")
@@ -83,18 +91,18 @@ class SourceIndex:
         takeover chunks of the 35-demonstration Table 1 store took policy transportation with the object outside
         the training region from 98.5 to 51.0%, results/pusht_table1.md.)"""
         episodes = range(store.n_episodes) if episodes is None else episodes
-        keypoints, chunks, _ = ChunkDataset(
-            store, episodes, horizon, obs_key, action_key, hindsight=hindsight, relabel_fragments=True
-        ).arrays()
-        return cls(keypoints, chunks, weights, reference)
+        dataset = ChunkDataset(store, episodes, horizon, obs_key, action_key, hindsight=hindsight, relabel_fragments=True)
+        keypoints, chunks, _ = dataset.arrays()
+        return cls(keypoints, chunks, weights, reference, dataset.episodes())
 
     def save(self, path: str | Path) -> Path:
-        """Write the index to ``path`` (compressed ``.npz``: keypoints, chunks, weights and the reference, no pickled
-        objects; a store's keypoints repeat from step to step, so it is about a third of their bytes), atomically;
-        :meth:`load` reads it back."""
+        """Write the index to ``path`` (compressed ``.npz``: keypoints, chunks, weights, the reference and the episodes
+        where known, no pickled objects; a store's keypoints repeat from step to step, so it is about a third of their
+        bytes), atomically; :meth:`load` reads it back."""
         reference = np.asarray([] if self.reference is None else self.reference, np.int64)
+        episodes = {} if self.episodes is None else {"episodes": self.episodes}
         with atomic_path(path) as tmp:
-            np.savez_compressed(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference)
+            np.savez_compressed(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference, **episodes)
         return Path(path)
 
     @classmethod
@@ -107,9 +115,9 @@ class SourceIndex:
         if not path.is_file():
             raise FileNotFoundError(f"no source index at {path}")
         try:
-            arrays = read_npz(path, ("keypoints", "chunks", "weights", "reference"))
+            arrays = read_npz(path, ("keypoints", "chunks", "weights", "reference"), optional=("episodes",))
             reference = tuple(int(r) for r in arrays["reference"]) or None
-            return cls(arrays["keypoints"], arrays["chunks"], arrays["weights"], reference)
+            return cls(arrays["keypoints"], arrays["chunks"], arrays["weights"], reference, arrays.get("episodes"))
         except ValueError as e:
             raise ValueError(f"{path} is not a usable source index: {e}") from None
 

@@ -74,8 +74,8 @@ class PolicyLayout:
                              + (" and a 6-D rotation" if self.rotation else ""))  # fmt: skip
         if self.phases is not None:
             grip = self.phases.grip
-            if not all(0 <= i < self.n_keypoints for i in (*grip.pads, *grip.grasp_point)):
-                raise ValueError(f"the grip's keypoints {grip.pads}, {grip.grasp_point} must be in 0..{self.n_keypoints - 1}")
+            if not all(0 <= i < self.n_keypoints for i in grip.keypoints):
+                raise ValueError(f"the grip's keypoints {grip.keypoints} must be in 0..{self.n_keypoints - 1}")
             for phase in self.phases.phases:
                 for name in phase.names():
                     self.indices(name)  # raises naming an unknown group

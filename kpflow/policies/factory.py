@@ -184,7 +184,7 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
     make_map = _map_factory(make_map, layout, fit, f"the transported K-CFM (fit_on={fit_on})")
     if demos is None:
         saved = SourceIndex.load(source_index_path(checkpoint))
-        index = SourceIndex(saved.keypoints, saved.chunks, layout.weights(weights), frame_indices(layout, frame))
+        index = SourceIndex(saved.keypoints, saved.chunks, layout.weights(weights), frame_indices(layout, frame), saved.episodes)
     else:
         index = source_index(demos, layout, int(model.hparams.horizon), weights, frame)
     return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, segments,

@@ -8,9 +8,10 @@ object to pick, after it the target, with the held object carried by the gripper
 observation, and of each demonstrated configuration it may choose as a source, with the same rule:
 
 * :class:`Grip` tells from the keypoints alone whether the jaws hold the object: the finger pads closer together
-  than ``closed_below`` (and farther than ``empty_below``: closed on nothing) and the object's grasp point (the mean
-  of its ``grasp_point`` keypoints) within ``reach`` of the pads' midpoint,
-  ``holding(K) = empty_below < |p_1 - p_2| < closed_below  and  |mean_g(K) - (p_1 + p_2) / 2| < reach``;
+  than ``closed_below`` (and farther than ``empty_below``: closed on nothing) and the object's grasp segment (from
+  the mean ``a`` of its ``grasp_from`` keypoints to the mean ``b`` of its ``grasp_to`` ones: a square nut's handle,
+  a can's axis; a point where both are the same, a cube's centre) within ``reach`` of the pads' midpoint ``m``,
+  ``holding(K) = empty_below < |p_1 - p_2| < closed_below  and  min_{s in [0, 1]} |a + s (b - a) - m| < reach``;
   nothing of the simulator's task state is read.
 * :class:`Phase` names, by keypoint group or role, what the map is fitted on (``fit_on``), relative to which
   keypoints the source is searched (``frame``) with which weights (``weights``), and which keypoints are pulled back
@@ -31,18 +32,19 @@ import numpy as np
 @dataclass(frozen=True)
 class Grip:
     """Whether the jaws hold the object, from keypoints (module docstring): ``pads`` (the two finger pads' keypoint
-    indices), ``grasp_point`` (the indices whose mean is where the jaws close on the object), ``closed_below``,
-    ``empty_below`` and ``reach`` (m, or the keypoints' unit)."""
+    indices), ``grasp_from`` and ``grasp_to`` (the indices whose means end the segment the jaws close on),
+    ``closed_below``, ``empty_below`` and ``reach`` (m, or the keypoints' unit)."""
 
     pads: tuple[int, int]
-    grasp_point: tuple[int, ...]
+    grasp_from: tuple[int, ...]
+    grasp_to: tuple[int, ...]
     closed_below: float
     empty_below: float
     reach: float
 
     def __post_init__(self) -> None:
-        if len(self.pads) != 2 or len(set(self.pads)) != 2 or not self.grasp_point:
-            raise ValueError(f"a grip needs two distinct pad keypoints and at least one grasp-point keypoint; got {self.pads}, {self.grasp_point}")
+        if len(self.pads) != 2 or len(set(self.pads)) != 2 or not self.grasp_from or not self.grasp_to:
+            raise ValueError(f"a grip needs two distinct pad keypoints and grasp keypoints at both ends; got {self.pads}, {self.grasp_from}, {self.grasp_to}")
         if not (0 <= self.empty_below < self.closed_below and self.reach > 0):
             raise ValueError(f"need 0 <= empty_below < closed_below and reach > 0; got {self.empty_below}, {self.closed_below}, {self.reach}")
 
@@ -51,9 +53,17 @@ class Grip:
         keypoints = np.asarray(keypoints, np.float64)
         a, b = keypoints[..., self.pads[0], :], keypoints[..., self.pads[1], :]
         gap = np.linalg.norm(a - b, axis=-1)
-        grasp = keypoints[..., list(self.grasp_point), :].mean(-2)
-        near = np.linalg.norm(grasp - (a + b) / 2, axis=-1) < self.reach
+        start = keypoints[..., list(self.grasp_from), :].mean(-2)
+        along = keypoints[..., list(self.grasp_to), :].mean(-2) - start
+        mid = (a + b) / 2
+        s = np.clip(((mid - start) * along).sum(-1) / np.maximum((along * along).sum(-1), 1e-12), 0.0, 1.0)
+        near = np.linalg.norm(start + s[..., None] * along - mid, axis=-1) < self.reach
         return (gap > self.empty_below) & (gap < self.closed_below) & near
+
+    @property
+    def keypoints(self) -> tuple[int, ...]:
+        """Every keypoint index the grip reads."""
+        return (*self.pads, *self.grasp_from, *self.grasp_to)
 
 
 @dataclass(frozen=True)

@@ -84,10 +84,29 @@ class PhaseTransport:
     pulled: np.ndarray
 
 
-def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict) -> list[PhaseTransport]:
-    """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase (read by the
-    same rule as an observation's) searched relative to its ``frame`` with its ``weights``."""
+def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
+    """The phase of each of the index's configurations ``[N]`` (an index into ``phases.phases``): read by the same
+    rule as an observation's, and where the index knows its episodes, every configuration after an episode's first
+    hold in the held phase, the segment it belongs to (the release and the retreat after it end the place: they are
+    no configurations to pick from)."""
     which = phases.index(index.keypoints)
+    if index.episodes is None:
+        return which
+    held = next((i for i, p in enumerate(phases.phases) if p.holding), None)
+    if held is None:
+        return which
+    holding = which == held
+    for episode in np.unique(index.episodes):
+        rows = np.flatnonzero(index.episodes == episode)
+        if holding[rows].any():
+            which[rows[int(np.argmax(holding[rows])) :]] = held
+    return which
+
+
+def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict) -> list[PhaseTransport]:
+    """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase
+    (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``."""
+    which = source_phases(index, phases)
     out = []
     for i, phase in enumerate(phases.phases):
         members = np.flatnonzero(which == i)

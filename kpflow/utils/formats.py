@@ -33,8 +33,9 @@ MAX_YAML_BYTES = 1 << 20
 _NPY_KINDS = "biuf"
 
 
-def read_npz(path: str | Path, names: Iterable[str]) -> dict[str, np.ndarray]:
-    """The arrays ``names`` of the npz file at ``path``, checked first (module docstring).
+def read_npz(path: str | Path, names: Iterable[str], optional: Iterable[str] = ()) -> dict[str, np.ndarray]:
+    """The arrays ``names`` of the npz file at ``path``, and those of ``optional`` it holds, checked first (module
+    docstring).
 
     Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and member otherwise (not a
     zip, a missing member, a refused dtype, a header that does not match the member's size)."""
@@ -44,6 +45,8 @@ def read_npz(path: str | Path, names: Iterable[str]) -> dict[str, np.ndarray]:
     names = list(names)
     try:
         with zipfile.ZipFile(path) as archive:
+            held = set(archive.namelist())
+            names += [name for name in optional if f"{name}.npy" in held]
             for name in names:
                 _check_member(archive, name, path)
         with np.load(path, allow_pickle=False) as f:

@@ -161,11 +161,11 @@ def gripper_keypoints(env) -> np.ndarray:
 
 #: keypoints after the objects' in a policy's observation: the grip site and the two finger pads
 GRIPPER_KEYPOINTS = 3
-#: where the jaws close on an object of each kind: the mean of these of its keypoints (a cube's and the can's centre,
-#: the middle of the nut's handle)
-GRASP_POINT = {"cube": tuple(range(8)), "can": (0, 1), "nut": (5, 6)}
+#: where the jaws close on an object of each kind: the segment between the means of these two sets of its keypoints
+#: (a cube's centre, the can's axis from its top to its bottom, the square nut's handle from end to end)
+GRASP_SEGMENT = {"cube": (tuple(range(8)), tuple(range(8))), "can": ((0,), (1,)), "nut": ((5,), (6,))}
 #: the Panda's finger pads are 0.085 m apart open and 0.037-0.056 m closed on the nut's handle, a cube or the can; the
-#: grasp point is within 1 cm of their midpoint when held (the released checkpoints' training data)
+#: grasp segment is within 1.3 cm of their midpoint when held (the released checkpoints' training data)
 PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH = 0.07, 0.01, 0.025
 
 
@@ -174,9 +174,9 @@ def task_phases(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> Phases:
     the jaws do not hold the object (the map on the object to pick, the source searched relative to it, its goal
     not compared), then, for a task with a target, ``place`` while they do (the map on the target, the source
     searched relative to it, the held object pulled back with the gripper)."""
-    pads = groups["gripper"][1:]
-    grip = Grip((pads[0], pads[1]), tuple(groups[spec.grasp][i] for i in GRASP_POINT[spec.kinds[spec.grasp]]),
-                PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH)  # fmt: skip
+    pads, rows = groups["gripper"][1:], groups[spec.grasp]
+    start, end = (tuple(rows[i] for i in ends) for ends in GRASP_SEGMENT[spec.kinds[spec.grasp]])
+    grip = Grip((pads[0], pads[1]), start, end, PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH)
     if spec.target is None:
         return Phases(grip, (Phase("pick", (spec.grasp,), (spec.grasp,), {"gripper": 4.0}),))
     pick = Phase("pick", (spec.grasp,), (spec.grasp,), {spec.target: 0.0, "gripper": 4.0}, holding=False)

@@ -1,7 +1,8 @@
 """Scenes of the robosuite benchmark tasks: where every object stands and how far the movable fixtures moved, drawn
 by robosuite's own placement initializers.
 
-``d0`` draws with the initializer the environment ships with; ``wide`` with robosuite ``UniformRandomSampler``s
+``d0`` draws with the initializer the environment ships with; ``d1``, ``d2`` (MimicGen's,
+:class:`~.specs.MimicGenVariant`) place the fixtures first, then the objects until they are clear of them; ``wide`` with robosuite ``UniformRandomSampler``s
 over the wider ranges of :mod:`.specs` (and uniform fixture offsets, redrawn until every object is
 ``fixture_clearance`` from them); ``far`` likewise over the far ranges, mirrored across the table's long axis
 (``y -> -y``) with probability 1/2 where the task allows, its fixtures at drawn world positions and yaws; ``resized`` as ``d0``, with each resized object scaled by a factor drawn
@@ -19,7 +20,7 @@ from robosuite.utils.placement_samplers import UniformRandomSampler
 
 from .specs import TaskSpec
 
-_VARIANT_IDS = {"d0": 0, "wide": 1, "far": 2, "resized": 3}
+_VARIANT_IDS = {"d0": 0, "wide": 1, "far": 2, "resized": 3, "d1": 4, "d2": 5}
 _MAX_DRAWS = 1000
 
 
@@ -74,9 +75,9 @@ def _mujoco_objects(env) -> dict[str, object]:
     return {obj.joints[0]: obj for obj in env.model.mujoco_objects if obj.joints}
 
 
-def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = False) -> None:
+def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = False, z_offset: float = 0.01) -> None:
     """Redraw the objects of ``ranges`` (name -> :class:`~.specs.WideRange`) in ``placed``, each clear of those drawn
-    before it; ``mirror``: with ``y -> -y``."""
+    before it, ``z_offset`` above the table; ``mirror``: with ``y -> -y``."""
     objects = _mujoco_objects(env)
     for name in ranges:
         del placed[spec.object_joints[name]]
@@ -87,7 +88,7 @@ def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = 
         sampler = UniformRandomSampler(
             f"{name}_placed", mujoco_objects=[obj], x_range=wide.x, y_range=y, rotation=wide.rotation,
             ensure_object_boundary_in_range=False, ensure_valid_placement=True,
-            reference_pos=np.array(env.table_offset), z_offset=0.01, rng=rng,
+            reference_pos=np.array(env.table_offset), z_offset=z_offset, rng=rng,
         )  # fmt: skip
         drawn = sampler.sample(fixtures=fixtures)
         fixtures = {**(fixtures or {}), **drawn}
@@ -95,10 +96,11 @@ def _place(spec: TaskSpec, env, ranges: dict, placed: dict, rng, mirror: bool = 
         placed[obj.joints[0]] = (np.asarray(pos, float), np.asarray(quat, float))
 
 
-def _far_fixtures(spec: TaskSpec, fixture_home: dict, rng, mirror: bool) -> tuple[dict, dict]:
-    """The far variant's fixture offsets (from ``fixture_home``, world positions) and yaws, ``mirror``: ``y -> -y``."""
+def _world_fixtures(ranges: dict, fixture_home: dict, rng, mirror: bool = False) -> tuple[dict, dict]:
+    """Fixture offsets (from ``fixture_home``) and yaws for fixtures drawn at world positions and yaws in ``ranges``
+    (name -> :class:`~.specs.WideRange`), ``mirror``: ``y -> -y``."""
     offsets, yaws = {}, {}
-    for name, far in spec.far_fixtures.items():
+    for name, far in ranges.items():
         x, y = float(rng.uniform(*far.x)), float(rng.uniform(*far.y))
         y = -y if mirror else y
         offsets[name] = (x - float(fixture_home[name][0]), y - float(fixture_home[name][1]), 0.0)
@@ -124,20 +126,28 @@ def _draw(spec: TaskSpec, env, fixture_home: dict, variant: str, rng) -> tuple[d
         mirror = spec.far_mirror and bool(rng.random() < 0.5)
         if spec.far_objects:
             _place(spec, env, spec.far_objects, placed, rng, mirror=mirror)
-        offsets, yaws = _far_fixtures(spec, fixture_home, rng, mirror)
+        offsets, yaws = _world_fixtures(spec.far_fixtures, fixture_home, rng, mirror)
+    if variant in spec.mimicgen:
+        mimicgen = spec.mimicgen[variant]
+        offsets, yaws = _world_fixtures(mimicgen.fixtures, fixture_home, rng)
+        for _ in range(_MAX_DRAWS):
+            _place(spec, env, mimicgen.objects, placed, rng, z_offset=mimicgen.z_offset)
+            if _clear(spec, fixture_home, placed, offsets, mimicgen.clearance):
+                break
     scales = {}
     if variant == "resized":
         scales = {name: float(rng.uniform(*spec.resize)) for name in spec.resize_objects}
     return placed, offsets, yaws, scales
 
 
-def _clear(spec: TaskSpec, fixture_home: dict, placed: dict, offsets: dict) -> bool:
-    if not spec.fixture_clearance:
+def _clear(spec: TaskSpec, fixture_home: dict, placed: dict, offsets: dict, clearance: float) -> bool:
+    """Whether every object's centre is ``clearance`` (m, in the plane) from every moved fixture."""
+    if not clearance:
         return True
     for fixture, offset in offsets.items():
         xy = fixture_home[fixture][:2] + np.asarray(offset[:2])
         for name in spec.object_joints:
-            if np.linalg.norm(placed[spec.object_joints[name]][0][:2] - xy) < spec.fixture_clearance:
+            if np.linalg.norm(placed[spec.object_joints[name]][0][:2] - xy) < clearance:
                 return False
     return True
 
@@ -153,10 +163,11 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
     rng = np.random.default_rng([seed, _VARIANT_IDS[variant], index])
     for _ in range(_MAX_DRAWS):
         placed, offsets, yaws, scales = _draw(spec, env.env, env.fixture_home, variant, rng)
-        if _clear(spec, env.fixture_home, placed, offsets):
+        clearance = spec.mimicgen[variant].clearance if variant in spec.mimicgen else spec.fixture_clearance
+        if _clear(spec, env.fixture_home, placed, offsets, clearance):
             break
     else:
-        raise RuntimeError(f"{spec.name}/{variant}: no scene with the fixtures {spec.fixture_clearance} m clear in {_MAX_DRAWS} draws")
+        raise RuntimeError(f"{spec.name}/{variant}: no scene with the fixtures {clearance} m clear in {_MAX_DRAWS} draws")
     for name, scale in scales.items():  # stand a resized object on the table: its centre moves with its half height
         pos = placed[spec.object_joints[name]][0]
         pos[2] += (scale - 1.0) * env.home_half_height(name)

@@ -27,6 +27,20 @@ draws the shipped placement and scales each of ``resize_objects`` by a factor dr
 | stack | cube A at x in +-0.15, y in [0.2, 0.28], cube B at y in [-0.28, -0.2] (or mirrored): on opposite sides, 0.4-0.56 m apart (d0: at most 0.23) | both cubes 0.7-1.4 times their size, each its own factor |
 | can | the can in bin 1 as shipped; the target bin's centre at x in [-0.22, -0.08], y in [0.26, 0.3] (shipped: (0.1, 0.28); wide: x >= -0.05): nearer the robot than any generated scene | - (a can's size sets its grasp) |
 | square | the nut at x in [-0.2, -0.13], y in [0, 0.2] (wide: x >= -0.115), the peg at x in [0, 0.15], y in [-0.28, -0.2] (wide: y in +-0.2) and **turned** by 20-45 degrees (every generated peg stands as built), or all mirrored: nut and peg on swapped sides | - (the nut must fit the peg) |
+
+MimicGen's own scene distributions, ``d1`` and ``d2`` (:class:`MimicGenVariant`), with the ranges of its task
+definitions (NVlabs/mimicgen, ``mimicgen/envs/robosuite/stack.py`` and ``nut_assembly.py`` at commit
+1d009693e4e3ed068997735d9664063d86112537, each class's ``_get_initial_placement_bounds``, the peg moved in
+``_load_model``, the nut redrawn in ``_reset_internal`` until its centre is 0.0226 + 0.11 m from the peg's):
+
+| task | d1 | d2 |
+|---|---|---|
+| stack | ``Stack_D1``: both cubes x, y in +-0.2 m, any yaw (the ranges of ``wide``, other scenes) | - (MimicGen has none) |
+| square | ``Square_D1``: nut x in +-0.115, y in +-0.255, any yaw; the peg at x in [-0.1, 0.3], y in +-0.2 as built | ``Square_D2``: nut x, y in +-0.25, any yaw; the peg at x, y in +-0.25, turned by 0-90 degrees |
+
+The peg is drawn first, then the nut until it is clear of it, as MimicGen does. MimicGen's Threading and Coffee are
+not built: their objects are MimicGen's own models (a needle, a tripod, a coffee machine with a hinged lid), written
+for robosuite 1.4 and under NVIDIA's non-commercial licence.
 """
 
 from __future__ import annotations
@@ -45,6 +59,18 @@ class WideRange:
     x: tuple[float, float]
     y: tuple[float, float]
     rotation: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class MimicGenVariant:
+    """One of MimicGen's scene distributions (module docstring): ``objects`` drawn by robosuite's uniform sampler over
+    these ranges (about the table's centre, ``z_offset`` above it), after ``fixtures`` at world x, y and yaw drawn
+    uniformly, the objects redrawn until their centres are ``clearance`` (m, in the plane) from every fixture."""
+
+    objects: dict[str, WideRange]
+    fixtures: dict[str, WideRange] = field(default_factory=dict)
+    clearance: float = 0.0
+    z_offset: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -79,6 +105,8 @@ class TaskSpec:
     #: the ``resized`` variant: these objects scaled by a factor in ``resize`` (none: no resized variant)
     resize_objects: tuple[str, ...] = ()
     resize: tuple[float, float] = (0.7, 1.4)
+    #: MimicGen's variants of the task (``d1``, ``d2``), where it defines them
+    mimicgen: dict[str, MimicGenVariant] = field(default_factory=dict)
 
     @property
     def grasp_kind(self) -> str:
@@ -92,7 +120,7 @@ class TaskSpec:
     def variants(self) -> tuple[str, ...]:
         """The scene variants this task has (:mod:`.scene`)."""
         far = self.far_objects or self.far_fixtures
-        return ("d0", "wide") + (("far",) if far else ()) + (("resized",) if self.resize_objects else ())
+        return ("d0", "wide") + (("far",) if far else ()) + (("resized",) if self.resize_objects else ()) + tuple(self.mimicgen)
 
     @property
     def segments(self) -> tuple[str, ...]:
@@ -116,6 +144,7 @@ TASKS: dict[str, TaskSpec] = {
         wide_objects={"cubeA": WideRange((-0.2, 0.2), (-0.2, 0.2)), "cubeB": WideRange((-0.2, 0.2), (-0.2, 0.2))},
         far_objects={"cubeA": WideRange((-0.15, 0.15), (0.2, 0.28)), "cubeB": WideRange((-0.15, 0.15), (-0.28, -0.2))},
         resize_objects=("cubeA", "cubeB"),
+        mimicgen={"d1": MimicGenVariant({"cubeA": WideRange((-0.2, 0.2), (-0.2, 0.2)), "cubeB": WideRange((-0.2, 0.2), (-0.2, 0.2))})},
     ),
     "can": TaskSpec(
         "can", "PickPlaceCan", {"can": "Can_main"}, {"can": "Can_joint0"}, {"can": "can", "bin": "bin"}, grasp="can",
@@ -130,6 +159,12 @@ TASKS: dict[str, TaskSpec] = {
         fixture_clearance=0.13,
         far_objects={"nut": WideRange((-0.2, -0.13), (0.0, 0.2))},
         far_fixtures={"peg": WideRange((0.0, 0.15), (-0.28, -0.2), (np.pi / 9, np.pi / 4))},
+        mimicgen={
+            "d1": MimicGenVariant({"nut": WideRange((-0.115, 0.115), (-0.255, 0.255))}, {"peg": WideRange((-0.1, 0.3), (-0.2, 0.2))},
+                                  clearance=0.0226 + 0.11, z_offset=0.02),
+            "d2": MimicGenVariant({"nut": WideRange((-0.25, 0.25), (-0.25, 0.25))}, {"peg": WideRange((-0.25, 0.25), (-0.25, 0.25), (0.0, np.pi / 2))},
+                                  clearance=0.0226 + 0.11, z_offset=0.02),
+        },
     ),
 }  # fmt: skip
 
