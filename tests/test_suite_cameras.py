@@ -81,6 +81,23 @@ def test_noisy_keypoints_are_seeded_and_unseen_objects_named(env):
         SuiteCameras(("ceiling",)).capture(env)
 
 
+def test_a_pose_filter_steadies_the_reads_of_a_still_cube(env):
+    """One noisy camera (240 x 320), eight reads of a still cube: filtered (the median of the reads that agree),
+    the reads move less from one read to the next than as they come (the calibration's fixed error stays: no filter
+    over reads removes it); a release forgets the cube's reads."""
+    from kpflow.vision.pose_filter import PoseFilter
+
+    env.reset_to(sample_scene(SPEC, env, "d0", 4))
+    jumps = {}
+    for name, pose_filter in (("raw", None), ("filtered", PoseFilter(window=5))):
+        perception = CameraKeypoints(SuiteCameras(("agentview",), 240, 320), seed=3, pose_filter=pose_filter)
+        reads = np.stack([perception.poses(env, SPEC, ["cube"])["cube"].pos for _ in range(10)])
+        jumps[name] = np.linalg.norm(np.diff(reads[3:], axis=0), axis=1).mean()
+    assert jumps["filtered"] < 0.6 * jumps["raw"]
+    perception.released("cube")
+    assert "cube" not in perception.pose_filter.estimate
+
+
 class _Nothing:
     """A segmenter that finds nothing."""
 

@@ -9,9 +9,11 @@ description into its own perception; the gripper's keypoints always come from th
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from .noise import CameraNoise
+from .pose_filter import PoseFilter
 from .segmentation import Segmenter
 
 KINDS = ("sim", "camera")
@@ -24,7 +26,8 @@ class KeypointSource:
     give the same keypoints), the depth frames averaged per capture (``temporal``) and the ``segmenter`` that finds
     each object's pixels
     (:class:`~kpflow.vision.segmentation.Segmenter`, e.g. :class:`~kpflow.vision.grounded_sam.GroundedSAM`; None:
-    the renderer's instance masks)."""
+    the renderer's instance masks); ``filter``: the options of a :class:`~kpflow.vision.pose_filter.PoseFilter` over
+    each object's reads (``window``, ``gate``, ``gate_deg``, ``patience``; None: every read as it comes)."""
 
     kind: str = "sim"
     cameras: tuple[str, ...] | None = None
@@ -34,6 +37,7 @@ class KeypointSource:
     seed: int = 0
     temporal: int = 1
     segmenter: Segmenter | None = None
+    filter: Mapping | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -46,8 +50,20 @@ class KeypointSource:
             raise ValueError(f"camera images must be at least 16 x 16 pixels; got {self.height} x {self.width}")
         if not isinstance(self.noise, CameraNoise):
             object.__setattr__(self, "noise", CameraNoise(**dict(self.noise)))
+        if self.filter is not None:
+            object.__setattr__(self, "filter", dict(self.filter))
+            self.pose_filter()  # refuses bad options now
         if self.segmenter is not None and not isinstance(self.segmenter, Segmenter):
             raise TypeError(f"segmenter must have masks(frame, names); got {type(self.segmenter).__name__}")
+
+    def pose_filter(self) -> PoseFilter | None:
+        """A new :class:`~kpflow.vision.pose_filter.PoseFilter` with :attr:`filter`'s options (None without)."""
+        if self.filter is None:
+            return None
+        unknown = set(self.filter) - {"window", "gate", "gate_deg", "patience"}
+        if unknown:
+            raise ValueError(f"unknown pose filter options {sorted(unknown)}; it takes window, gate, gate_deg, patience")
+        return PoseFilter(**self.filter)
 
     @property
     def camera(self) -> bool:

@@ -28,11 +28,13 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
+from kpflow.tasks.arm.motion import yaw_of
 from kpflow.vision.boxes import FootprintBox, fit_footprint_box
 from kpflow.vision.cameras import CameraFrame
 from kpflow.vision.depth_filter import smooth_depth, temporal_mean
 from kpflow.vision.keypoint_source import KeypointSource
 from kpflow.vision.noise import CameraNoise
+from kpflow.vision.pose_filter import PoseFilter
 from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
 
 from .cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
@@ -131,13 +133,15 @@ class CameraKeypoints:
         erode, smooth, voxel, top_fraction: see :func:`object_points` and :func:`~kpflow.vision.boxes.fit_footprint_box`.
         temporal: depth frames averaged per capture (the scene is still where the cameras are read: a segment's
             start, a policy's decision).
+        pose_filter: each object's reads filtered (:class:`~kpflow.vision.pose_filter.PoseFilter`: the median of
+            the reads that agree, outliers rejected) within a scene; None: every read as it comes.
     """
 
     per_step = False  #: a capture costs about a second: read where a policy decides, not at every control step
 
     def __init__(self, cameras: SuiteCameras | None = None, noise: CameraNoise | None = None, segmenter: Segmenter | None = None,
                  seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1,
-                 temporal: int = 1) -> None:  # fmt: skip
+                 temporal: int = 1, pose_filter: PoseFilter | None = None) -> None:  # fmt: skip
         if int(temporal) != temporal or temporal < 1:
             raise ValueError(f"temporal must be a whole number of frames >= 1; got {temporal!r}")
         self.temporal = int(temporal)
@@ -146,13 +150,14 @@ class CameraKeypoints:
         self.segmenter, self.erode, self.smooth = segmenter, int(erode), int(smooth)
         self.voxel, self.top_fraction = float(voxel), float(top_fraction)
         self.seed = int(seed)
+        self.pose_filter = pose_filter
         self.reseed()
 
     @classmethod
     def from_source(cls, source: KeypointSource) -> CameraKeypoints:
         """The perception a :class:`~kpflow.vision.keypoint_source.KeypointSource` (``kind="camera"``) describes."""
         cameras = SuiteCameras(source.cameras or DEFAULT_CAMERAS, source.height, source.width)
-        return cls(cameras, source.noise, source.segmenter, source.seed, temporal=source.temporal)
+        return cls(cameras, source.noise, source.segmenter, source.seed, temporal=source.temporal, pose_filter=source.pose_filter())
 
     def reseed(self, *keys: int) -> None:
         """Start a new scene: restart the depth and mask errors' stream at ``(seed, *keys)`` (e.g. an attempt's
@@ -161,6 +166,8 @@ class CameraKeypoints:
         self.rng = np.random.default_rng([self.seed, *map(int, keys)])
         self.last: dict[str, ObjectPose] = {}  # each object's pose when last seen
         self.held: dict[str, ObjectPose] = {}  # held objects' poses in the grip site's frame
+        if self.pose_filter is not None:
+            self.pose_filter.reset()
 
     def frames(self, env) -> list[CameraFrame]:
         """The cameras' frames of the scene now, as the sensor gives them (noisy depth, the calibrated pose)."""
@@ -186,8 +193,8 @@ class CameraKeypoints:
         return InstanceSegmenter({n: object_geoms(env, n) for n in names})
 
     def pose(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str) -> ObjectPose:
-        """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`), remembered as where it
-        was last seen."""
+        """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`; through :attr:`pose_filter`
+        where there is one), remembered as where it was last seen."""
         segmenter = self._segmenter(env)
         masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
         kind = spec.kinds[name]
@@ -197,6 +204,9 @@ class CameraKeypoints:
         except ValueError as e:
             raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
         pose = ObjectPose(*pose_from_box(kind, box, support))
+        if self.pose_filter is not None:
+            seen = self.pose_filter.update(name, pose.pos, yaw_of(pose.rot), SYMMETRY[kind], pose.half)
+            pose = ObjectPose(seen.pos, yaw_rotation(seen.yaw), seen.half)
         self.last[name] = pose
         return pose
 
@@ -217,8 +227,10 @@ class CameraKeypoints:
             self.held[name] = ObjectPose(rot.T @ (seen.pos - pos), rot.T @ seen.rot, seen.half)
 
     def released(self, name: str) -> None:
-        """The jaws open: ``name`` is seen by the cameras again."""
+        """The jaws open: ``name`` is seen by the cameras again (where it was put: its filtered reads are forgotten)."""
         self.held.pop(name, None)
+        if self.pose_filter is not None:
+            self.pose_filter.forget(name)
 
     def carried(self, env, name: str) -> ObjectPose:
         """Where held object ``name`` is now, carried by the jaws since :meth:`grasped`."""
