@@ -512,8 +512,9 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
             policies[name] = instantiate(cfg.policy)
             assert isinstance(policies[name], cls), name
     transported = policies["transported_kcfm"]
-    assert transported.fit_on.tolist() == list(range(8)) and transported.robot.tolist() == [8, 9, 10] and transported.rotation
+    pick = transported.transports[0]  # segment by segment (the experiment's default): Lift's one phase, on the cube
+    assert transported.phases is not None and pick.fit_on.tolist() == list(range(8)) and pick.pulled.tolist() == [8, 9, 10] and transported.rotation
     task = SuiteTask("lift")
     env = task.make_env()
     episode = run_policy_episode(env, transported, task.sample_scene(env, "far", 0, seed=20_000), max_steps=16)
-    assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None
+    assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None and transported.last_phase == "pick"
