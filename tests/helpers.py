@@ -118,3 +118,15 @@ def child_env(**extra: str) -> dict[str, str]:
     (:func:`kpflow.utils.headless.use_headless_gl`)."""
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     return {**env, **extra}
+
+
+def yaw_matrix(a: float) -> np.ndarray:
+    """The rotation by ``a`` (rad) about the vertical, ``[3, 3]``."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def cube_corners(centre, yaw: float, half: float = 0.021) -> np.ndarray:
+    """The 8 corners ``[8, 3]`` of a cube of half side ``half`` at ``centre``, turned by ``yaw``."""
+    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    return np.asarray(centre) + (signs * half) @ yaw_matrix(yaw).T

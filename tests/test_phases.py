@@ -20,6 +20,8 @@ from kpflow.policies.kcfm import KCFM
 from kpflow.policies.phases import Grip, Phase, Phases
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
 from kpflow.rotations import matrix_to_rot6d
+from tests.helpers import cube_corners as _cube
+from tests.helpers import yaw_matrix as _yaw
 
 H, K = 8, 19
 CUBE_A, CUBE_B, GRIPPER = tuple(range(8)), tuple(range(8, 16)), (16, 17, 18)
@@ -31,16 +33,6 @@ PHASES = Phases(GRIP, (
 GROUPS = {"cubeA": CUBE_A, "cubeB": CUBE_B, "gripper": GRIPPER}
 ROLES = {"objects": ("cubeA",), "goals": ("cubeB",), "robot": ("gripper",)}
 LAYOUT = PolicyLayout(K, 3, 10, GROUPS, ROLES, rotation=True, phases=PHASES)
-
-
-def _yaw(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _cube(centre, yaw: float, half: float = 0.021) -> np.ndarray:
-    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-    return np.asarray(centre) + (signs * half) @ _yaw(yaw).T
 
 
 def _gripper(grip: np.ndarray, yaw: float, gap: float) -> np.ndarray:

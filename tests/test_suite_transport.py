@@ -20,21 +20,13 @@ from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.rotations import matrix_to_rot6d, rot6d_to_matrix
+from tests.helpers import cube_corners as _cube
+from tests.helpers import yaw_matrix as _yaw
 
 H, K = 8, 19
 LAYOUT = PolicyLayout(K, 3, 10, {"cubeA": tuple(range(8)), "cubeB": tuple(range(8, 16)), "gripper": (16, 17, 18)},
                       {"objects": ("cubeA",), "goals": ("cubeB",), "robot": ("gripper",)}, rotation=True)  # fmt: skip
 FIT_ON = list(LAYOUT.indices("objects", "goals"))
-
-
-def _yaw(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _cube(centre, yaw: float, half: float = 0.021) -> np.ndarray:
-    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-    return np.asarray(centre) + (signs * half) @ _yaw(yaw).T
 
 
 def _configurations(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
