@@ -101,15 +101,8 @@ class Phases:
 
     def index(self, keypoints: np.ndarray) -> np.ndarray:
         """The phase of each keypoint set ``[..., K, D]`` as an index into :attr:`phases` (int array ``[...]``)."""
-        held = self.grip.holding(keypoints)
-        out = np.empty(held.shape, np.int64)
-        for i, phase in enumerate(self.phases):
-            if phase.holding is None:
-                out[...] = i
-        for i, phase in enumerate(self.phases):
-            if phase.holding is not None:
-                out[held == phase.holding] = i
-        return out
+        free, held = (next(i for i, p in enumerate(self.phases) if p.holding in (state, None)) for state in (False, True))
+        return np.where(self.grip.holding(keypoints), held, free)
 
     def of(self, keypoints: np.ndarray) -> Phase:
         """The phase of one keypoint set ``[K, D]``."""

@@ -165,7 +165,8 @@ GRIPPER_KEYPOINTS = 3
 #: (a cube's centre, the can's axis from its top to its bottom, the square nut's handle from end to end)
 GRASP_SEGMENT = {"cube": (tuple(range(8)), tuple(range(8))), "can": ((0,), (1,)), "nut": ((5,), (6,))}
 #: the Panda's finger pads are 0.085 m apart open and 0.037-0.056 m closed on the nut's handle, a cube or the can; the
-#: grasp segment is within 1.3 cm of their midpoint when held (the released checkpoints' training data)
+#: grasp segment is 0.3-0.6 cm (median) and at most 0.3-0.9 cm (95th percentile) from their midpoint when they are
+#: closed on it (the released checkpoints' training data, per task)
 PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH = 0.07, 0.01, 0.025
 
 
