@@ -92,9 +92,9 @@ def spacing(keypoints: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------------------------------------- benchmarks
 def lasa_cases(shapes: slice = slice(None)) -> list[Case]:
-    """Every ordered pair of a LASA shape's 7 demonstrations (module docstring; :func:`shapes.demonstrations`), for the
+    """Every ordered pair of a LASA shape's 7 demonstrations (module docstring; :func:`lasa_demos.demonstrations`), for the
     single-pattern shapes in ``shapes`` (alphabetical order)."""
-    from shapes import N_DEMOS, demonstrations
+    from lasa_demos import N_DEMOS, demonstrations
 
     from kpflow.tasks.frames import LASA_SHAPES
 

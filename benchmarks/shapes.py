@@ -50,15 +50,14 @@ from tqdm import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lasa_demos import N_DEMOS, demonstrations  # noqa: E402
 from map_suite import authors_gp, previous_gp  # noqa: E402
 
 from kpflow.eval import metrics  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
-from kpflow.tasks.frames import LASA_SHAPES, end_heading, lasa_frames, load_lasa, scene_keypoints  # noqa: E402
+from kpflow.tasks.frames import LASA_SHAPES, end_heading  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 
-FRAME_SIZE = 5.0  # mm: a frame's keypoints are 5 apart, the units of the authors' GP settings
-N_POINTS, N_DEMOS = 200, 7
 BASELINE = "authors' GP (sklearn)"
 Transport = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
 
@@ -89,16 +88,6 @@ MAPS: dict[str, Transport] = {
     "GPMap, similarity alignment": _kpflow(lambda: GPMap(alignment="similarity")),
     "ILWRMap (default)": _kpflow(ILWRMap),
 }
-
-
-def demonstrations(shape: str) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """(positions [200, 2] mm, the ten frame keypoints [10, 2], end heading) of each demonstration of ``shape``."""
-    out = []
-    for k in range(N_DEMOS):
-        demo = load_lasa(shape, demo=k, n=N_POINTS, scale=1.0, dtype=torch.float64)
-        keypoints = scene_keypoints(list(lasa_frames(demo)), FRAME_SIZE)
-        out.append((demo.positions.numpy(), keypoints.numpy(), float(end_heading(demo.positions, -1))))
-    return out
 
 
 def _wrap(angle: float) -> float:

@@ -36,6 +36,17 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from kpflow.maps.validation import scale_floor
+
+
+def normalise(aligned_source: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The normalised coordinates of a pair: ``a = n(A S + t)``, ``b = n(T)`` with ``n(y) = (y - m) / sigma``,
+    ``m, sigma`` the targets' mean and RMS spread (:mod:`kpflow.maps.learned`). Returns ``(a, b, m, sigma)`` for
+    pairs ``[B, N, D]`` (``m [B, 1, D]``, ``sigma [B, 1, 1]``)."""
+    m = target.mean(-2, keepdim=True)
+    sigma = (target - m).square().sum(-1).mean(-1).sqrt()[:, None, None].clamp_min(scale_floor(target))
+    return (aligned_source - m) / sigma, (target - m) / sigma, m, sigma
+
 
 def _mlp(d_in: int, hidden: int, d_out: int, depth: int, bias: bool = True) -> nn.Sequential:
     mods: list[nn.Module] = []

@@ -30,16 +30,8 @@ import torch
 from kpflow.maps import learned_kernels
 from kpflow.maps.affine import AlignedMap
 from kpflow.maps.base import TransportMap
-from kpflow.maps.conditional_flow import ConditionalFlow
+from kpflow.maps.conditional_flow import ConditionalFlow, normalise
 from kpflow.maps.ilwr import ILWRMap
-from kpflow.maps.validation import scale_floor
-
-
-def normalise(aligned_source: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(a, b, m, sigma)`` of the module docstring for pairs ``[B, N, D]``: ``m [B, 1, D]``, ``sigma [B, 1, 1]``."""
-    m = target.mean(-2, keepdim=True)
-    sigma = (target - m).square().sum(-1).mean(-1).sqrt()[:, None, None].clamp_min(scale_floor(target))
-    return (aligned_source - m) / sigma, (target - m) / sigma, m, sigma
 
 
 @functools.lru_cache(maxsize=8)

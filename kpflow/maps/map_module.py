@@ -2,7 +2,7 @@
 
 A batch is a :class:`KeypointPairs`: B pairs ``(S, T)`` with M query points ``Q`` and where a reference map fitted
 on each pair (ILWR, :mod:`kpflow.data.keypoint_pairs`) carries them, ``Q*``. In the normalised coordinates of
-:func:`~kpflow.maps.learned.normalise` (``a``, ``b``, ``q = n(A Q + t)``, ``q* = n(Q*)``) the loss is
+:func:`~kpflow.maps.conditional_flow.normalise` (``a``, ``b``, ``q = n(A Q + t)``, ``q* = n(Q*)``) the loss is
 
     L = mean_i |G(a_i) - b_i|^2                       (interpolation of the keypoints)
       + w_distill * mean_j |G(q_j) - q*_j|^2           (regularity: agree with the reference map between them)
@@ -28,8 +28,7 @@ import lightning
 import torch
 
 from kpflow.maps.affine import KINDS, fit_affine
-from kpflow.maps.conditional_flow import ConditionalFlow
-from kpflow.maps.learned import normalise
+from kpflow.maps.conditional_flow import ConditionalFlow, normalise
 
 
 @dataclass
