@@ -7,7 +7,7 @@ import torch
 
 from kpflow.maps import GPMap
 from kpflow.policies.demo_transport import DemoTransportPolicy
-from kpflow.tasks.base import Keypoints, Trajectory
+from kpflow.trajectory import Keypoints, Trajectory
 
 
 def _line_demo(n: int = 41):

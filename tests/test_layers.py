@@ -11,7 +11,7 @@ PACKAGE = ROOT / "kpflow"
 LAYERS = [
     {"utils"},
     {"maps"},
-    {"transport", "rotations"},
+    {"transport", "rotations", "trajectory"},
     {"vision"},
     {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
     {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it

@@ -17,7 +17,6 @@ from kpflow.eval.reports.packing import PackingReport, box_corner_error
 from kpflow.maps import AffineMap, GPMap, ILWRMap
 from kpflow.policies.demo_transport import DemoTransportPolicy
 from kpflow.tasks.arm.motion import yaw_of
-from kpflow.tasks.base import Keypoints
 from kpflow.tasks.packing.demonstrator import execute
 from kpflow.tasks.packing.env import START_POS
 from kpflow.tasks.packing.keypoints import GROUPS, LIFT, N_KEYPOINTS, packing_keypoints
@@ -25,6 +24,7 @@ from kpflow.tasks.packing.objects import OBJECT_TYPES
 from kpflow.tasks.packing.perception import box_corners, canonical_box, object_box, topdown_frame
 from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
 from kpflow.tasks.packing.task import PackingTask
+from kpflow.trajectory import Keypoints
 
 ROOT = Path(__file__).resolve().parents[1]
 

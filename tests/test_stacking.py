@@ -18,12 +18,13 @@ from kpflow.eval.reports.stacking import StackingReport, grasp_errors
 from kpflow.eval.stats import wilson_interval
 from kpflow.maps import GPMap
 from kpflow.tasks.arm.motion import pointing_down
-from kpflow.tasks.base import Demonstration, Trajectory
+from kpflow.tasks.base import Demonstration
 from kpflow.tasks.stacking.demonstrator import execute, nearest_half_turn
 from kpflow.tasks.stacking.keypoints import BACKGROUND, Matcher, labels_at, lift, true_targets
 from kpflow.tasks.stacking.objects import CHEESE, LETTUCE, SIZES
 from kpflow.tasks.stacking.scene import AREA_X, SIDE_Y, SOURCE_SCENE, YAW_RANGE, Scene, sample_scene
 from kpflow.tasks.stacking.task import StackingTask, StackingView
+from kpflow.trajectory import Trajectory
 from kpflow.vision import SiftBackbone, project_points
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,11 +12,11 @@ from scipy.spatial.transform import Rotation
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.robomimic_export import export_robomimic
 from kpflow.maps import GPMap, ILWRMap
-from kpflow.tasks.base import Trajectory
 from kpflow.tasks.suite.keypoints import object_keypoints, reduced_yaw
 from kpflow.tasks.suite.scene import Scene
 from kpflow.tasks.suite.specs import TASKS, task_spec
 from kpflow.tasks.suite.task import SuiteTask
+from kpflow.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -24,7 +24,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from kpflow.maps.base import TransportMap
-from kpflow.tasks.base import Keypoints, Trajectory
+from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.transport import transport_trajectory
 
 ON_UNCERTAIN = ("rigid", "stop")

@@ -11,7 +11,8 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from kpflow.tasks.base import Demonstration, Execution, Trajectory, TrialResult
+from kpflow.tasks.base import Demonstration, Execution, TrialResult
+from kpflow.trajectory import Trajectory
 
 
 class Report(Protocol):

@@ -11,7 +11,8 @@ from scipy.optimize import linear_sum_assignment
 from kpflow.eval import plots
 from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
-from kpflow.tasks.base import Demonstration, Execution, Trajectory, TrialResult
+from kpflow.tasks.base import Demonstration, Execution, TrialResult
+from kpflow.trajectory import Trajectory
 from kpflow.utils.io import save_figure
 
 

@@ -16,10 +16,11 @@ from kpflow.eval import plots
 from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.arm.motion import yaw_of
-from kpflow.tasks.base import Demonstration, Execution, Trajectory, TrialResult
+from kpflow.tasks.base import Demonstration, Execution, TrialResult
 from kpflow.tasks.stacking.demonstrator import nearest_half_turn
 from kpflow.tasks.stacking.keypoints import true_targets
 from kpflow.tasks.stacking.objects import BLOCKS, CHEESE, LETTUCE
+from kpflow.trajectory import Trajectory
 from kpflow.utils.io import save_figure
 
 HALF_TURN = Rotation.from_euler("z", np.pi)

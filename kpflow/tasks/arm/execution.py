@@ -1,11 +1,11 @@
-"""Running an end-effector :class:`~kpflow.tasks.base.Trajectory` on a :class:`~kpflow.tasks.arm.env.SuctionArmEnv`
+"""Running an end-effector :class:`~kpflow.trajectory.Trajectory` on a :class:`~kpflow.tasks.arm.env.SuctionArmEnv`
 and recording how the arm followed it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from kpflow.tasks.base import Trajectory
+from kpflow.trajectory import Trajectory
 
 TRACKING_LIMIT = 0.03  # m: a larger error between target and tip means the arm could not follow
 SINGULAR_LIMIT = 0.02  # smallest singular value of the arm's Jacobian below which a configuration is near-singular
@@ -23,7 +23,7 @@ def follow(
     steps to ``frames`` if given.
     """
     if not isinstance(trajectory, Trajectory):
-        raise ValueError(f"follow needs a kpflow.tasks.base.Trajectory, got {type(trajectory).__name__}")
+        raise ValueError(f"follow needs a kpflow.trajectory.Trajectory, got {type(trajectory).__name__}")
     positions, rotations, grasp = trajectory.positions, trajectory.rotations, trajectory.grasp
     tip, error = [], []
     grasp_step, grasped, collided, min_sv = None, None, False, np.inf

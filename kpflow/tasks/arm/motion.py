@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from kpflow.tasks.base import Trajectory
+from kpflow.trajectory import Trajectory
 
 MAX_STEP, MAX_TURN = 0.015, 0.1  # m and rad per control step (20 Hz): larger jumps can flip the UR5e's elbow
 DOWN = Rotation.from_euler("x", np.pi).as_matrix()  # the cup pointing down
@@ -47,7 +47,7 @@ def interpolate(p0, r0, p1, r1) -> tuple[np.ndarray, np.ndarray]:
 def segments_to_trajectory(start_pos, start_rot, segments: list[tuple]) -> Trajectory:
     """A trajectory from ``segments`` of ``(phase, target position, rotation, settle steps, grasp)``: each moves
     in :func:`interpolate`'s steps to its target (``"seal"`` and ``"release"`` stay where they are) and holds it for
-    ``settle`` steps. Returns the :class:`~kpflow.tasks.base.Trajectory`."""
+    ``settle`` steps. Returns the :class:`~kpflow.trajectory.Trajectory`."""
     pos, rot = np.asarray(start_pos, float), np.asarray(start_rot, float)
     out = {"positions": [], "rotations": [], "grasp": [], "phases": []}
     for phase, target, target_rot, settle, grasp in segments:

@@ -41,7 +41,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from kpflow.maps.affine import fit_affine
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
-from kpflow.tasks.base import Segment, SegmentStart, Trajectory
+from kpflow.tasks.base import Segment, SegmentStart
+from kpflow.trajectory import Trajectory
 from kpflow.transport import transport_trajectory
 
 

@@ -1,6 +1,6 @@
 """The scripted packing demonstration, and running a trajectory with its outcome (success, failure reason).
 
-Trajectories are :class:`kpflow.tasks.base.Trajectory`. The scripted planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
+Trajectories are :class:`kpflow.trajectory.Trajectory`. The scripted planner (:func:`plan_packing`) moves over the object at the carrying height (``LIFT`` above its top), descends
 straight onto it, seals, lifts it by ``LIFT``, carries it over the container, lowers it in, releases and retreats,
 in the straight, interpolated segments of :func:`kpflow.tasks.arm.motion.interpolate`. Coming down vertically matters for tall,
 narrow objects: a diagonal approach, with the controller lagging, swept the cereal box over.
@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory
-from kpflow.tasks.base import Execution, Trajectory
+from kpflow.tasks.base import Execution
+from kpflow.trajectory import Trajectory
 
 from .keypoints import LIFT
 from .scene import CONTAINER_WALL

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpflow.tasks.arm.motion import yaw_of
-from kpflow.tasks.base import ArmTask, Demonstration, Execution, Keypoints, Trajectory
+from kpflow.tasks.base import ArmTask, Demonstration, Execution
+from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 
 from .demonstrator import execute, plan_packing

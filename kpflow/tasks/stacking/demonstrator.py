@@ -3,7 +3,7 @@
 :func:`plan_stacking` moves over the cheese block at the carrying height, descends straight onto it, seals, lifts
 it, carries it over the lettuce block while turning it to the lettuce's yaw (of the two half-turn-equivalent yaws,
 the nearer), lowers it onto the lettuce, releases and retreats. Trajectories are
-:class:`kpflow.tasks.base.Trajectory`.
+:class:`kpflow.trajectory.Trajectory`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import numpy as np
 
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory, yaw_of
-from kpflow.tasks.base import Execution, Trajectory
+from kpflow.tasks.base import Execution
+from kpflow.trajectory import Trajectory
 
 LIFT = 0.12  # m: the cheese's bottom clears the lettuce's top by this much while carried
 PLACE_CLEARANCE = 0.006  # m between the cheese's bottom and the lettuce's top at release

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpflow.tasks.arm.keypoints import end_effector_box
-from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, Execution, Keypoints, Trajectory
+from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, Execution
+from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.vision import DenseBackbone
 
 from .demonstrator import execute, plan_stacking

@@ -10,7 +10,7 @@ start, from the objects' geometry.
   turn that :func:`path_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
   robot's base): with the handle pointing away, the peg is at the edge of the Panda's reach.
 
-Poses are the grip site's (between the finger pads), as :class:`~kpflow.tasks.base.Trajectory` rows in the
+Poses are the grip site's (between the finger pads), as :class:`~kpflow.trajectory.Trajectory` rows in the
 interpolated straight segments of :func:`kpflow.tasks.arm.motion.segments_to_trajectory`; ``grasp`` is the jaws'
 command (closed while True).
 """
@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from kpflow.tasks.arm.motion import segments_to_trajectory, yaw_of
-from kpflow.tasks.base import Trajectory
+from kpflow.trajectory import Trajectory
 
 from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw, yaw_rotation
 from .specs import TaskSpec

@@ -15,7 +15,8 @@ import numpy as np
 
 from kpflow.rotations import matrix_to_rot6d
 from kpflow.tasks.arm.motion import yaw_of
-from kpflow.tasks.base import Segment, SegmentStart, Trajectory
+from kpflow.tasks.base import Segment, SegmentStart
+from kpflow.trajectory import Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 
 from .demonstrator import path_cost, plan_segment
