@@ -14,9 +14,10 @@ __version__ = version("kpflow")  # pyproject.toml's, the one place it is written
 register_envs()  # gymnasium.make("kpflow/PushT-v0") and the split ids (kpflow/tasks/pusht/registration.py)
 
 
-def load_policy(path, steps: int | None = None, execute: int = 8):
+def load_policy(path, steps: int | None = None, execute: int | None = None):
     """A ready K-CFM policy (``reset(seed)``, ``act(obs) -> [execute, 2]``) from a Lightning checkpoint, on the CPU,
-    sampling with ``steps`` network calls (None: the checkpoint's own setting).
+    sampling with ``steps`` network calls and returning ``execute`` actions (None: the checkpoint's own settings,
+    :mod:`kpflow.policies.settings`).
 
     A checkpoint trained on a GPU loads too; a missing file raises ``FileNotFoundError`` and a corrupt one a
     ``ValueError`` naming the file. Wrap it in :class:`kpflow.policies.transported_kcfm.TransportedKCFMPolicy` for

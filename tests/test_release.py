@@ -13,6 +13,7 @@ from kpflow import load_policy
 from kpflow.cli.release import KEEP, main, release
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm import KCFM
+from kpflow.policies.settings import CHECKPOINT_KEY
 from kpflow.tasks.pusht import PushTEnv, split_config, standard_config
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from tests.helpers import walk_to_block_store
@@ -51,7 +52,7 @@ def test_released_checkpoints_load_and_act_on_cpu():
     env = PushTEnv()
     for path in RELEASED:
         policy = load_policy(path)
-        assert set(torch.load(path, weights_only=True)) <= {*KEEP, "release"}
+        assert set(torch.load(path, weights_only=True)) <= {*KEEP, "release", CHECKPOINT_KEY}
         obs, _ = env.reset(options={"config": standard_config(100_000)})
         obs = dict(obs, keypoints_history=np.stack([obs["keypoints"]] * policy.n_obs))
         policy.reset(0)
@@ -87,6 +88,7 @@ STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
 TABLE1_KCFM = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
 TABLE1_RELABELLED = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
 TRANSPORTED = ["policy=transported_kcfm", f"policy.checkpoint={TABLE1_RELABELLED}", "data=pusht_store", f"data.path={STORE}"]
+AS_OBSERVED = ["policy.reach=false", "policy.turn_deg=false"]  # the goal as observed (the releases record 125 px and 30 degrees)
 
 
 def _episode(tmp_path, overrides: list[str], split: str, index: int, max_steps: int) -> dict:
@@ -111,7 +113,7 @@ def test_released_table1_transported_kcfm_reproduces_an_episode_of_its_row(tmp_p
 
     store = EpisodeStore(STORE)
     assert len(store) > 35 and store.n_steps > 6000
-    scores = _episode(tmp_path, TRANSPORTED, "object_ood", 10_000, max_steps=600)
+    scores = _episode(tmp_path, [*TRANSPORTED, *AS_OBSERVED], "object_ood", 10_000, max_steps=600)
     assert scores["success_085"], scores
 
 
@@ -121,7 +123,7 @@ def test_released_table1_transported_kcfm_within_reach_and_turn_keeps_a_block_it
     """With the defaults, transported K-CFM pushes the block of in-distribution tuning configuration 30908 away from
     its goal and out through a wall (``results/pusht_table1.md``); shown its goal within 125 px and 30 degrees, its
     source search finds sources with that goal and it covers the goal to 0.85 at step 192."""
-    for limits, succeeds in ((["policy.reach=125", "policy.turn_deg=30"], True), ([], False)):
+    for limits, succeeds in ((["policy.reach=125", "policy.turn_deg=30"], True), (AS_OBSERVED, False)):
         scores = _episode(tmp_path, [*TRANSPORTED, *limits], "in_distribution", 30_908, max_steps=250)
         assert scores["success_085"] == succeeds, (limits, scores)
         if succeeds:
@@ -135,7 +137,8 @@ def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_
     evaluation configuration 10001 its row's run covered the goal to 0.85 at step 291 (``results/pusht_table1.md``),
     where the K-CFM shown the real goal, 295 px away, never covered it at all."""
     for reach, succeeds in ((125, True), (None, False)):
-        scores = _episode(tmp_path, ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", f"policy.reach={reach or 'null'}"], "object_ood", 10_001, 400)
+        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", f"policy.reach={reach or 'false'}", "policy.turn_deg=false", "policy.steps=10"]
+        scores = _episode(tmp_path, overrides, "object_ood", 10_001, 400)
         assert scores["success_085"] == succeeds, (reach, scores)
 
 
@@ -147,7 +150,7 @@ def test_released_table1_kcfm_within_turn_leaves_a_block_it_waited_beside(tmp_pa
     ``results/pusht_table1.md``); shown it also turned at most 30 degrees from the block, it covers the goal to 0.85
     at step 240."""
     for turn, succeeds in ((30, True), (None, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", f"policy.turn_deg={turn or 'null'}"]
+        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", f"policy.turn_deg={turn or 'false'}", "policy.steps=10"]
         scores = _episode(tmp_path, overrides, "in_distribution", 30_323, max_steps=300)
         assert scores["success_085"] == succeeds, (turn, scores)
 
@@ -172,15 +175,45 @@ FAST = ROOT / "release" / "pusht_standard_fast.ckpt"
 @pytest.mark.slow  # a regression anecdote about a released checkpoint (exact step counts)
 @pytest.mark.skipif(not FAST.exists(), reason="no released few-step K-CFM")
 def test_released_fast_kcfm_samples_with_its_stored_settings_and_reproduces_an_episode_of_its_row(tmp_path):
-    """``policy=kcfm`` loads release/pusht_standard_fast.ckpt with the sampling it was distilled for (2 Euler calls),
-    no override needed; within 60 px and 60 degrees, on the first standard test seed (100000) its row's run covered
-    the goal to 0.95 at step 160 (``results/pusht_fast.md``)."""
+    """``policy=kcfm`` loads release/pusht_standard_fast.ckpt with the sampling it was distilled for (2 Euler calls)
+    and the goal within 60 px and 60 degrees, no override needed; on the first standard test seed (100000) its row's
+    run covered the goal to 0.95 at step 160 (``results/pusht_fast.md``)."""
     from hydra.utils import instantiate
 
     from tests.helpers import compose_config
 
-    overrides = ["policy=kcfm", f"policy.checkpoint={FAST}", "policy.reach=60", "policy.turn_deg=60", "split=standard"]
+    overrides = ["policy=kcfm", f"policy.checkpoint={FAST}", "split=standard"]
     policy = instantiate(compose_config("evaluate", [*overrides, "logger=none"], tmp_path).policy)
-    assert (policy.policy.steps, policy.policy.solver) == (2, "euler")
+    assert (policy.policy.steps, policy.policy.solver, policy.reach, policy.turn_deg) == (2, "euler", 60.0, 60.0)
     scores = _episode(tmp_path, overrides, "standard", 100_000, max_steps=300)
     assert scores["steps_095"] == 160, scores  # the standard protocol succeeds at coverage 0.95
+
+
+#: Each released Push-T policy, evaluated as ``kpflow-evaluate`` builds it with no policy overrides, and the row its
+#: results page documents: (file, the evaluation's overrides, condition -> (figure, the documented 95 % interval in %)).
+DOCUMENTED = [
+    ("pusht_standard_fast.ckpt", ["policy=kcfm", "split=standard"], {"standard": ("success_095", 62.1, 70.4)}),  # results/pusht_fast.md
+    ("pusht_standard_kcfm_human.ckpt", ["policy=kcfm", "split=standard"], {"standard": ("success_095", 76.5, 83.5)}),  # results/pusht_standard.md
+    ("pusht_table1_kcfm_35_corrected.ckpt", ["policy=kcfm", "split=all"],  # results/pusht_table1.md, the 20-step row
+     {"in_distribution": ("success_085", 97.2, 99.9), "robot_ood": ("success_085", 96.4, 99.7), "object_ood": ("success_085", 94.3, 98.9)}),
+    ("pusht_table1_kcfm_35_relabelled.ckpt", ["policy=transported_kcfm", "data=pusht_store", f"data.path={STORE}", "split=all"],
+     {c: ("success_085", 98.1, 100.0) for c in ("in_distribution", "robot_ood", "object_ood")}),  # the transported row
+]  # fmt: skip
+
+
+@pytest.mark.slow  # minutes: every episode of the documented row
+@pytest.mark.parametrize("name, overrides, row", DOCUMENTED, ids=[d[0].removesuffix(".ckpt") for d in DOCUMENTED])
+def test_a_released_checkpoint_loaded_with_no_overrides_reproduces_its_documented_row(tmp_path, name, overrides, row):
+    """The release's own settings (kpflow/policies/settings.py) are all its documented figure needs."""
+    from hydra.utils import instantiate
+
+    from tests.helpers import compose_config
+
+    path = ROOT / "release" / name
+    if not path.exists() or (STORE in map(Path, (o.split("=", 1)[-1] for o in overrides)) and not STORE.exists()):
+        pytest.skip(f"no {name} under release/")
+    cfg = compose_config("evaluate", [overrides[0], f"policy.checkpoint={path}", *overrides[1:], "workers=2", "experiment.videos=0", "logger=none"], tmp_path)
+    results = instantiate(cfg.experiment)(output_dir=tmp_path / "run", seed=cfg.seed, progress=False)
+    for condition, (figure, lo, hi) in row.items():
+        measured = 100 * next(s[figure] for s in results["summary"] if s["condition"] == condition)
+        assert lo <= measured <= hi, (name, condition, figure, measured, (lo, hi))

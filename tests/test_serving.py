@@ -257,7 +257,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(a, b)
     assert loaded.reference == index.reference
     deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4)
-    assert deployment.metadata.policy == "transported_kcfm/ilwr"
+    assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
@@ -291,7 +291,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
 
 def test_kcfm_within_reach_is_served_as_it_acts_in_process():
     """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
-    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60)
+    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60, turn_deg=False)  # no turn limit (the release has 60)
     assert deployment.metadata.policy == "kcfm/reach=60"
     local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
     plain = KCFMPolicy.from_checkpoint(RELEASED, steps=4)

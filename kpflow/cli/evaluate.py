@@ -4,19 +4,42 @@ config, results, plots and videos under the run's output folder and prints the t
 returns its results with ``metrics`` for the loggers, ``table``: the text of its results.md, and the ``figures`` and
 ``videos`` it wrote).
 
+Once the run is over, ``config.yaml`` is written again with the values it used where the config left them to the
+policy or the protocol (:func:`record_used`): the policy's steps, solver, executed actions, reach and turn (a
+checkpoint's own settings, :mod:`kpflow.policies.settings`) and the step limit.
+
 The run folder is the run's alone: a second run into a folder another live run holds is refused at once
 (:func:`~kpflow.utils.run.claim_run_folder`)."""
 
 import hydra
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command
-from kpflow.utils.run import log_metrics, make_loggers, start_run
+from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
 SPLITS = ("in_distribution", "robot_ood", "object_ood", "standard", "all")
 KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
+
+
+def record_used(cfg: DictConfig, results: dict) -> None:
+    """Write into ``cfg`` what the run used (``results``' ``policy_settings`` and ``max_steps``, as its trial describes
+    them) where the config names the key: ``policy.<setting>`` (a goal shown as observed is ``false``, never ``null``)
+    and ``experiment.trial.max_steps`` when the conditions run share one limit."""
+    policy = cfg.get("policy")
+    with open_dict(cfg):
+        if policy is not None and "policy_settings" in results:
+            used = {"reach": None, "turn_deg": None, **results["policy_settings"]}  # no goal limit in the policy: as observed
+            for name, value in used.items():
+                if name in policy:
+                    policy[name] = False if value is None and name in ("reach", "turn_deg") else value
+        limits = results.get("max_steps")
+        if isinstance(limits, dict):
+            limits = {limits[c] for c in {row["condition"] for row in results.get("summary", [])} if c in limits}
+            limits = limits.pop() if len(limits) == 1 else None
+        if limits is not None and OmegaConf.select(cfg, "experiment.trial.max_steps", default=None) is not None:
+            cfg.experiment.trial.max_steps = int(limits)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
@@ -26,6 +49,8 @@ def main(cfg: DictConfig) -> dict:
     loggers = make_loggers(cfg)
     run = instantiate(cfg.experiment)
     results = run(output_dir=out, seed=cfg.seed)
+    record_used(cfg, results)
+    write_config(cfg)  # again, with the values used
     log_metrics(loggers, results["metrics"])
     print(results["table"])  # what this run computed (results.md holds the same text)
     print(f"results: {out / 'results.md'}  plots: {[str(out / f) for f in results.get('figures', [])]}")

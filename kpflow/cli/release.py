@@ -1,12 +1,15 @@
 """Release a trained policy: its checkpoint reduced to what deployment needs, small enough to commit.
 
-    kpflow-release src=outputs/pusht_kcfm/<run>/checkpoints/last.ckpt dst=release/<name>.ckpt [note="..."]
+    kpflow-release src=outputs/pusht_kcfm/<run>/checkpoints/last.ckpt dst=release/<name>.ckpt [note="..."] \
+        [settings.steps=20 settings.reach=60 settings.turn_deg=60]
     kpflow-release src=<run>/checkpoints/last.ckpt dst=release/suite_lift_kcfm.ckpt ema_only=true \
         task=lift source_store=<generate run>/d0/rigid/episodes.zarr source_action_key=ee_target source_episodes=200 source_every=2
 
 The released file holds the weights and buffers (``state_dict``: the trained and the EMA network, or with
-``ema_only=true`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters and a ``release`` record (source path, note,
-parameter count) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
+``ema_only=true`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters, a ``release`` record (source path, note,
+parameter count) and the policy's own settings (``settings.<name>``: :class:`~kpflow.policies.settings.PolicySettings`,
+what the release's results page measured, so that loading it with no overrides reproduces that figure; releasing a
+released file again keeps its settings, its source path and adds the ones given) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
 has loaded back through :func:`kpflow.load_policy` (``torch.load(weights_only=True)``).
 
 With ``source_store``, the transported K-CFM's source index is written beside it
@@ -18,13 +21,15 @@ chunks are kept one action long.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import hydra
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
 from kpflow.utils.checkpoint import read_checkpoint
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command
@@ -33,16 +38,23 @@ from kpflow.utils.io import atomic_path
 KEEP = ("state_dict", "hyper_parameters", "pytorch-lightning_version")
 
 
-def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = False) -> Path:
-    """Write the deployment part of checkpoint ``src`` to ``dst`` (module docstring); returns ``dst``."""
+def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = False, settings: Mapping | None = None) -> Path:
+    """Write the deployment part of checkpoint ``src`` to ``dst`` with the policy ``settings`` given (None values:
+    not set) on top of those ``src`` holds (module docstring); returns ``dst``."""
     checkpoint = read_checkpoint(src)
     out = {k: checkpoint[k] for k in KEEP if k in checkpoint}
+    given = {k: v for k, v in (settings or {}).items() if v is not None}
+    merged = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY), str(src)).given(**PolicySettings.from_record(given, "settings").record())
+    if merged.record():
+        out[CHECKPOINT_KEY] = merged.record()
+    earlier = checkpoint.get("release") if isinstance(checkpoint.get("release"), dict) else {}
     state = out["state_dict"]
     if ema_only:
         state = {k: v for k, v in state.items() if not k.startswith("net.")}
     out["state_dict"] = state
     weights = sum(v.numel() for k, v in state.items() if k.startswith("ema_net."))
-    out["release"] = {"source": str(src), "note": str(note), "ema_parameters": int(weights), "ema_only": ema_only}
+    out["release"] = {**earlier, "source": str(earlier.get("source", src)), "note": str(note or earlier.get("note", "")), "ema_parameters": int(weights),
+                      "ema_only": bool(ema_only or earlier.get("ema_only", False))}  # fmt: skip
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
     from kpflow import load_policy
@@ -84,7 +96,7 @@ def main(cfg: DictConfig) -> Path:
     check_config(cfg, KEYS)
     if cfg.source_store and cfg.get("task") is None:
         raise ValueError("source_store needs task=<name> (kpflow/conf/task/): the keypoint layout its index is searched with")
-    dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only)
+    dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only, OmegaConf.to_container(cfg.settings) if cfg.get("settings") else None)
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
     if cfg.source_store:
         layout = instantiate(cfg.task).policy_layout

@@ -33,10 +33,8 @@ KEYS = {
     "steps": Key(int, lo=1, nullable=True),
     "solver": Key(str, nullable=True),
     "segments": Key(bool),
-    "execute": Key(int, lo=1),
+    "execute": Key(int, lo=1, nullable=True),
     "control_hz": Key(float, lo=0),
-    "reach": Key(float, lo=0, nullable=True),
-    "turn_deg": Key(float, lo=0, nullable=True),
     "host": Key(str),
     "port": Key(int, lo=0, hi=65535),
     "max_message_mb": Key(float, lo=0.001, hi=1024),  # PolicyServer takes frames of at least 1024 bytes

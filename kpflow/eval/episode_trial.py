@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from kpflow.policies.base import Policy
+from kpflow.policies.settings import effective_settings
 from kpflow.tasks.base import TrialResult
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import SPLITS, STANDARD_FIRST_SEED
@@ -95,4 +96,6 @@ class EpisodeTrial:
         return TrialResult(condition, index, dict(variant), config.as_dict(), result.success, failure, scores, {"result": result})
 
     def describe(self) -> dict:
-        return {"policy": self.policy_name}
+        """The policy's name and the settings it acts with (:func:`~kpflow.policies.settings.effective_settings`), and
+        the step limit of each condition."""
+        return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": {c: self.steps_limit(c) for c in self.conditions}}

@@ -9,6 +9,7 @@ task's ``max_steps``.
 from __future__ import annotations
 
 from kpflow.policies.base import Policy
+from kpflow.policies.settings import effective_settings
 from kpflow.tasks.base import GymTask, TrialResult
 from kpflow.tasks.gym_rollout import run_gym_episode
 
@@ -48,4 +49,4 @@ class GymPolicyTrial:
         return TrialResult(condition, index, dict(variant), {"seed": scene_seed}, episode.success, failure, scores)
 
     def describe(self) -> dict:
-        return {"policy": self.policy_name, "max_steps": self.max_steps}
+        return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": self.max_steps}

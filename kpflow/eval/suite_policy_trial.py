@@ -9,6 +9,7 @@ keypoints come from the task's perception (``keypoints=sim`` or ``keypoints=came
 from __future__ import annotations
 
 from kpflow.policies.base import Policy
+from kpflow.policies.settings import effective_settings
 from kpflow.tasks.base import TrialResult
 from kpflow.tasks.suite.rollout import run_policy_episode
 from kpflow.tasks.suite.task import SuiteTask
@@ -43,4 +44,5 @@ class SuitePolicyTrial:
         return TrialResult(condition, index, dict(variant), scene.as_dict(), episode.success, failure, scores)
 
     def describe(self) -> dict:
-        return {"policy": self.policy_name, "max_steps": self.max_steps, "keypoints": self.task.keypoints.kind}
+        return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": self.max_steps,
+                "keypoints": self.task.keypoints.kind}  # fmt: skip

@@ -112,25 +112,28 @@ def _map_factory(make_map, layout: PolicyLayout, fit: tuple[int, ...] | None, wh
     return make_map
 
 
-def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,
               reach: float | None = None, turn_deg: float | None = None, solver: str | None = None):  # fmt: skip
-    """A loaded K-CFM as a policy (:class:`~.kcfm_policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``;
-    ``steps``/``solver`` None: the checkpoint's own sampling settings."""
+    """A loaded K-CFM as a policy (:class:`~.kcfm_policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``; None:
+    the checkpoint's own settings (:mod:`.settings`; ``reach``/``turn_deg`` False: the goal as observed)."""
     from .kcfm_policy import KCFMPolicy
 
-    return within_reach(KCFMPolicy(model, steps, execute, input_margin, solver), layout, reach, turn_deg)
+    limits = model.settings.given(reach=reach, turn_deg=turn_deg)
+    return within_reach(KCFMPolicy(model, steps, execute, input_margin, solver), layout, limits.reach, limits.turn_deg)
 
 
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
-                          steps: int | None = None, execute: int = 8, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
+                          steps: int | None = None, execute: int | None = None, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
                           solver: str | None = None, segments: bool = False, **choice):  # fmt: skip
     """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`), phase
-    by phase with ``segments`` (the layout's phases)."""
+    by phase with ``segments`` (the layout's phases); ``steps``, ``solver``, ``execute``, ``reach`` and ``turn_deg`` as
+    in :func:`make_kcfm`."""
     from .transported_kcfm import TransportedKCFMPolicy
 
     policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
-    return within_reach(policy, layout, reach, turn_deg)
+    limits = model.settings.given(reach=reach, turn_deg=turn_deg)
+    return within_reach(policy, layout, limits.reach, limits.turn_deg)
 
 
 def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, weights: Mapping | None = None,
@@ -152,7 +155,7 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
     return TransportPolicy(source_index(demos, layout, horizon, weights, frame), make_map, execute, fit_on=fit, layout=layout, **options)
 
 
-def kcfm(checkpoint: str, task, steps: int | None = None, execute: int = 8, reach: float | None = None, turn_deg: float | None = None,
+def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = None, reach: float | None = None, turn_deg: float | None = None,
          input_margin: float | None = INPUT_MARGIN, solver: str | None = None):  # fmt: skip
     """The K-CFM at ``checkpoint`` for ``task`` (:func:`make_kcfm`; ``steps``/``solver`` None: the checkpoint's); a
     checkpoint trained on another task's keypoints or actions is refused here, naming both layouts
@@ -165,7 +168,7 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int = 8, reac
 
 
 def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
-                     steps: int | None = None, execute: int = 8, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
+                     steps: int | None = None, execute: int | None = None, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
                      fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
                      input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False, **options):  # fmt: skip
     """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the

@@ -46,6 +46,7 @@ import torch
 from kpflow.maps.affine import fit_affine
 from kpflow.policies.checks import INPUT_MARGIN
 from kpflow.policies.objectives import build_objective
+from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
 from kpflow.policies.transformer1d import ConditionalTransformer1D
 from kpflow.policies.unet1d import ConditionalUnet1D
 
@@ -254,6 +255,7 @@ class KCFM(lightning.LightningModule):
         self.register_buffer("action_center", torch.zeros(action_dim))
         self.register_buffer("action_scale", torch.ones(action_dim))
         self.register_buffer("stats_set", torch.tensor(False))
+        self.settings = PolicySettings()  # how it acts once released (kpflow/policies/settings.py): read from its checkpoint
 
     # ------------------------------------------------------------------------------------ normalisation
 
@@ -587,11 +589,16 @@ class KCFM(lightning.LightningModule):
                     f"{_BOX_STDS:g} std, widened by input_margin={input_margin:g} times its extent on each side); refusing to act on it"
                 )
 
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Read the settings a released checkpoint carries (:class:`~kpflow.policies.settings.PolicySettings`)."""
+        self.settings = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY))
+
     def sampler(self, steps: int | None = None, solver: str | None = None) -> tuple[int, str]:
-        """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the model's ``sample_steps`` and
-        ``solver`` (checkpoints from before those settings: 10 calls of the objective's first solver)."""
-        steps = int(self.hparams.get("sample_steps", 10)) if steps is None else steps
-        solver = solver if solver is not None else self.hparams.get("solver") or self.objective.solvers[0]
+        """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the released settings' (:attr:`settings`),
+        else the model's ``sample_steps`` and ``solver`` (checkpoints from before those: 10 calls of the objective's
+        first solver)."""
+        steps = steps if steps is not None else self.settings.steps or int(self.hparams.get("sample_steps", 10))
+        solver = solver if solver is not None else self.settings.solver or self.hparams.get("solver") or self.objective.solvers[0]
         check_sampler(self.objective, steps, solver)
         return int(steps), solver
 

@@ -39,13 +39,16 @@ def traced_network(model: KCFM) -> TracedNetwork:
     return traced
 
 
-def check_steps_and_execute(model: KCFM, steps: int | None, execute: int, solver: str | None = None) -> None:
+def check_steps_and_execute(model: KCFM, steps: int | None, execute: int | None, solver: str | None = None) -> int:
     """Raise ``ValueError`` unless ``steps`` (None: the model's) and ``solver`` suit the model's objective
-    (:meth:`KCFM.sampler`) and ``execute`` is in ``1..horizon``."""
+    (:meth:`KCFM.sampler`) and ``execute`` (None: the checkpoint's setting, else 8) is in ``1..horizon``; returns
+    ``execute``."""
     model.sampler(steps, solver)
+    execute = model.settings.actions if execute is None else execute
     horizon = int(model.hparams.horizon)
     if isinstance(execute, bool) or not isinstance(execute, (int, np.integer)) or not 1 <= execute <= horizon:
         raise ValueError(f"execute must be an integer in 1..{horizon} (the model's chunk length); got {execute!r}")
+    return int(execute)
 
 
 class KCFMPolicy:
@@ -54,8 +57,9 @@ class KCFMPolicy:
     Args:
         model: a trained K-CFM (put in eval mode).
         steps: network calls per chunk (solver steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``); None:
-            the model's ``sample_steps``.
-        execute: how many of the chunk's ``horizon`` actions :meth:`act` returns.
+            the checkpoint's setting, else the model's ``sample_steps``.
+        execute: how many of the chunk's ``horizon`` actions :meth:`act` returns (None: the checkpoint's setting,
+            :mod:`~kpflow.policies.settings`, else 8).
         input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the
             box on each side (:meth:`KCFM.check_in_range`; >= 0); None: no range check.
         solver: the objective's sampler (``euler``, ``midpoint``, ``heun``; ``ddim``); None: the model's.
@@ -63,9 +67,9 @@ class KCFMPolicy:
             less time per call at batch 1); False: eagerly.
     """
 
-    def __init__(self, model: KCFM, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+    def __init__(self, model: KCFM, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,
                  solver: str | None = None, trace: bool = True) -> None:  # fmt: skip
-        check_steps_and_execute(model, steps, execute, solver)
+        execute = check_steps_and_execute(model, steps, execute, solver)
         _INPUT_MARGIN.check("input_margin", input_margin)
         self.steps, self.solver = model.sampler(steps, solver)
         self.model, self.execute = model.eval(), int(execute)
@@ -76,7 +80,7 @@ class KCFMPolicy:
         self.reset()
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, steps: int | None = None, execute: int = 8, input_margin: float | None = INPUT_MARGIN,
+    def from_checkpoint(cls, path: str | Path, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,
                         solver: str | None = None) -> "KCFMPolicy":  # fmt: skip
         """The policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         from kpflow.utils.checkpoint import load_checkpoint

@@ -128,7 +128,7 @@ class TransportedKCFMPolicy:
         make_map: builds an unfitted map with an inverse (``ILWRMap``: exact inverse, rigid alignment first).
         steps, solver: network calls per chunk and the sampler (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`;
             None: the model's own).
-        execute: how many actions of the chunk :meth:`act` returns.
+        execute: how many actions of the chunk :meth:`act` returns (None: the checkpoint's setting, else 8).
         pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
         fit_on: indices of the keypoints the map is fitted on (None: all).
@@ -150,7 +150,7 @@ class TransportedKCFMPolicy:
         index: SourceIndex,
         make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int | None = None,
-        execute: int = 8,
+        execute: int | None = None,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
@@ -190,7 +190,7 @@ class TransportedKCFMPolicy:
         index: SourceIndex,
         make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int | None = None,
-        execute: int = 8,
+        execute: int | None = None,
         pull_back: str = "agent",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,

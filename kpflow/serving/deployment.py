@@ -48,7 +48,7 @@ def load_deployment(
     task,
     transport: str | None = None,
     steps: int | None = None,
-    execute: int = 8,
+    execute: int | None = None,
     pull_back: str = "agent",
     control_hz: float = 10.0,
     fit_on: str | list[str] = "all",
@@ -74,7 +74,8 @@ def load_deployment(
     box on each side (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`; None: no range check). ``max_batch`` (1: off)
     and ``max_wait_ms``: batch the network calls of policies acting at once (:class:`~kpflow.serving.batching.BatchedNetwork`;
     a batched reply equals the unbatched one up to floating-point effects of the batch size). ``steps`` and
-    ``solver``: how the K-CFM samples (None: the checkpoint's own settings, :meth:`~kpflow.policies.kcfm.KCFM.sampler`).
+    ``solver``, ``execute``, ``reach`` and ``turn_deg``: None takes the checkpoint's own settings
+    (:mod:`kpflow.policies.settings`; ``reach``/``turn_deg`` False: the goal as observed).
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), a checkpoint of another task, an
@@ -89,7 +90,7 @@ def load_deployment(
     if transport is not None and transport not in TRANSPORT_MAPS:
         raise ValueError(f"transport must be None or one of {sorted(TRANSPORT_MAPS)}, got {transport!r}")
     model = load_checkpoint(KCFM, checkpoint, map_location="cpu")
-    check_steps_and_execute(model, steps, execute, solver)
+    execute = check_steps_and_execute(model, steps, execute, solver)
     hp = model.hparams
     if task is None:  # no task: the layout the checkpoint was trained with, without named groups
         layout = PolicyLayout(int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.action_dim))
@@ -97,7 +98,8 @@ def load_deployment(
         check_checkpoint_fits(str(checkpoint), model.hparams, task)
         layout = layout_of(task)
     k, d, n_obs = int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.n_obs)
-    limits = {name: value for name, value in (("reach", reach), ("turn_deg", turn_deg)) if value is not None}
+    shown = model.settings.given(reach=reach, turn_deg=turn_deg)  # the checkpoint's limits unless given
+    limits = {name: value for name, value in (("reach", shown.reach), ("turn_deg", shown.turn_deg)) if value is not None}
     if transport is None:
         def make_policy() -> Policy:
             return make_kcfm(model, layout, steps, execute, input_margin, reach, turn_deg, solver)
