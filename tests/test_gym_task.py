@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.eval.gym_policy_trial import EVAL_SEED, GymPolicyTrial
+from kpflow.eval.gym_policy_trial import GymPolicyTrial, scene_seed
 from kpflow.eval.reports.success import SuccessReport
 from kpflow.tasks.gym_rollout import collect_gym_episodes, run_gym_episode
 
@@ -38,7 +38,10 @@ def test_the_trial_scores_a_policy_on_evaluation_seeds():
     task = ReachTask()
     trial = GymPolicyTrial(task, task.expert(), SuccessReport(), name="expert")
     result = trial.run("default", 2, {"policy": "expert"}, seed=0)
-    assert result.success and result.failure is None and result.scene == {"seed": EVAL_SEED + 2}
+    assert result.success and result.failure is None and result.scene == {"seed": scene_seed(0, 1, 2)}
+    streams = {(s, c, i): scene_seed(s, c, i) for s in range(3) for c in (1, 2) for i in range(3)}
+    assert len(set(streams.values())) == len(streams)  # seed 1's scene 0 is not seed 0's scene 1; conditions apart
+    assert min(streams.values()) > 1000  # far from the collection seeds (0, 1, 2, ...)
     with pytest.raises(ValueError, match="has no condition 'far'"):
         task.make_env("far")
     with pytest.raises(ValueError, match="runs Gymnasium tasks"):

@@ -306,3 +306,18 @@ def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos)
             TransportPolicy(one, fit_on=bad)
     with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
         fit_on_indices(layout, ["hand"])
+
+
+def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
+    """``max_step_px`` reads where the robot is from the observed keypoints (the layout's robot; Push-T's agent, the
+    last), not from a task's own observation key: with an identical source scene the map is the identity and the
+    first target moves at most 5 px per axis from the agent keypoint."""
+    from kpflow.policies.chunk_transport import TransportPolicy, clip_steps
+
+    rng = np.random.default_rng(0)
+    keypoints = rng.uniform(0, 512, (1, 25, 2))
+    chunks = keypoints[:, -1:] + np.cumsum(rng.uniform(-20, 20, (1, 20, 2)), axis=1)
+    policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step_px=5.0)
+    moved = policy.act({"keypoints": keypoints[0].astype(np.float64)})  # no "agent_pos": not needed
+    np.testing.assert_allclose(moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3)
+    assert np.abs(moved[0] - keypoints[0, -1]).max() <= 5.0 + 1e-3

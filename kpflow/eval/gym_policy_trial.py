@@ -1,12 +1,16 @@
 """A Gymnasium task's policy trial: one closed-loop episode of a policy in a seeded scene of a
 :class:`~kpflow.tasks.base.GymTask` (``kpflow-evaluate experiment=gym_policy task=<task> policy=kcfm ...``).
 
-Scene ``i`` of a condition is the env's ``reset(seed=EVAL_SEED + seed + i)``: the evaluation stream starts far from the
-seeds ``kpflow-collect`` draws demonstrations with (0, 1, 2, ...). Success is the env's ``info["is_success"]`` within the
-task's ``max_steps``.
+Scene ``i`` of a condition is the env's ``reset(seed=s)`` with ``s`` 32 bits of numpy's ``SeedSequence((EVAL_SEED +
+seed, c, i))``, ``c`` the condition's number (from 1): the same key Push-T's splits and the robosuite tasks seed their
+scenes with (:func:`scene_seed`). Each run seed has its own stream (seed 1's scene 0 is not seed 0's scene 1), each
+condition its own, and none meets the seeds ``kpflow-collect`` draws demonstrations with (0, 1, 2, ...) but by a
+2^-32 chance. Success is the env's ``info["is_success"]`` within the task's ``max_steps``.
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 from kpflow.policies.base import Policy
 from kpflow.policies.settings import effective_settings
@@ -14,6 +18,12 @@ from kpflow.tasks.base import GymTask, TrialResult
 from kpflow.tasks.gym_rollout import run_gym_episode
 
 EVAL_SEED = 1_000_000
+
+
+def scene_seed(seed: int, condition: int, index: int) -> int:
+    """The reset seed of evaluation scene ``index`` of condition number ``condition`` for run ``seed`` (module
+    docstring)."""
+    return int(np.random.SeedSequence([EVAL_SEED + int(seed), int(condition), int(index)]).generate_state(1)[0])
 
 
 class GymPolicyTrial:
@@ -42,11 +52,11 @@ class GymPolicyTrial:
         key = (condition, frames is not None)
         if key not in self.envs:
             self.envs[key] = self.task.make_env(condition, render=frames is not None)
-        scene_seed = EVAL_SEED + seed + index
-        episode = run_gym_episode(self.envs[key], self.policy, scene_seed, self.max_steps, frames)
+        reset_seed = scene_seed(seed, self.conditions.index(condition) + 1, index)
+        episode = run_gym_episode(self.envs[key], self.policy, reset_seed, self.max_steps, frames)
         failure = None if episode.success else "time limit"
         scores = {"steps": episode.steps, "decisions": episode.decisions}
-        return TrialResult(condition, index, dict(variant), {"seed": scene_seed}, episode.success, failure, scores)
+        return TrialResult(condition, index, dict(variant), {"seed": reset_seed}, episode.success, failure, scores)
 
     def describe(self) -> dict:
         return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": self.max_steps}

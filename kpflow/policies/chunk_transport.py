@@ -17,7 +17,8 @@ one does, so the chunk's push relative to the block is the one to make.
 
 Choosing the source: :class:`~.source_choice.SourceChoice` (the nearest, or a draw among the nearest, and stuck
 detection). ``max_step_px`` clips each executed step: target ``j`` moves at most that far per axis from target
-``j - 1`` (from the agent for the first), as the authors' code clips actions to +-5 px.
+``j - 1`` (from the robot's observed keypoints, their centroid, for the first), as the authors' code clips Push-T's
+actions to +-5 px.
 """
 
 from __future__ import annotations
@@ -112,7 +113,7 @@ class TransportPolicy:
         self.source = SourceChoice(index, **choice)
         self.fit_on = fitted_keypoints(fit_on, index.keypoints.shape[1])
         self.index, self.make_map, self.execute, self.max_step_px = index, make_map, execute, max_step_px
-        self.rotation = layout_or_default(layout, index.keypoints.shape[1])[1]
+        self.robot, self.rotation = layout_or_default(layout, index.keypoints.shape[1])
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
 
@@ -128,6 +129,7 @@ class TransportPolicy:
         phi = self.make_map().fit(torch.from_numpy(source[self.fit_on]), torch.from_numpy(target[self.fit_on]))
         self.last_source, self.last_map = i, phi
         moved = transport_chunk(phi, self.index.chunks[i, : self.execute], source.shape[1], self.rotation)
-        if self.max_step_px is not None:
-            moved = clip_steps(np.asarray(obs["agent_pos"], np.float64), moved, self.max_step_px)
+        if self.max_step_px is not None:  # the positions, from where the robot's keypoints are now
+            dim = source.shape[1]
+            moved[:, :dim] = clip_steps(target[self.robot].mean(0), moved[:, :dim], self.max_step_px)
         return moved
