@@ -5,6 +5,7 @@ keypoint at 1e300 px (finite), and a real checkpoint whose last layer's finite w
 evaluation splits (object_ood, robot_ood: the large workspace) stay accepted by the released checkpoints. Real
 K-CFMs (the released ones, a tiny one trained here), real servers on port 0; no mocks."""
 
+import functools
 from pathlib import Path
 
 import lightning
@@ -15,6 +16,7 @@ import torch
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
+from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.checks import INPUT_MARGIN, check_actions
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm import KCFM
@@ -165,9 +167,10 @@ def test_served_policies_reply_with_an_error_naming_the_cause(tiny):
     """Through real servers: the 1e300 scene (plain and transported K-CFM) and the overflowing checkpoint get error
     replies naming the cause, and each connection goes on serving."""
     good, overflow, _ = tiny
-    for path, transport, obs, match in ((good, None, HUGE, FAR), (good, "ilwr", HUGE, FAR),
-                                        (overflow, None, scene(), NOT_FINITE), (overflow, "rigid", scene(), NOT_FINITE)):  # fmt: skip
-        deployment = load_deployment(path, PushTTask(), transport, steps=2, execute=4)
+    rigid = functools.partial(AffineMap, kind="rigid")
+    for path, make_map, obs, match in ((good, None, HUGE, FAR), (good, ILWRMap, HUGE, FAR),
+                                       (overflow, None, scene(), NOT_FINITE), (overflow, rigid, scene(), NOT_FINITE)):  # fmt: skip
+        deployment = load_deployment(path, PushTTask(), make_map, steps=2, execute=4)
         with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
             with pytest.raises(PolicyServerError, match=match):
                 client.act(obs)

@@ -20,6 +20,7 @@ import pytest
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
+from kpflow.maps import ILWRMap
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
@@ -250,13 +251,13 @@ def test_graceful_shutdown_finishes_requests_then_says_going_away(released):
 def test_transported_policy_is_served_with_its_source_index(tiny_run):
     checkpoint, index = tiny_run
     with pytest.raises(FileNotFoundError, match="source_index.npz"):
-        load_deployment(checkpoint, PushTTask(), transport="ilwr")
+        load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr")
     index.save(source_index_path(checkpoint))
     loaded = SourceIndex.load(source_index_path(checkpoint))
     for a, b in ((loaded.keypoints, index.keypoints), (loaded.chunks, index.chunks), (loaded.weights, index.weights)):
         np.testing.assert_array_equal(a, b)
     assert loaded.reference == index.reference
-    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4)
+    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4)
     assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
@@ -265,7 +266,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
-    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
+    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), local.reset(2)
@@ -273,7 +274,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
             np.testing.assert_array_equal(client.act(obs), local.act(obs))
         assert local.source.stuck_count == 1
     # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
-    deployment = load_deployment(checkpoint, PushTTask(), transport="ilwr", steps=4, fit_on=["block", "agent"], choice=choice, reach=60, turn_deg=30)
+    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["block", "agent"], choice=choice, reach=60, turn_deg=30)
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
     limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
@@ -284,9 +285,9 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(served, limited.act(far))
         assert not np.array_equal(served, local.act(far))  # the goal, 180 px off and turned 2.2 rad, was moved
     with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
-        load_deployment(checkpoint, PushTTask(), transport="ilwr", fit_on=["hand"])
-    with pytest.raises(ValueError, match="transport must be"):
-        load_deployment(checkpoint, PushTTask(), transport="spline")
+        load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", fit_on=["hand"])
+    with pytest.raises(ValueError, match="make_map must be a factory of unfitted maps"):
+        load_deployment(checkpoint, PushTTask(), make_map="spline")
 
 
 def test_kcfm_within_reach_is_served_as_it_acts_in_process():
@@ -363,6 +364,6 @@ def test_serve_cli_answers_then_stops_on_sigterm():
 
 
 def test_serve_cli_refuses_a_bad_config():
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "transport=spline"], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "transported=maybe"], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert done.returncode != 0 and "transport must be one of" in done.stderr
+    assert done.returncode != 0 and "config key transported must be true or false" in done.stderr

@@ -1,7 +1,8 @@
-"""Serve a trained policy: ``kpflow-serve checkpoint=PATH [transport=ilwr] [host=0.0.0.0 port=8000]``.
+"""Serve a trained policy: ``kpflow-serve checkpoint=PATH [transported=true map=ilwr] [host=0.0.0.0 port=8000]``.
 
-Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (transported online through a map with
-``transport=...``, its source index read from ``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
+Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (with ``transported=true``
+transported online through ``map=``, the same map group as kpflow-evaluate's, its source index read from
+``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
 Connect with :class:`~kpflow.serving.client.PolicyClient`.
 
 The config keys, then the host and port (the host must resolve and the port bind), are checked before the model is
@@ -18,10 +19,11 @@ import logging
 
 import hydra
 import torch
+from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from kpflow.serving.deployment import TRANSPORT_MAPS, load_deployment
+from kpflow.serving.deployment import load_deployment
 from kpflow.serving.server import PolicyServer, check_address
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command
@@ -29,7 +31,7 @@ from kpflow.utils.errors import command
 log = logging.getLogger("kpflow.serve")
 KEYS = {
     "checkpoint": Key(str),
-    "transport": Key(str, choices=tuple(TRANSPORT_MAPS), nullable=True),
+    "transported": Key(bool),
     "steps": Key(int, lo=1, nullable=True),
     "solver": Key(str, nullable=True),
     "segments": Key(bool),
@@ -53,10 +55,11 @@ def main(cfg: DictConfig) -> None:
     torch.set_num_threads(cfg.threads)
     fit_on = OmegaConf.to_container(cfg.fit_on) if isinstance(cfg.fit_on, ListConfig) else cfg.fit_on
     choice = OmegaConf.to_container(cfg.source)
+    make_map, map_name = (instantiate(cfg.map), HydraConfig.get().runtime.choices.get("map")) if cfg.transported else (None, None)
     deployment = load_deployment(
-        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, cfg.transport, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
+        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, make_map, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
         cfg.reach, cfg.turn_deg, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms), cfg.solver,
-        cfg.segments,
+        cfg.segments, map_name,
     )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     batching = f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait" if cfg.batch.max_size > 1 else "no batching"

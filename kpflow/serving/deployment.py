@@ -17,15 +17,12 @@ from pathlib import Path
 from typing import Callable
 
 from ..data.source_index import SourceIndex
-from ..maps import AffineMap, GPMap, ILWRMap
+from ..maps.base import TransportMap
 from ..policies.base import Policy, PolicyLayout
 from ..policies.checks import INPUT_MARGIN
 from ..policies.factory import source_index_path
 from .batching import DEFAULT_MAX_WAIT_MS, BatchedNetwork, BatchedPolicy, check_batching
 from .protocol import PolicyMetadata
-
-#: The maps a transported K-CFM can be served with (``transport=...``); each has an inverse.
-TRANSPORT_MAPS: dict[str, Callable] = {"ilwr": ILWRMap, "gp": GPMap, "rigid": lambda: AffineMap(kind="rigid")}
 
 
 @dataclass(frozen=True)
@@ -46,7 +43,7 @@ def sha256(path: str | Path) -> str:
 def load_deployment(
     checkpoint: str | Path,
     task,
-    transport: str | None = None,
+    make_map: Callable[[], TransportMap] | None = None,
     steps: int | None = None,
     execute: int | None = None,
     pull_back: str = "agent",
@@ -60,10 +57,12 @@ def load_deployment(
     max_wait_ms: float = DEFAULT_MAX_WAIT_MS,
     solver: str | None = None,
     segments: bool = False,
+    map_name: str | None = None,
 ) -> Deployment:
     """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit; None: a policy trained on
     data of no kpflow task, served with the keypoints and actions its checkpoint declares), ready to serve,
-    transported online through a ``transport`` map (``"ilwr"``, ``"gp"``, ``"rigid"``; the source index is read from
+    transported online through maps from ``make_map`` (a factory of unfitted maps with an inverse: what ``map=``
+    builds in kpflow-evaluate and kpflow-serve, ``map_name`` naming it in the metadata; the source index is read from
     beside the checkpoint) or as it is (None). Built by the one policy builder (:mod:`kpflow.policies.factory`):
     a transported one fits its map on ``fit_on`` (group or role names of the task's layout, or ``"all"``; with
     ``segments``, phase by phase as the task declares its phases) and
@@ -79,16 +78,17 @@ def load_deployment(
 
     Raises ``FileNotFoundError`` for a missing checkpoint or source index and ``ValueError`` naming the problem for
     an unusable one (see :func:`~kpflow.utils.checkpoint.read_checkpoint`), a checkpoint of another task, an
-    unknown map or keypoint group, a ``max_batch`` below 1 or a negative ``max_wait_ms``.
+    unknown keypoint group, a map factory that is not callable, a ``max_batch`` below 1 or a negative ``max_wait_ms``.
     """
+    from ..maps.learned import check_map_factory
     from ..policies.factory import check_checkpoint_fits, fit_on_indices, layout_of, make_kcfm, make_transported_kcfm
     from ..policies.kcfm import KCFM
     from ..policies.kcfm_policy import check_steps_and_execute
     from ..utils.checkpoint import load_checkpoint
 
     check_batching(max_batch, max_wait_ms)
-    if transport is not None and transport not in TRANSPORT_MAPS:
-        raise ValueError(f"transport must be None or one of {sorted(TRANSPORT_MAPS)}, got {transport!r}")
+    if make_map is not None and not callable(make_map):
+        raise ValueError(f"make_map must be a factory of unfitted maps (e.g. kpflow.maps.ILWRMap) or None, got {type(make_map).__name__}")
     model = load_checkpoint(KCFM, checkpoint, map_location="cpu")
     execute = check_steps_and_execute(model, steps, execute, solver)
     hp = model.hparams
@@ -100,18 +100,19 @@ def load_deployment(
     k, d, n_obs = int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.n_obs)
     shown = model.settings.given(reach=reach, turn_deg=turn_deg)  # the checkpoint's limits unless given
     limits = {name: value for name, value in (("reach", shown.reach), ("turn_deg", shown.turn_deg)) if value is not None}
-    if transport is None:
+    if make_map is None:
         def make_policy() -> Policy:
             return make_kcfm(model, layout, steps, execute, input_margin, reach, turn_deg, solver)
         name = "kcfm"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
-        make_map, fit, options = TRANSPORT_MAPS[transport], fit_on_indices(layout, fit_on), dict(choice or {})
+        fit, options = fit_on_indices(layout, fit_on), dict(choice or {})
+        check_map_factory(make_map, len(fit) if fit else layout.n_keypoints, layout.keypoint_dim, "the served transported K-CFM")
 
         def make_policy() -> Policy:
             return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver,
                                          segments, **options)  # fmt: skip
-        name = f"transported_kcfm/{transport}"
+        name = f"transported_kcfm/{map_name or getattr(make_map, '__name__', type(make_map).__name__)}"
     network = None
     if max_batch > 1:
         network = model.ema_net = BatchedNetwork(model.ema_net, int(max_batch), float(max_wait_ms), trace=True)
