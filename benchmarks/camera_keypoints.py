@@ -42,8 +42,8 @@ import torch
 
 from kpflow.eval.generation import SOURCE_SEED
 from kpflow.eval.stats import wilson_interval
+from kpflow.geometry.angles import yaw_of
 from kpflow.maps import match_keypoints
-from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.suite.cameras import SuiteCameras
 from kpflow.tasks.suite.env import SuiteEnv
 from kpflow.tasks.suite.keypoints import scene_keypoints

@@ -58,9 +58,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from kpflow.eval import metrics  # noqa: E402
+from kpflow.geometry.rotations import nearest_rotation  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap, LearnedMap  # noqa: E402
 from kpflow.maps.base import TransportMap  # noqa: E402
-from kpflow.rotations import nearest_rotation  # noqa: E402
 from kpflow.tasks.frames import end_heading  # noqa: E402
 from kpflow.utils.io import write_text  # noqa: E402
 
@@ -208,7 +208,7 @@ def final_orientation(transport: Transport, case: Case, h: float) -> np.ndarray:
 def rotation_error(r: np.ndarray, truth: np.ndarray, turns: int) -> float:
     """Angle between ``r`` and ``truth``, the least over the ``turns`` yaw turns that leave the reference object looking
     the same (``turns`` 0: any yaw, searched in steps of half a degree)."""
-    from kpflow.tasks.suite.keypoints import yaw_rotation  # robosuite's package: only for the suite's cases
+    from kpflow.geometry.angles import yaw_rotation  # robosuite's package: only for the suite's cases
 
     n = turns if turns > 0 else 720
     turned = np.stack([yaw_rotation(2 * math.pi * k / n) @ r for k in range(n)])

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.suite.keypoints import SYMMETRY, object_keypoints
 from kpflow.tasks.suite.specs import task_spec
 from kpflow.utils.formats import read_npz

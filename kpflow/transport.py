@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import torch
 
+from kpflow.geometry.rotations import matrix_to_quat, nearest_rotation, quat_to_matrix
 from kpflow.maps.base import TransportMap
-from kpflow.rotations import matrix_to_quat, nearest_rotation, quat_to_matrix
 
 
 def transport_positions(phi: TransportMap, x: torch.Tensor) -> torch.Tensor:

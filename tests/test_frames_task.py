@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from kpflow.rotations import so3_exp, so3_log
+from kpflow.geometry.rotations import so3_exp, so3_log
 from kpflow.tasks.frames import (
     LASA_SHAPES,
     Demonstration,

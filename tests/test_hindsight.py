@@ -110,7 +110,7 @@ def test_human_demonstrations_reach_their_goals_only_in_hindsight(tmp_path):
         pytest.skip(f"standard Push-T dataset not found at {PUSHT}")
     import torch
 
-    from kpflow.maps.affine import fit_affine
+    from kpflow.geometry.alignment import fit_affine
     from kpflow.tasks.pusht.geometry import T_KEYPOINTS
     from kpflow.tasks.pusht.replay_import import import_pusht_replay
 

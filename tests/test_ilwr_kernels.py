@@ -99,8 +99,8 @@ def test_the_torch_path_keeps_what_the_kernels_do_not_cover():
 @pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("seed", range(4))
 def test_the_compiled_alignment_is_fit_affine(kind, d, seed):
-    """``align`` is the compiled form of :func:`~kpflow.maps.affine.fit_affine` for one pair: the same A and t."""
-    from kpflow.maps.affine import fit_affine
+    """``align`` is the compiled form of :func:`~kpflow.geometry.alignment.fit_affine` for one pair: the same A and t."""
+    from kpflow.geometry.alignment import fit_affine
 
     src, tgt = pair(seed, n=9, d=d)
     finfo = torch.finfo(torch.float64)

@@ -10,8 +10,9 @@ PACKAGE = ROOT / "kpflow"
 # Lowest first. A module's layer is that of its first dotted part under kpflow (kpflow.tasks.pusht.env -> tasks).
 LAYERS = [
     {"utils"},
+    {"geometry"},  # the one rigid fit, rotations, planar angles: below every map
     {"maps"},
-    {"transport", "rotations", "trajectory"},
+    {"transport", "trajectory"},
     {"vision"},
     {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
     {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it

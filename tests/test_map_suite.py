@@ -107,7 +107,7 @@ def test_suite_recordings_round_trip_and_pair_in_the_sources_order(tmp_path):
     source, target = sr.keypoint_pair(recs[0].segments[0], recs[1].segments[0])
     assert source.shape == target.shape == (9, 3)  # the cube's 8 corners and the grip site
     # ordered by the source's yaw: the rigid fit of the corners turns by at most 45 degrees
-    from kpflow.maps.affine import fit_affine
+    from kpflow.geometry.alignment import fit_affine
 
     r, _ = fit_affine(torch.as_tensor(source[None, :8]), torch.as_tensor(target[None, :8]), "rigid")
     assert math.degrees(math.acos((float(torch.trace(r[0])) - 1) / 2)) <= 45.0 + 1e-6

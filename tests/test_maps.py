@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from kpflow.geometry.alignment import fit_affine
 from kpflow.maps import AffineMap, EnsembleMap, FlowMap, GPMap, ILWRMap, MLPMap
-from kpflow.maps.affine import fit_affine
 from kpflow.maps.base import jacobian_autograd
 from tests.helpers import grid, keypoint_pair, rotation
 

@@ -14,9 +14,9 @@ import yaml
 
 from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.packing import PackingReport, box_corner_error
+from kpflow.geometry.angles import yaw_of
 from kpflow.maps import AffineMap, GPMap, ILWRMap
 from kpflow.policies.demo_transport import DemoTransportPolicy
-from kpflow.tasks.arm.motion import yaw_of
 from kpflow.tasks.packing.demonstrator import execute
 from kpflow.tasks.packing.env import START_POS
 from kpflow.tasks.packing.keypoints import GROUPS, LIFT, N_KEYPOINTS, packing_keypoints

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 from kpflow.data.source_index import SourceIndex
+from kpflow.geometry.rotations import matrix_to_rot6d
 from kpflow.maps import ILWRMap
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.phases import Grip, Phase, Phases
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
-from kpflow.rotations import matrix_to_rot6d
 from tests.helpers import cube_corners as _cube
 from tests.helpers import yaw_matrix as _yaw
 
@@ -218,7 +218,7 @@ def test_in_robosuites_stack_the_phase_switches_at_the_grasp_and_back_at_the_rel
     """The scripted Stack demonstration in a d0 scene: the phase read from the keypoints a policy observes is ``pick``
     until the jaws have closed on cube A (after the close is commanded, before the lift ends), ``place`` while it is
     carried, and ``pick`` again once the jaws open over cube B; the simulator's own grasp check agrees at both ends."""
-    from kpflow.tasks.arm.motion import yaw_of
+    from kpflow.geometry.angles import yaw_of
     from kpflow.tasks.suite.demonstrator import plan_segment
     from kpflow.tasks.suite.task import SuiteTask
 

@@ -14,7 +14,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kpflow.maps.affine import fit_affine
+from kpflow.geometry.alignment import fit_affine
+from kpflow.geometry.angles import wrap_angle
 from kpflow.tasks.pusht import (
     ENV_IDS,
     FIXED_GOAL,
@@ -39,7 +40,6 @@ from kpflow.tasks.pusht.geometry import (
     outline_coverage,
     t_polygon,
     to_world,
-    wrap_angle,
 )
 from kpflow.tasks.pusht.physics import block_mass_properties
 from kpflow.tasks.pusht.render import AGENT, BLOCK, GOAL, KEYPOINT, REGION, WHITE

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.suite.cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
 from kpflow.tasks.suite.env import SuiteEnv
 from kpflow.tasks.suite.keypoints import cube_half, scene_keypoints

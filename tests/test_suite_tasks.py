@@ -355,7 +355,7 @@ def _rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """``(R, t)`` of the rigid fit (``fit_affine(..., "rigid")``) of one pair ``[N, 3]``, as numpy."""
     import torch
 
-    from kpflow.maps.affine import fit_affine
+    from kpflow.geometry.alignment import fit_affine
 
     rot, t = fit_affine(torch.as_tensor(source[None]), torch.as_tensor(target[None]), "rigid")
     return rot[0].numpy(), t[0].numpy()
@@ -388,7 +388,7 @@ def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
 
 
 def test_the_six_dimensional_rotation_round_trips():
-    from kpflow.rotations import matrix_to_rot6d, rot6d_to_matrix
+    from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 
     rotations = Rotation.random(20, random_state=2).as_matrix()
     np.testing.assert_allclose(rot6d_to_matrix(matrix_to_rot6d(rotations)), rotations, atol=1e-12)
@@ -422,7 +422,7 @@ def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_it
 
 
 def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
-    from kpflow.tasks.arm.motion import yaw_of
+    from kpflow.geometry.angles import yaw_of
     from kpflow.tasks.suite.demonstrator import MAX_PLACE_TURN, jaws_down, path_cost
 
     task, env = worlds["square"][:2]

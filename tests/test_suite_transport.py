@@ -13,13 +13,13 @@ import pytest
 import torch
 
 from kpflow.data.source_index import SourceIndex
+from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.chunk_transport import TransportPolicy, transport_chunk
 from kpflow.policies.kcfm import KCFM
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-from kpflow.rotations import matrix_to_rot6d, rot6d_to_matrix
 from tests.helpers import cube_corners as _cube
 from tests.helpers import yaw_matrix as _yaw
 

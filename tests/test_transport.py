@@ -1,4 +1,4 @@
-"""What moves through a transportation map (kpflow.transport) and the rotation helpers (kpflow.rotations),
+"""What moves through a transportation map (kpflow.transport) and the rotation helpers (kpflow.geometry.rotations),
 checked against closed-form expectations, finite differences and scipy."""
 
 import math
@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from kpflow.geometry.rotations import matrix_to_quat, nearest_rotation, quat_to_matrix
 from kpflow.maps import AffineMap, GPMap, ILWRMap
-from kpflow.rotations import matrix_to_quat, nearest_rotation, quat_to_matrix
 from kpflow.transport import (
     TransportedTrajectory,
     transport_covariances,

@@ -7,7 +7,7 @@ a squared Euclidean distance between flat feature vectors ``f``, and ``|f - g|^2
 query one matrix-vector product over all sources (BLAS, float32).
 
 With ``reference`` keypoints (Push-T: the block's 12) every set is first moved rigidly so that its reference
-keypoints best match (Kabsch: :func:`~kpflow.maps.affine.fit_affine`) those of the first source: configurations are
+keypoints best match (Kabsch: :func:`~kpflow.geometry.alignment.fit_affine`) those of the first source: configurations are
 then compared by where things are relative to the object, whatever the object's pose in the workspace. That is what
 makes a demonstrated chunk transportable to a block somewhere else: the map takes care of the rigid motion.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..maps.affine import fit_affine
+from ..geometry.alignment import fit_affine
 from ..utils.config_checks import Key
 from ..utils.formats import read_npz
 from ..utils.io import atomic_path

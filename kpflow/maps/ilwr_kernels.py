@@ -1,7 +1,7 @@
 """ILWR's fit, forward pass, inverse and Jacobian for one keypoint set as fused loops (numba), the CPU fast path of
 :class:`~kpflow.maps.ilwr.ILWRMap`.
 
-They compute what :func:`~kpflow.maps.affine.fit_affine` (rigid, similarity, translation),
+They compute what :func:`~kpflow.geometry.alignment.fit_affine` (rigid, similarity, translation),
 :func:`~kpflow.maps.ilwr.fit_steps`, :func:`~kpflow.maps.ilwr.apply_steps`, :func:`~kpflow.maps.ilwr.invert_steps` and
 the Jacobian compute (the same candidates, the same
 first-minimum choice, the same clamped weights), in float64, in a few compiled passes instead of some twenty tensor
@@ -132,7 +132,7 @@ ALIGN_KINDS = {"rigid": 0, "similarity": 1, "translation": 2}
 
 @numba.njit(cache=True)
 def align(source, target, kind, eps, tiny):  # pragma: no cover  (compiled)
-    """The compiled form of :func:`kpflow.maps.affine.fit_affine` (unweighted) for one pair ``[N, D]``, the fast path
+    """The compiled form of :func:`kpflow.geometry.alignment.fit_affine` (unweighted) for one pair ``[N, D]``, the fast path
     of :class:`~kpflow.maps.affine.AlignedMap` (``kind`` a code of ``ALIGN_KINDS``; the same Umeyama steps in units of
     the sources' RMS spread, where ``fit_affine`` turns a 2-D rigid fit by the closed-form angle of the same rotation;
     ``tests/test_ilwr_kernels.py`` checks they agree to rounding): ``(A [D, D], t [D], ok)``. ``ok`` is False where the sources

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import lightning
 import torch
 
-from kpflow.maps.affine import KINDS, fit_affine
+from kpflow.geometry.alignment import KINDS, fit_affine
 from kpflow.maps.conditional_flow import ConditionalFlow, normalise
 
 

@@ -5,7 +5,7 @@
 * :class:`PolicyLayout`: what a task shows its learned policies and takes back: ``n_keypoints`` keypoints in
   ``keypoint_dim``-D, named keypoint ``groups`` with their roles (``objects``, ``goals``, ``robot``), and actions of
   ``action_dim`` values whose first ``keypoint_dim`` are a position in the keypoints' space, followed by a 6-D
-  rotation (:mod:`kpflow.rotations`) when ``rotation`` is set; the rest (a gripper) is not spatial. A task declares
+  rotation (:mod:`kpflow.geometry.rotations`) when ``rotation`` is set; the rest (a gripper) is not spatial. A task declares
   it (``task.policy_layout``); transporting policies read from it what a map moves and what it leaves alone, and,
   where the task declares them, its ``phases`` (:mod:`.phases`: which object the transport follows before and after
   a grasp).

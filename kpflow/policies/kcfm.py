@@ -20,7 +20,7 @@ keypoints, each standardised with the same per-coordinate statistics and flatten
 tasks: which keypoints are the goal's, and their ``template``, where they lie in the goal's own body frame; the task's
 config gives it, e.g. :func:`kpflow.tasks.pusht.geometry.goal_frame`) every frame is first expressed in the frame of
 the current goal, the rigid fit ``(R, p) = argmin_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` of the template
-``k_i`` onto the observed goal keypoints ``g_i`` (:func:`~kpflow.maps.affine.fit_affine`, ``"rigid"``): then the
+``k_i`` onto the observed goal keypoints ``g_i`` (:func:`~kpflow.geometry.alignment.fit_affine`, ``"rigid"``): then the
 policy is equivariant to rotating and translating the whole scene by construction. With an ``origin`` (any dimension:
 the index of the robot's keypoint, e.g. a gripper's grip site) every frame is instead translated by minus that keypoint
 of the current frame, ``k_i - k_o``, and the actions' positions (their first ``D`` values) are predicted as offsets
@@ -43,7 +43,7 @@ import lightning
 import numpy as np
 import torch
 
-from kpflow.maps.affine import fit_affine
+from kpflow.geometry.alignment import fit_affine
 from kpflow.policies.checks import INPUT_MARGIN
 from kpflow.policies.objectives import build_objective
 from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
@@ -374,7 +374,7 @@ class KCFM(lightning.LightningModule):
     def goal_pose(self, keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The goal's frame ``(R [B, 2, 2], p [B, 2])`` in keypoint frames ``[B, K, 2]``: the rigid (Kabsch) fit
         ``min_{R in SO(2), p} sum_i ||R k_i + p - g_i||^2`` of the ``goal_frame`` template ``k_i`` onto the goal's
-        keypoints ``g_i`` (:func:`~kpflow.maps.affine.fit_affine`). Exact for a goal at any pose (Push-T: ``p, theta``
+        keypoints ``g_i`` (:func:`~kpflow.geometry.alignment.fit_affine`). Exact for a goal at any pose (Push-T: ``p, theta``
         are the goal T's ``x, y, theta``)."""
         spec = self.hparams.goal_frame
         goal = keypoints[:, spec["keypoints"]]

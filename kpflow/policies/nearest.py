@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ..data.source_index import SourceIndex
-from ..maps.affine import fit_affine
+from ..geometry.alignment import fit_affine
 
 
 class NearestNeighbourPolicy:

@@ -22,7 +22,7 @@ object needs at most ``a`` to match it:
     theta = atan2(sum_j (o_j - c_o) x (g_j - c_g), sum_j (o_j - c_o) . (g_j - c_g)),
 
 ``theta`` being the rotation that best carries the object's centred keypoints ``o_j`` onto the goal's (the 2-D
-Procrustes solution). As the object turns the subgoal turns on ahead of it until the goal is within ``a``. With an
+rigid fit's angle, :func:`kpflow.geometry.alignment.planar_turn`). As the object turns the subgoal turns on ahead of it until the goal is within ``a``. With an
 observation history, every frame's goal is moved by the current frame's turn and translation (the goal does not
 move in an episode).
 
@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.alignment import planar_turn
+from ..geometry.angles import planar_rotation
 from ..maps.validation import check_positive
 from .base import Policy
 from .checks import check_actions
@@ -52,9 +54,7 @@ def subgoal_turn(keypoints: np.ndarray, object: tuple[int, ...], goal: tuple[int
     """The angle (radians) by which to turn the goal of planar ``keypoints [K, 2]`` about its centroid so that its
     object needs at most ``turn`` radians to match it: ``clip(theta, -turn, turn) - theta`` (module docstring)."""
     kp = np.asarray(keypoints, dtype=np.float64)
-    o, g = kp[list(object)], kp[list(goal)]
-    o, g = o - o.mean(0), g - g.mean(0)
-    theta = float(np.arctan2(np.sum(o[:, 0] * g[:, 1] - o[:, 1] * g[:, 0]), np.sum(o * g)))
+    theta = planar_turn(kp[list(object)], kp[list(goal)])
     return float(np.clip(theta, -turn, turn) - theta)
 
 
@@ -106,7 +106,7 @@ class SubgoalPolicy:
                 if current.shape[-1] != 2:
                     raise ValueError(f"turn_deg applies to planar keypoints; got {current.shape[-1]}-D ones")
                 a = subgoal_turn(current, self.object, self.goal, np.radians(self.turn_deg))
-                rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+                rotation = planar_rotation(a)
                 current[goal] = centre + (current[goal] - centre) @ rotation.T  # the shift is read off the turned goal
             shift = np.zeros(current.shape[-1]) if self.reach is None else subgoal_shift(current, self.object, self.goal, self.reach)
             for kp in frames.values():

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from kpflow.eval import plots
 from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.base import Demonstration, Execution, TrialResult
 from kpflow.tasks.stacking.demonstrator import nearest_half_turn
 from kpflow.tasks.stacking.keypoints import true_targets

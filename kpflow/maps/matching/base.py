@@ -1,5 +1,5 @@
 """What every matcher shares: the result, the rigid fit of one pair (the code base's one rigid fit,
-:func:`~kpflow.maps.affine.fit_affine`, on numpy arrays), the initial rotations of the multi-start search and the
+:func:`~kpflow.geometry.alignment.fit_affine`, on numpy arrays), the initial rotations of the multi-start search and the
 final one-to-one assignment that leaves outliers and missing points unmatched.
 
 A matcher (one per file: :mod:`.hungarian`, :mod:`.icp`, :mod:`.cpd`, :mod:`.ot`) refines a rigid pose of the
@@ -17,8 +17,9 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
+from kpflow.geometry.alignment import fit_affine
+from kpflow.geometry.angles import planar_rotation
 from kpflow.maps import ilwr_kernels
-from kpflow.maps.affine import fit_affine
 
 #: ``perm`` entry of a source keypoint with no counterpart in the target (missing there, or too far)
 UNMATCHED = -1
@@ -65,8 +66,7 @@ def initial_rotations(d: int, n_starts: int) -> np.ndarray:
     """``n_starts`` rotations about the origin in 2-D; in 3-D ``n_starts`` yaws times six tilts (z up, down, and
     the four sides)."""
     if d == 2:
-        a = np.linspace(0, 2 * math.pi, n_starts, endpoint=False)
-        return np.stack([np.stack([np.cos(a), -np.sin(a)], -1), np.stack([np.sin(a), np.cos(a)], -1)], -2)
+        return planar_rotation(np.linspace(0, 2 * math.pi, n_starts, endpoint=False))
     yaws = np.linspace(0, 2 * math.pi, n_starts, endpoint=False)
     tilts = [(0.0, 0.0), (math.pi, 0.0), (math.pi / 2, 0.0), (-math.pi / 2, 0.0), (0.0, math.pi / 2), (0.0, -math.pi / 2)]
     return np.stack([Rotation.from_euler("zyx", [y, p, r]).as_matrix() for r, p in tilts for y in yaws])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .motion import yaw_of
+from kpflow.geometry.angles import yaw_of
 
 START_BOX = (0.10, 0.10, 0.10)  # m: the end-effector box around the start pose
 

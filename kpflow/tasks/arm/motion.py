@@ -23,11 +23,6 @@ def pointing_down(yaw: float) -> np.ndarray:
     return Rotation.from_euler("z", yaw).as_matrix() @ DOWN
 
 
-def yaw_of(rot: np.ndarray) -> float:
-    """Yaw (rad) of a rotation's x axis in the world's XY plane."""
-    return float(np.arctan2(rot[1, 0], rot[0, 0]))
-
-
 def rotvec(rot: np.ndarray) -> np.ndarray:
     """Axis-angle vector of a rotation matrix (the controller's orientation input)."""
     return Rotation.from_matrix(rot).as_rotvec()

@@ -13,7 +13,7 @@ keypoints (the object picked, or the goal of a place), the grip site, and the he
   (:mod:`kpflow.tasks.suite.keypoints`) make phi turn by the least rotation that looks the same.
 
 With ``in_hand`` (and a held object), the carried poses are corrected for how the object sits in the jaws now
-compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch: :func:`~kpflow.maps.affine.fit_affine`) taking
+compared with the source: ``A = (R_A, t_A)``, the rigid fit (Kabsch: :func:`~kpflow.geometry.alignment.fit_affine`) taking
 the held object's keypoints in the source's hand frame to those in the hand frame now, is undone on the right of every
 pose, ``R'' = R' R_A^T`` and ``x'' = x' - R'' t_A``, so the held object (not the hand) follows the source's path.
 Of the orders the object's symmetry allows (a square nut's ring: four ways to sit on the peg), the one whose path
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
-from kpflow.maps.affine import fit_affine
+from kpflow.geometry.alignment import fit_affine
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
 from kpflow.tasks.base import Segment, SegmentStart

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from kpflow.rotations import rotation_2d, so3_exp, so3_log
+from kpflow.geometry.rotations import rotation_2d, so3_exp, so3_log
 
 from .frames import Frame
 

@@ -8,7 +8,7 @@ Following the keypoint-based policy transportation set-up (Franzese, Prakash and
 is summarised by five keypoints rigidly attached to it (:func:`frame_keypoints`); a
 scene of several frames by their concatenation (:func:`scene_keypoints`).
 
-Rotation helpers (planar rotations, roll-pitch-yaw, SO(3) exp/log) live in :mod:`kpflow.rotations`.
+Rotation helpers (planar rotations, roll-pitch-yaw, SO(3) exp/log) live in :mod:`kpflow.geometry.rotations`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Sequence
 
 import torch
 
-from kpflow.rotations import euler_to_matrix, float_dtype, rotation_2d
+from kpflow.geometry.rotations import euler_to_matrix, float_dtype, rotation_2d
 
 __all__ = [
     "Frame",

@@ -17,7 +17,7 @@ import os
 import numpy as np
 import torch
 
-from kpflow.rotations import rotation_2d
+from kpflow.geometry.rotations import rotation_2d
 
 from .demonstrator import Demonstration
 from .frames import Frame

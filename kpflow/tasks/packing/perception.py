@@ -12,8 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.arm.keypoints import box_corners
-from kpflow.tasks.arm.motion import yaw_of
 from kpflow.vision.boxes import fit_footprint_box
 from kpflow.vision.cameras import CameraFrame
 from kpflow.vision.noise import CameraNoise

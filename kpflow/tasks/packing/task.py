@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.base import ArmTask, Demonstration, Execution
 from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.vision.keypoint_source import KeypointSource

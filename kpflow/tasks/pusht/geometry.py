@@ -113,6 +113,3 @@ def coverage(block_pose, goal_pose) -> float:
     return outline_coverage(to_world(block_pose, OUTLINE), t_polygon(goal_pose))
 
 
-def wrap_angle(theta):
-    """Angle(s) wrapped to ``[-pi, pi)``."""
-    return (np.asarray(theta) + np.pi) % (2 * np.pi) - np.pi

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
+from kpflow.geometry.angles import planar_rotation
 from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.tasks.pusht.geometry import (
     AGENT_RADIUS,
@@ -81,7 +82,7 @@ class PushTPairs:
         block = kp[:N_T_KEYPOINTS]
         centre = block.mean(0)
         a = rng.uniform(-self.jitter_rad, self.jitter_rad)
-        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        rot = planar_rotation(a)
         out = kp.copy()
         out[:N_T_KEYPOINTS] = (block - centre) @ rot.T + centre + rng.uniform(-self.jitter_px, self.jitter_px, 2)
         out[-1] += rng.uniform(-self.jitter_px, self.jitter_px, 2)

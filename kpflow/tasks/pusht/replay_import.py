@@ -33,7 +33,8 @@ from tqdm import tqdm
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.zarr_checks import check_chunks, open_array, open_group, read
-from kpflow.tasks.pusht.geometry import observation_keypoints, wrap_angle
+from kpflow.geometry.angles import wrap_angle
+from kpflow.tasks.pusht.geometry import observation_keypoints
 from kpflow.tasks.pusht.physics import DT, KP, KV, SUBSTEPS, PushTPhysics
 from kpflow.tasks.pusht.scene import FIXED_GOAL
 from kpflow.tasks.pusht.workspace import WORKSPACES

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.arm.execution import arm_failure, follow
-from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory, yaw_of
+from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory
 from kpflow.tasks.base import Execution
 from kpflow.trajectory import Trajectory
 

@@ -21,10 +21,11 @@ from typing import Callable
 
 import numpy as np
 
-from kpflow.tasks.arm.motion import segments_to_trajectory, yaw_of
+from kpflow.geometry.angles import wrap_angle, yaw_of, yaw_rotation
+from kpflow.tasks.arm.motion import segments_to_trajectory
 from kpflow.trajectory import Trajectory
 
-from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw, yaw_rotation
+from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw
 from .specs import TaskSpec
 
 APPROACH = 0.10  # m above the grasp point before going down
@@ -111,7 +112,7 @@ def path_cost(env) -> Callable[[np.ndarray, np.ndarray], float]:
 
     def cost(positions: np.ndarray, rotations: np.ndarray) -> float:
         yaws = np.array([yaw, *(yaw_of(r) for r in rotations)])
-        turn = float(np.sum((np.diff(yaws) + np.pi) % (2 * np.pi) - np.pi))
+        turn = float(np.sum(wrap_angle(np.diff(yaws))))
         if abs(turn) > MAX_PLACE_TURN or abs(wrist - turn) > WRIST_LIMIT:
             return np.inf
         return float(np.linalg.norm((np.asarray(positions[-1]) - base)[:2]))

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.geometry.angles import yaw_of, yaw_rotation
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.phases import Grip, Phase, Phases
-from kpflow.tasks.arm.motion import yaw_of
 
 from .specs import TaskSpec
 
@@ -46,12 +46,6 @@ def reduced_yaw(yaw: float, order: int, reference: float) -> float:
     """``yaw`` plus the multiple of ``2 pi / order`` that brings it nearest ``reference`` (``order`` 1: as it is)."""
     period = 2 * np.pi / order
     return float(reference + (yaw - reference + period / 2) % period - period / 2)
-
-
-def yaw_rotation(yaw: float) -> np.ndarray:
-    """The rotation by ``yaw`` (rad) about the world's vertical."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _square(centre, yaw: float, half_x: float, half_y: float, height: float = 0.0) -> list[np.ndarray]:

@@ -28,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of, yaw_rotation
 from kpflow.vision.boxes import FootprintBox, fit_footprint_box
 from kpflow.vision.cameras import CameraFrame
 from kpflow.vision.depth_filter import smooth_depth, temporal_mean
@@ -47,7 +47,6 @@ from .keypoints import (
     policy_keypoints,
     policy_objects,
     pose_keypoints,
-    yaw_rotation,
 )
 from .specs import TaskSpec
 

@@ -5,7 +5,7 @@ gripper's from the robot, the objects' from ``perception`` (the simulator's at e
 whose observations a decision reads, the last ``n_obs`` before the action queue runs dry, held in between; an
 object the cameras cannot place in a read keeps its last seen pose; the object picked, once the jaws close on it, is
 carried with them from where it was last seen) and the policy acts through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and action queue). Each action is an
-end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.rotations.rot6d_to_matrix`) and the gripper
+end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the gripper
 (closed when > 0). The episode ends at robosuite's success or after ``max_steps``.
 """
 
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from kpflow.geometry.rotations import rot6d_to_matrix
 from kpflow.policies.base import ClosedLoop, Policy
-from kpflow.rotations import rot6d_to_matrix
 
 from .env import CLOSED, OPEN, SuiteEnv
 from .keypoints import SimulatorPoses, policy_keypoints, policy_objects

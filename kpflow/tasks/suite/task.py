@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kpflow.rotations import matrix_to_rot6d
-from kpflow.tasks.arm.motion import yaw_of
+from kpflow.geometry.angles import yaw_of
+from kpflow.geometry.rotations import matrix_to_rot6d
 from kpflow.tasks.base import Segment, SegmentStart
 from kpflow.trajectory import Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
