@@ -10,7 +10,8 @@ import pytest
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.gym_policy_trial import GymPolicyTrial, scene_seed
 from kpflow.eval.reports.success import SuccessReport
-from kpflow.tasks.gym_rollout import collect_gym_episodes, run_gym_episode
+from kpflow.tasks.collection import collect_gym_episodes
+from kpflow.tasks.rollout import StopEpisode, rollout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "reach_task"))
 from reach import ReachTask  # noqa: E402
@@ -18,13 +19,55 @@ from reach import ReachTask  # noqa: E402
 
 def test_the_expert_episode_records_what_it_saw_and_did():
     task = ReachTask()
-    env, frames = task.make_env("wide", render=True), []
-    episode = run_gym_episode(env, task.expert(), seed=3, max_steps=task.max_steps, frames=frames)
+    env = task.make_env("wide", render=True)
+    episode = rollout(env, task.expert(), task.max_steps, 3, {"seed": 3}, ("keypoints",), render=True, action_dim=2)
     assert episode.success and episode.steps < task.max_steps and episode.decisions == -(-episode.steps // 8)
-    assert episode.keypoints.shape == (episode.steps, 5, 2) and episode.actions.shape == (episode.steps, 2)
-    assert len(frames) == episode.steps + 1 and frames[0].shape == (96, 96, 3)
-    again = run_gym_episode(task.make_env("wide"), task.expert(), seed=3, max_steps=task.max_steps)
-    np.testing.assert_array_equal(again.keypoints, episode.keypoints)  # the seed is the scene
+    assert episode.records["keypoints"].shape == (episode.steps, 5, 2) and episode.records["action"].shape == (episode.steps, 2)
+    assert len(episode.frames) == episode.steps + 1 and episode.frames[0].shape == (96, 96, 3)
+    again = rollout(task.make_env("wide"), task.expert(), task.max_steps, 3, {"seed": 3}, ("keypoints",))
+    np.testing.assert_array_equal(again.records["keypoints"], episode.records["keypoints"])  # the seed is the scene
+
+
+class _StopAfter:
+    """A policy that walks right and ends the episode at its ``n``-th decision (a person pressing Enter)."""
+
+    n_obs = 1
+
+    def __init__(self, n: int):
+        self.n, self.calls = n, 0
+
+    def reset(self, seed=None):
+        self.calls = 0
+
+    def act(self, obs):
+        self.calls += 1
+        if self.calls == self.n:
+            raise StopEpisode
+        return obs["keypoints"][-1][None] + [[0.01, 0.0]]
+
+
+class _TakeOver:
+    """An override that takes steps 2 and 3 (the expert correcting), holding the agent where it is."""
+
+    def start(self, env, obs, info, seed):
+        self.started = True
+
+    def act(self, step, obs):
+        return obs["keypoints"][-1] if step in (2, 3) else None
+
+    def update(self, step, info):
+        pass
+
+
+def test_the_loop_ends_on_a_stop_and_marks_what_an_override_took():
+    task = ReachTask()
+    stopped = rollout(task.make_env("default"), _StopAfter(4), 50, 0, {"seed": 0}, ("keypoints",))
+    assert stopped.steps == 3 and stopped.decisions == 3 and not stopped.success  # one step per decision, then Enter
+    override = _TakeOver()
+    taken = rollout(task.make_env("default"), _StopAfter(6), 50, 0, {"seed": 0}, override=override)
+    assert override.started and taken.overridden.tolist() == [False, False, True, True, False, False, False]  # 5 decisions
+    with pytest.raises(ValueError, match="max_steps must be >= 1"):
+        rollout(task.make_env("default"), _StopAfter(2), 0)
 
 
 def test_collection_stores_the_experts_successes(tmp_path):

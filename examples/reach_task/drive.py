@@ -1,7 +1,7 @@
 """Run reach episodes with the policy a server serves: ``python drive.py [--uri ws://127.0.0.1:8000] [--episodes 5]``.
 
 The robot side of a deployment: the env observes, a :class:`~kpflow.serving.client.PolicyClient` asks the server
-for actions, the same closed loop as in-process evaluation runs them (kpflow.tasks.gym_rollout).
+for actions, the same closed loop as in-process evaluation runs them (kpflow.tasks.rollout).
 """
 
 import argparse
@@ -9,7 +9,7 @@ import argparse
 from reach import ReachTask
 
 from kpflow.serving.client import PolicyClient
-from kpflow.tasks.gym_rollout import run_gym_episode
+from kpflow.tasks.rollout import rollout
 
 
 def main() -> None:
@@ -23,7 +23,7 @@ def main() -> None:
     task = ReachTask()
     env = task.make_env(args.condition)
     with client:
-        wins = sum(run_gym_episode(env, client, 2_000_000 + i, task.max_steps).success for i in range(args.episodes))
+        wins = sum(rollout(env, client, task.max_steps, 2_000_000 + i, {"seed": 2_000_000 + i}).success for i in range(args.episodes))
     print(f"{wins}/{args.episodes} episodes reached the target through {args.uri}")
     if not wins:
         raise SystemExit("no episode reached the target: is the server serving a reach policy?")

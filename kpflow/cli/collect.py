@@ -16,7 +16,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from kpflow.tasks.base import GymTask
-from kpflow.tasks.gym_rollout import collect_gym_episodes
+from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import SEED, Key
@@ -72,7 +72,7 @@ def main(cfg: DictConfig) -> dict:
 
 
 def collect_task(cfg: DictConfig) -> dict:
-    """A Gymnasium task's expert episodes (:func:`~kpflow.tasks.gym_rollout.collect_gym_episodes`)."""
+    """A Gymnasium task's expert episodes (:func:`~kpflow.tasks.collection.collect_gym_episodes`)."""
     task = instantiate(cfg.task)
     if not isinstance(task, GymTask):
         remove_unused_run_folder(Path(cfg.output_dir))

@@ -15,7 +15,7 @@ import numpy as np
 from kpflow.policies.base import Policy
 from kpflow.policies.settings import effective_settings
 from kpflow.tasks.base import GymTask, TrialResult
-from kpflow.tasks.gym_rollout import run_gym_episode
+from kpflow.tasks.rollout import rollout
 
 EVAL_SEED = 1_000_000
 
@@ -53,7 +53,11 @@ class GymPolicyTrial:
         if key not in self.envs:
             self.envs[key] = self.task.make_env(condition, render=frames is not None)
         reset_seed = scene_seed(seed, self.conditions.index(condition) + 1, index)
-        episode = run_gym_episode(self.envs[key], self.policy, reset_seed, self.max_steps, frames)
+        env = self.envs[key]
+        episode = rollout(env, self.policy, self.max_steps, reset_seed, {"seed": reset_seed}, render=frames is not None,
+                          action_dim=int(np.prod(env.action_space.shape)))  # fmt: skip
+        if frames is not None:
+            frames.extend(episode.frames)
         failure = None if episode.success else "time limit"
         scores = {"steps": episode.steps, "decisions": episode.decisions}
         return TrialResult(condition, index, dict(variant), {"seed": reset_seed}, episode.success, failure, scores)

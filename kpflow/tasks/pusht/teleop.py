@@ -23,10 +23,11 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from kpflow.data.episode_store import EpisodeStore
+from kpflow.tasks.rollout import StopEpisode
 
 from .env import PushTEnv
 from .geometry import coverage
-from .rollout import StopEpisode, run_episode
+from .rollout import run_episode
 
 UNBOUNDED = 10**9  # steps: an env without max_steps records until Enter or success
 _STATUS_PX = 28  # height of the status line under the scene
@@ -147,7 +148,7 @@ class KeyboardTeleop:
         Each control tick reads the events once (``event_source``), then either returns a target (while recording:
         not paused, and moving or already started) or redraws the window and waits for the next tick. Enter (after
         at least one step), Backspace and quitting end the episode by raising
-        :class:`~kpflow.tasks.pusht.rollout.StopEpisode`.
+        :class:`~kpflow.tasks.rollout.StopEpisode`.
         """
         if self._target is None:
             self._target = np.asarray(obs["agent_pos"], float).copy()
