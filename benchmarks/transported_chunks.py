@@ -32,7 +32,10 @@ from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
 from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights  # noqa: E402
+from kpflow.tasks.pusht.task import PushTTask  # noqa: E402
 from kpflow.utils.io import publish  # noqa: E402
+
+PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
 EXECUTE = 8
 
@@ -54,13 +57,13 @@ def main(argv=None) -> str:
     held_out = SourceIndex.from_store(store, 20, weights, PUSHT_BLOCK, episodes=range(args.index_episodes, len(store)))
     model = KCFMPolicy.from_checkpoint(args.checkpoint).model
     variants = {
-        "policy transportation (ILWR)": TransportPolicy(index, ILWRMap, EXECUTE),
+        "policy transportation (ILWR)": TransportPolicy(index, ILWRMap, EXECUTE, layout=PUSHT),
         "K-CFM at the observation": KCFMPolicy(model, 10, EXECUTE),
-        "transported K-CFM, all keypoints pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "all"),
-        "transported K-CFM, all keypoints pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "all"),
-        "transported K-CFM, robot pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "agent"),
-        "transported K-CFM, robot pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "agent"),
-        "transported K-CFM, rigid map": TransportedKCFMPolicy(model, index, AffineMap, 10, EXECUTE, "agent"),
+        "transported K-CFM, all keypoints pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "all", layout=PUSHT),
+        "transported K-CFM, all keypoints pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "all", layout=PUSHT),
+        "transported K-CFM, robot pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "agent", layout=PUSHT),
+        "transported K-CFM, robot pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "agent", layout=PUSHT),
+        "transported K-CFM, rigid map": TransportedKCFMPolicy(model, index, AffineMap, 10, EXECUTE, "agent", layout=PUSHT),
     }
     rows = np.random.default_rng(0).choice(len(held_out), min(args.queries, len(held_out)), replace=False)
     errors = {name: [] for name in variants}

@@ -39,6 +39,8 @@ from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.checkpoint import load_checkpoint
 from tests.helpers import StandStill, walk_to_block_store
 
+PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
+
 ROOT = Path(__file__).resolve().parents[1]
 RELEASED = sorted((ROOT / "release").glob("pusht_*.ckpt"))
 STANDARD = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
@@ -91,7 +93,7 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
     good, _, index = tiny
     model = load_checkpoint(KCFM, good)
     calls = counting(model)
-    policies = [KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4),
+    policies = [KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4, layout=PUSHT),
                 SubgoalPolicy(KCFMPolicy(model, 2, 4), PUSHT_BLOCK, PUSHT_GOAL, 60.0)]  # fmt: skip
     agent_away = scene()["keypoints"].copy()
     agent_away[24] = (1e5, 200.0)
@@ -136,7 +138,7 @@ def test_a_model_whose_output_overflows_is_refused(tiny):
     obs = {"keypoints": index.keypoints[10].astype(np.float64)}
     for path, fine in ((good, True), (overflow, False)):
         model = load_checkpoint(KCFM, path)
-        for policy in (KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4),
+        for policy in (KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4, layout=PUSHT),
                        SubgoalPolicy(KCFMPolicy(model, 2, 4), PUSHT_BLOCK, PUSHT_GOAL, 60.0)):  # fmt: skip
             if fine:
                 assert np.isfinite(policy.act(obs)).all()
@@ -209,7 +211,7 @@ def test_policies_refuse_a_seed_that_is_not_an_integer(tiny):
     policy transportation's source choice refuse it, naming the seed; numpy integers are integers."""
     good, _, index = tiny
     model = load_checkpoint(KCFM, good)
-    for policy in (KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4)):
+    for policy in (KCFMPolicy(model, 2, 4), TransportedKCFMPolicy(model, index, steps=2, execute=4, layout=PUSHT)):
         for seed in (1.5, True, "1", -1):
             with pytest.raises(ValueError, match=f"seed must be an integer >= 0 or null; got {seed!r}"):
                 policy.reset(seed)

@@ -14,6 +14,9 @@ from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.rollout import run_episode
+from kpflow.tasks.pusht.task import PushTTask
+
+PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +79,7 @@ def test_index_from_store_matches_the_chunk_dataset(demos):
 
 def test_transport_with_an_identity_or_rigid_scene_change(demos):
     index = SourceIndex.from_store(demos, horizon=20)
-    policy = TransportPolicy(index, execute=20)
+    policy = TransportPolicy(index, execute=20, layout=PUSHT)
     assert isinstance(policy, Policy)
     obs = {"keypoints": index.keypoints[40].astype(np.float64)}
     np.testing.assert_allclose(policy.act(obs), index.chunks[40], atol=1e-3)  # identity map
@@ -85,7 +88,7 @@ def test_transport_with_an_identity_or_rigid_scene_change(demos):
     moved = {"keypoints": index.keypoints[40] @ rot.T + shift}
     one = SourceIndex(index.keypoints[40:41], index.chunks[40:41])  # the only source: the moved scene's original
     for make_map in (AffineMap, None):  # rigid fit, and ILWR (rigid alignment, then nothing left to deform)
-        policy = TransportPolicy(one, **({"make_map": make_map} if make_map else {}), execute=20)
+        policy = TransportPolicy(one, **({"make_map": make_map} if make_map else {}), execute=20, layout=PUSHT)
         np.testing.assert_allclose(policy.act(moved), index.chunks[40] @ rot.T + shift, atol=1e-3)
 
 
@@ -109,7 +112,7 @@ def test_relative_nearest_neighbour_replays_the_motion_from_the_observed_agent(d
 def test_policies_replay_a_demonstration_from_its_own_start(demos, make):
     """From a demonstrated configuration every query finds the demonstration itself, so the episode succeeds."""
     index = SourceIndex.from_store(demos, horizon=20)
-    policy = make(index, execute=20)
+    policy = make(index, execute=20, **({"layout": PUSHT} if make is TransportPolicy else {}))
     config = split_config("in_distribution", demos.episode_attrs(1)["config_index"])
     result = run_episode(PushTEnv(), policy, config, 600)
     assert result.success
@@ -223,7 +226,7 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     index = SourceIndex(keypoints, rng.uniform(0, 512, (50, 20, 2)))
     q = keypoints[7] + 0.5
     ranked, _ = index.query_k(q, 5)
-    policy = TransportPolicy(index, candidates=5, temperature=1.2)
+    policy = TransportPolicy(index, candidates=5, temperature=1.2, layout=PUSHT)
     policy.reset(11)
     draws = [policy.source.choose(q) for _ in range(20_000)]
     freq = np.array([np.mean(np.array(draws) == i) for i in ranked])
@@ -231,10 +234,10 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     np.testing.assert_allclose(freq, p / p.sum(), atol=0.012)  # ~4 standard errors
     policy.reset(11)
     assert [policy.source.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
-    assert TransportPolicy(index).source.choose(q) == ranked[0]  # candidates=1: the nearest
+    assert TransportPolicy(index, layout=PUSHT).source.choose(q) == ranked[0]  # candidates=1: the nearest
     for bad, match in (({"candidates": 0}, "candidates"), ({"temperature": 0.0}, "temperature"), ({"max_step_px": -1.0}, "max_step_px")):
         with pytest.raises(ValueError, match=match):
-            TransportPolicy(index, **bad)
+            TransportPolicy(index, **bad, layout=PUSHT)
 
 
 def test_clipped_steps_by_hand():
@@ -250,7 +253,7 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     keypoints = rng.uniform(0, 512, (80, 25, 2))
     index = SourceIndex(keypoints, rng.uniform(0, 512, (80, 20, 2)), reference=PUSHT_BLOCK)
     q = keypoints[3] + 0.1
-    policy = TransportPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40)
+    policy = TransportPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40, layout=PUSHT)
     policy.reset(0)
     nearest = index.query(q)[0]
     # the same scene four times: the first three decisions are not yet a window, the fourth is stuck
@@ -274,7 +277,7 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     assert policy.source.stuck_count == 0
     for bad, match in (({"stuck_decisions": 0}, "stuck_decisions"), ({"stuck_px": -1.0}, "stuck_px"), ({"stuck_candidates": 0}, "stuck_candidates")):
         with pytest.raises(ValueError, match=match):
-            TransportPolicy(index, **bad)
+            TransportPolicy(index, **bad, layout=PUSHT)
 
 
 def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos):
@@ -296,14 +299,16 @@ def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos)
     rot, shift = np.array([[c, -s], [s, c]]), np.array([25.0, 40.0])
     target = source @ rot.T + shift
     target[12:24] = source[12:24] + (4.0, -3.0)  # the goal somewhere else: not where the block went
-    fitted = TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, ["objects", "robot"]))
+    fitted = TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, ["objects", "robot"]), layout=layout)
     np.testing.assert_allclose(fitted.act({"keypoints": target}), chunk @ rot.T + shift, atol=1e-6)
     with pytest.raises(ValueError, match="duplicate source keypoints"):
-        TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, "all")).act({"keypoints": target})
+        TransportPolicy(one, execute=20, fit_on=fit_on_indices(layout, "all"), layout=layout).act({"keypoints": target})
+    with pytest.raises(ValueError, match=r"needs the task's PolicyLayout \(layout=task.policy_layout\)"):
+        TransportPolicy(one)  # which keypoints are the robot's is the task's to say
     assert fit_on_indices(layout, "all") is None and fit_on_indices(layout, ["block", "agent"]) == (*range(12), 24)
     for bad in ([], [0, 0], [25]):
         with pytest.raises(ValueError, match="fit_on"):
-            TransportPolicy(one, fit_on=bad)
+            TransportPolicy(one, fit_on=bad, layout=PUSHT)
     with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
         fit_on_indices(layout, ["hand"])
 
@@ -317,7 +322,7 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
     rng = np.random.default_rng(0)
     keypoints = rng.uniform(0, 512, (1, 25, 2))
     chunks = keypoints[:, -1:] + np.cumsum(rng.uniform(-20, 20, (1, 20, 2)), axis=1)
-    policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step_px=5.0)
+    policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step_px=5.0, layout=PUSHT)
     moved = policy.act({"keypoints": keypoints[0].astype(np.float64)})  # no "agent_pos": not needed
     np.testing.assert_allclose(moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3)
     assert np.abs(moved[0] - keypoints[0, -1]).max() <= 5.0 + 1e-3

@@ -37,6 +37,8 @@ from kpflow.tasks.pusht.task import PushTTask
 from kpflow.tasks.suite.task import SuiteTask
 from tests.helpers import walk_to_block_store
 
+PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
+
 ROOT = Path(__file__).resolve().parents[1]
 RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 H = 8
@@ -259,7 +261,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     assert loaded.reference == index.reference
     deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4)
     assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
-    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4)
+    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, layout=PUSHT)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(1), local.reset(1)
@@ -267,7 +269,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
     deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
-    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice)
+    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), local.reset(2)
         for _ in range(4):  # the same scene four times: the fourth decision is taken as stuck, on both sides
@@ -276,7 +278,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
     deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["block", "agent"], choice=choice, reach=60, turn_deg=30)
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
-    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice),
+    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     far = {"keypoints": observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:

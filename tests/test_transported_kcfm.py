@@ -20,7 +20,10 @@ from kpflow.policies.kcfm import KCFM, MAX_STEPS
 from kpflow.policies.kcfm_policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, pusht_weights
+from kpflow.tasks.pusht.task import PushTTask
 from tests.helpers import walk_to_block_store
+
+PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
 H = 8
 
@@ -109,11 +112,11 @@ def test_bad_arguments_raise(untrained, index):
         with pytest.raises(ValueError, match=name):
             KCFMPolicy(untrained, **kwargs)
         with pytest.raises(ValueError, match=name):
-            TransportedKCFMPolicy(untrained, index, **kwargs)
+            TransportedKCFMPolicy(untrained, index, **kwargs, layout=PUSHT)
     assert KCFMPolicy(untrained, execute=H).act(_obs(index.keypoints[0])).shape == (H, 2)
     with pytest.raises(ValueError, match="index holds keypoints"):
-        TransportedKCFMPolicy(untrained, SourceIndex(index.keypoints[:, :24], index.chunks))
-    policy = TransportedKCFMPolicy(untrained, index)
+        TransportedKCFMPolicy(untrained, SourceIndex(index.keypoints[:, :24], index.chunks), layout=PUSHT)
+    policy = TransportedKCFMPolicy(untrained, index, layout=PUSHT)
     with pytest.raises(ValueError, match="shape"):
         policy.act(_obs(index.keypoints[0, :24]))
     with pytest.raises(FileNotFoundError):
@@ -125,7 +128,7 @@ def test_checkpoint_round_trip_gives_identical_actions(trained, index):
     model, ckpt = trained
     for make in (
         lambda: (KCFMPolicy(model, 10, 6), KCFMPolicy.from_checkpoint(ckpt, 10, 6)),
-        lambda: (TransportedKCFMPolicy(model, index, execute=6), TransportedKCFMPolicy.from_checkpoint(ckpt, index, execute=6)),
+        lambda: (TransportedKCFMPolicy(model, index, execute=6, layout=PUSHT), TransportedKCFMPolicy.from_checkpoint(ckpt, index, execute=6, layout=PUSHT)),
     ):
         live, loaded = make()
         assert not loaded.model.training and loaded.model.device.type == "cpu"
@@ -143,7 +146,7 @@ def test_checkpoint_round_trip_gives_identical_actions(trained, index):
 
 def test_observing_a_source_makes_phi_the_identity(untrained, index):
     """T = S: phi is the identity, so the transported chunk is K-CFM's own chunk at S for the same noise."""
-    transported = TransportedKCFMPolicy(untrained, index, steps=10, execute=H)
+    transported = TransportedKCFMPolicy(untrained, index, steps=10, execute=H, layout=PUSHT)
     plain = KCFMPolicy(untrained, steps=10, execute=H)
     assert isinstance(transported, Policy)
     for k in (0, 37, 101, len(index) - 1):
@@ -167,7 +170,7 @@ def test_rigid_motion_of_the_scene_moves_the_chunk_rigidly(untrained, index, ang
     """Rotate and translate all 25 keypoints of a source: ILWR's rigid alignment absorbs the motion, K-CFM sees the
     source again and the chunk comes out moved the same way, although the world-frame K-CFM is not equivariant."""
     rot, shift = _rigid(angle, shift)
-    transported = TransportedKCFMPolicy(untrained, index, execute=H)
+    transported = TransportedKCFMPolicy(untrained, index, execute=H, layout=PUSHT)
     plain = KCFMPolicy(untrained, execute=H)
     for k in (5, 88):
         source = index.keypoints[k].astype(np.float64)
@@ -187,7 +190,7 @@ def test_a_rigid_map_family_works_too(untrained, index):
     """Any map with an inverse can be plugged in; a rigid one reproduces the rigid-motion property exactly."""
     rot, shift = _rigid(-1.3, (100.0, 60.0))
     source = index.keypoints[60].astype(np.float64)
-    transported = TransportedKCFMPolicy(untrained, index, make_map=AffineMap, execute=4)
+    transported = TransportedKCFMPolicy(untrained, index, make_map=AffineMap, execute=4, layout=PUSHT)
     plain = KCFMPolicy(untrained, execute=4)
     transported.reset(2)
     plain.reset(2)
@@ -199,7 +202,7 @@ def test_transport_keeps_a_trained_kcfm_accurate_on_a_moved_scene(trained, index
     transported K-CFM keeps its in-distribution accuracy there; the plain K-CFM, seeing unseen inputs, does not."""
     model, _ = trained
     rot, shift = _rigid(2.0, (380.0, -260.0))
-    transported = TransportedKCFMPolicy(model, index, make_map=ILWRMap, execute=H)
+    transported = TransportedKCFMPolicy(model, index, make_map=ILWRMap, execute=H, layout=PUSHT)
     plain = KCFMPolicy(model, execute=H)
     rows = np.arange(0, len(index), 7)
     errs = {"in_dist": [], "transported": [], "plain": []}
@@ -226,7 +229,7 @@ def test_the_kcfm_sees_the_source_scene_with_the_robot_pulled_back(untrained, in
     observed = source.copy()
     observed[:24] += np.random.default_rng(0).normal(0.0, 3.0, (24, 2))  # the scene a little off the source
     observed[-1] += (6.0, -4.0)
-    agent = TransportedKCFMPolicy(untrained, index, execute=H)
+    agent = TransportedKCFMPolicy(untrained, index, execute=H, layout=PUSHT)
     agent.reset(0)
     agent.act(_obs(observed))
     i = agent.last_source
@@ -234,14 +237,14 @@ def test_the_kcfm_sees_the_source_scene_with_the_robot_pulled_back(untrained, in
     with torch.no_grad():
         back = agent.last_map.inverse(torch.from_numpy(observed[-1:]))[0].numpy()
     np.testing.assert_allclose(agent.last_pullback[-1], back, atol=1e-9)
-    every = TransportedKCFMPolicy(untrained, index, execute=H, pull_back="all")
+    every = TransportedKCFMPolicy(untrained, index, execute=H, pull_back="all", layout=PUSHT)
     every.reset(0)
     every.act(_obs(observed))
     with torch.no_grad():
         back = every.last_map.inverse(torch.from_numpy(observed)).numpy()
     np.testing.assert_allclose(every.last_pullback, back, atol=1e-9)
     with pytest.raises(ValueError, match="pull_back"):
-        TransportedKCFMPolicy(untrained, index, pull_back="scene")
+        TransportedKCFMPolicy(untrained, index, pull_back="scene", layout=PUSHT)
 
 
 def test_built_with_reach_and_turn_it_searches_and_acts_on_the_shown_goal(trained, store_path):

@@ -60,11 +60,11 @@ def transport_chunk(phi: TransportMap, chunk: np.ndarray, dim: int, rotation: bo
     return out
 
 
-def layout_or_default(layout: PolicyLayout | None, k: int) -> tuple[np.ndarray, bool]:
-    """The robot's keypoint indices and whether actions carry a rotation: from ``layout``, or (None) the last of the
-    ``k`` keypoints and plain position targets (Push-T's agent)."""
+def robot_and_rotation(layout: PolicyLayout | None, k: int) -> tuple[np.ndarray, bool]:
+    """The robot's keypoint indices and whether actions carry a rotation, from the task's ``layout`` (``ValueError``
+    without one, or when it names another number of keypoints than the ``k`` of the source index)."""
     if layout is None:
-        return np.array([k - 1]), False
+        raise ValueError("a transporting policy needs the task's PolicyLayout (layout=task.policy_layout): which keypoints are the robot's")
     if layout.n_keypoints != k:
         raise ValueError(f"the layout names {layout.n_keypoints} keypoints; the source index holds {k}")
     robot = layout.indices("robot")
@@ -91,7 +91,7 @@ class TransportPolicy:
         execute: how many of the chunk's targets :meth:`act` returns.
         max_step_px: clip every executed step to this many px per axis (None: no clipping).
         fit_on: indices of the keypoints the map is fitted on (None: all).
-        layout: the task's :class:`~.base.PolicyLayout` (whether actions carry a rotation); None: position targets.
+        layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation).
         choice: :class:`SourceChoice`'s options (``candidates``, ``temperature``, ``stuck_decisions``, ``stuck_px``,
             ``stuck_candidates``).
     """
@@ -113,7 +113,7 @@ class TransportPolicy:
         self.source = SourceChoice(index, **choice)
         self.fit_on = fitted_keypoints(fit_on, index.keypoints.shape[1])
         self.index, self.make_map, self.execute, self.max_step_px = index, make_map, execute, max_step_px
-        self.robot, self.rotation = layout_or_default(layout, index.keypoints.shape[1])
+        self.robot, self.rotation = robot_and_rotation(layout, index.keypoints.shape[1])
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
 

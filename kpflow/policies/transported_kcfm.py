@@ -1,7 +1,7 @@
 """Online transport of a K-CFM policy (the paper's Eq. 5): ``a = phi(f(phi^-1(x)))``.
 
 At every decision, with ``T`` the observed keypoints and ``x`` the robot's state (its keypoints: the task's
-:class:`~.base.PolicyLayout` role ``robot``; without a layout the last keypoint, Push-T's agent):
+:class:`~.base.PolicyLayout` role ``robot``; Push-T's agent):
 
 1. ``S``: a configuration the K-CFM was trained on (a :class:`SourceIndex` over its training data), the nearest or
    drawn among the nearest, with stuck detection (:class:`~.source_choice.SourceChoice`);
@@ -62,7 +62,7 @@ from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .base import PolicyLayout
 from .checks import INPUT_MARGIN, check_actions
-from .chunk_transport import fitted_keypoints, layout_or_default, transport_chunk
+from .chunk_transport import fitted_keypoints, robot_and_rotation, transport_chunk
 from .kcfm import KCFM
 from .kcfm_policy import KCFMPolicy
 from .phases import Phase, Phases
@@ -135,7 +135,7 @@ class TransportedKCFMPolicy:
         input_margin: how far outside the K-CFM's training keypoints an observation may lie
             (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`); None: no range check.
         layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation);
-            None: the last keypoint is the robot and actions are position targets (Push-T).
+            required (None is refused, naming it).
         segments: follow the layout's phases (module docstring; ``fit_on`` and the index's weights and frame are then
             each phase's own); the layout must declare them.
         choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
@@ -164,7 +164,7 @@ class TransportedKCFMPolicy:
         k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
         if index.keypoints.shape[1:] != (k, d):
             raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, {d})")
-        robot, self.rotation = layout_or_default(layout, k)
+        robot, self.rotation = robot_and_rotation(layout, k)
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
