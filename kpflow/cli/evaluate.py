@@ -19,8 +19,13 @@ from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command
 from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
-SPLITS = ("in_distribution", "robot_ood", "object_ood", "standard", "all")
-KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str, choices=SPLITS)}
+KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str)}
+
+
+def keys_of(cfg: DictConfig) -> dict:
+    """:data:`KEYS`, with ``split`` one of the conditions the run's task declares (``task.conditions``) or ``all``."""
+    conditions = getattr(instantiate(cfg.task), "conditions", None) if cfg.get("task") is not None else None
+    return {**KEYS, "split": Key(str, choices=(*conditions, "all"))} if conditions else KEYS
 
 
 def record_used(cfg: DictConfig, results: dict) -> None:
@@ -45,7 +50,7 @@ def record_used(cfg: DictConfig, results: dict) -> None:
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
 @command
 def main(cfg: DictConfig) -> dict:
-    out = start_run(cfg, KEYS)
+    out = start_run(cfg, keys_of(cfg))
     loggers = make_loggers(cfg)
     run = instantiate(cfg.experiment)
     results = run(output_dir=out, seed=cfg.seed)
