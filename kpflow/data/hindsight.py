@@ -18,7 +18,7 @@ A fragment of a longer episode is a choice: an expert takeover stored by interac
 (:mod:`kpflow.tasks.pusht.corrections`, attrs ``source="correction"``) stops after a few dozen steps wherever the block then
 is, and the rest of its episode, done by the policy, carried on towards the recorded goal. For learning it keeps
 its recorded goal (:meth:`HindsightGoals.relabel`'s ``fragments``): relabelled, the takeovers that make up most of a corrected store say "stop
-here", and K-CFM trained on the 35-demonstration Table 1 store fell from 60 / 58 / 6% to 22 / 14 / 0%. A source
+here", and K-CFM trained on a corrected store fails far more often (results/pusht_table1.md). A source
 index relabels them (:meth:`~kpflow.data.source_index.SourceIndex.from_store`), which is where that reading measured
 better; a learned policy reads them that way with ``data.relabel_fragments=true`` (the datamodule's key).
 """

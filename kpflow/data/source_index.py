@@ -87,9 +87,9 @@ class SourceIndex:
         """Every step of the store's episodes (all by default) with its next ``horizon`` actions (padded at the end);
         with ``hindsight``, each episode's goal keypoints are the ones it reached (:mod:`kpflow.data.hindsight`),
         correction takeovers included: a takeover read so is a source that ends exactly on its goal and is found
-        only where the observed goal is there too. (Read with their recorded goal instead, as learning does, 41,091
-        takeover chunks of the 35-demonstration Table 1 store took policy transportation with the object outside
-        the training region from 98.5 to 51.0%, results/pusht_table1.md.)"""
+        only where the observed goal is there too. (Read with their recorded goal instead, as learning does, the
+        takeovers of a corrected store halve policy transportation's success with the object outside the training
+        region: results/pusht_table1.md.)"""
         episodes = range(store.n_episodes) if episodes is None else episodes
         dataset = ChunkDataset(store, episodes, horizon, obs_key, action_key, hindsight=hindsight, relabel_fragments=True)
         keypoints, chunks, _ = dataset.arrays()

@@ -26,9 +26,9 @@ v_I only); the Jacobian determinant is ``prod exp(s) > 0`` everywhere; and when 
 pair (``b = a``, in particular ``S = T``) every gate and every residual is 0 and G is the identity. The MLPs' last
 layers start at zero.
 
-normflows' conditional couplings are its rational-quadratic splines; measured on this CPU they take ~8 ms for 20
-points through 6 layers, sixteen times the learned map's budget, hence this small affine coupling with the scene's
-part of every layer computed once per scene.
+normflows' conditional couplings are its rational-quadratic splines, measured an order of magnitude beyond the
+learned map's time budget on a CPU, hence this small affine coupling with the scene's part of every layer computed
+once per scene.
 """
 
 from __future__ import annotations

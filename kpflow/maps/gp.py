@@ -12,9 +12,8 @@ shrinks an RMS spread), an output variance equal to the residuals' mean square a
 of it, so the map interpolates its keypoints (``iters=0``: nothing is optimised, and a fit is one Cholesky
 factorisation). The marginal likelihood of ten keypoints says little about how the space between two groups of them
 should bend: free maximum likelihood picked length-scales that left a path between a start and a goal frame turned
-independently with the compromise rotation (median Frechet 1.45 times the authors' GP settings on the multi-frame
-benchmark's tuning scenes, against 0.84 with this prior; ``benchmarks/map_suite.py --split tuning --candidates``,
-results/maps_suite.md). ``iters > 0`` fits them
+independently with the compromise rotation, where this prior did not (``benchmarks/map_suite.py --split tuning
+--candidates``, results/maps_suite.md). ``iters > 0`` fits them
 by maximum likelihood from these values (``lengthscale_bounds`` and ``restarts`` then apply). ``predict`` gives the posterior mean and latent variance of f (the uncertainty of phi),
 ``jacobian`` the Jacobian of the mean, ``jacobian_variance`` the variance of each Jacobian entry, and ``sample``
 joint posterior draws (one smooth map per sample). The inverse is solved by Newton iterations from the affine

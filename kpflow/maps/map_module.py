@@ -10,10 +10,9 @@ on each pair (ILWR, :mod:`kpflow.data.keypoint_pairs`) carries them, ``Q*``. In 
 
 with ``f`` fixed points on the ring ``far_radius <= |f| <= 2 far_radius`` (normalised units; the keypoints' RMS
 radius is 1). The regularisers choose among the many maps that interpolate the keypoints: ILWR's answer between
-them, the alignment's far away. On Push-T the distillation term measured worse (held-out keypoint residual 3.8 against
-2.1 px, policy transportation 50 against 58 % with the object outside; ``benchmarks/learned_map.py --also``), so its
-weight is 0 by default: the couplings' own structure, volume-preserving shears unless the gated MLP scales, keeps
-the map smooth (max |log det J| near the keypoints 0.02, against ILWR's 3.2).
+them, the alignment's far away. On Push-T the distillation term measured worse (``results/maps_learned.md``), so
+its weight is 0 by default: the couplings' own structure, volume-preserving shears unless the gated MLP scales, keeps
+the map smooth.
 
 Validation logs ``val/loss`` (checkpoints monitor it) and the keypoint residual ``val/residual_px``: each batch's
 median over its pairs of ``max_i |phi(s_i) - t_i|`` in the pairs' own units, averaged over the batches.

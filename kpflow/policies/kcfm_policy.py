@@ -63,8 +63,8 @@ class KCFMPolicy:
         input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the
             box on each side (:meth:`KCFM.check_in_range`; >= 0); None: no range check.
         solver: the objective's sampler (``euler``, ``midpoint``, ``heun``; ``ddim``); None: the model's.
-        trace: run the network as TorchScript traces (:class:`~.traced.TracedNetwork`: the same outputs, about 30 %
-            less time per call at batch 1); False: eagerly.
+        trace: run the network as TorchScript traces (:class:`~.traced.TracedNetwork`: the same outputs, less time
+            per call at batch 1, ``results/export.md``); False: eagerly.
     """
 
     def __init__(self, model: KCFM, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,

@@ -1,8 +1,8 @@
 """A denoising network run as TorchScript traces: the same outputs, less Python per call.
 
 At the sizes K-CFM runs at on a CPU (one chunk of 16 actions, a (64, 128) U-Net) most of a network call is Python
-dispatch, not arithmetic: ``torch.jit.trace`` records the call once and replays it as a graph, about 30 % faster at
-batch 1 (results/export.md: 1.9 against 2.9 ms a call; outputs equal to eager, difference 0). A trace is fixed to the
+dispatch, not arithmetic: ``torch.jit.trace`` records the call once and replays it as a graph, faster at batch 1
+with outputs equal to eager (``results/export.md``). A trace is fixed to the
 shapes it was recorded with, so :class:`TracedNetwork` keeps one per input signature (shapes, dtype, device) and
 checks each against the eager network on the inputs it was recorded with; a trace that disagrees by more than
 ``atol`` (or that fails to record) is never used: that signature runs eagerly, as does every call of a network that

@@ -28,12 +28,10 @@ This addresses the failure modes of its two ingredients:
 
 Why only the agent is pulled back: a map fitted to 25 keypoints is not exact everywhere, so pulling the whole
 observation back leaves the keypoints a few px off their source and the T shapes the K-CFM sees are no longer rigid
-T shapes. The K-CFM reacts strongly to that. ``benchmarks/transported_chunks.py`` measures it on 120 states of 20
-episodes held out of a 180-episode source index (the 200-demonstration K-CFM of Table 1): the median / p90 error of
-the first 8 targets against the demonstrated chunk is 46.3 / 191.6 px with all keypoints pulled back through ILWR
-(26.4 / 346.2 through the GP map) and 21.4 / 62.7 px with the robot alone, against 10.4 / 51.2 px for policy
-transportation and 18.3 / 40.2 px for the K-CFM queried at the observation itself. (With a rigid map the two choices
-agree, and a goal-frame K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
+T shapes. The K-CFM reacts strongly to that: ``benchmarks/transported_chunks.py`` measures each choice's chunks
+against demonstrated ones held out of the index (``results/pusht_table1.md``, "What the numbers say"), and pulling
+every keypoint back errs about twice as much as the robot alone. (With a rigid map the two choices agree, and a goal-frame
+K-CFM is equivariant to rigid motions: transport then changes nothing at all.)
 
 Segment-aware transport (``phases``, :mod:`.phases`): where the task declares phases and the policy is asked to
 follow them, steps 1-3 follow the phase of the observation, read from its keypoints (the jaws holding the object

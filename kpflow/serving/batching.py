@@ -4,8 +4,8 @@ The policy server answers each connection's ``act`` in a worker thread, and ever
 loaded K-CFM (:mod:`kpflow.serving.deployment`). ``act`` ends in :meth:`~kpflow.policies.kcfm.KCFM.sample`, which
 calls the model's ``ema_net(x [B, H, A], t, c [B, C])`` once per solver step with ``B = 1`` (through a
 :class:`~kpflow.policies.traced.TracedNetwork` of it). On a CPU such a call of a small network costs far less than
-proportionally more for more rows: one pass of the released Push-T U-Net (one torch thread) takes about 1.8 ms for
-one row, 3.5 ms for four and 4.6 ms for eight. :class:`BatchedNetwork` is a drop-in for ``ema_net`` that gathers the
+proportionally more for more rows (one pass of eight rows of the released Push-T U-Net takes a few times one row's,
+``results/serving.md``). :class:`BatchedNetwork` is a drop-in for ``ema_net`` that gathers the
 calls arriving from different threads within a bounded wait and runs them as one pass: the dynamic batching of
 inference servers (NVIDIA Triton's dynamic batcher, with its ``max_batch_size`` and ``max_queue_delay_microseconds``;
 Clipper, Crankshaw et al., NSDI 2017, Sec. 4.3), done at the level of the network call so that it serves every

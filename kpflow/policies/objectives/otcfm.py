@@ -15,7 +15,8 @@ is solved (torchcfm's ``OTPlanSampler("exact")`` on the two stacked vectors, POT
 The condition term is what keeps the noise of every condition standard normal: with ``beta = 0`` (torchcfm's plain
 ``ExactOptimalTransportConditionalFlowMatcher``) a chunk's noise is the one nearest to it whatever its keypoints,
 the network learns to stay near its starting noise, and at inference, from unmatched noise, it ignores the
-condition (measured on Push-T: score 0.118 against 0.712 for I-CFM). With a large ``beta`` rows are re-paired only
+condition (on Push-T it scored a fraction of I-CFM's: ``results/pusht_standard.md``, "OT-CFM needs its coupling to
+respect the condition"). With a large ``beta`` rows are re-paired only
 among near-identical conditions. The pairs are drawn with the objective's torch generator: training is reproducible.
 """
 

@@ -23,7 +23,7 @@ by reaching past the peg). The nearest order's correction holds all along; anoth
 the segment's first phase (a place's carry, :func:`turn_ramp`), about the held object's centre
 (:func:`in_hand_path`), as the scripted place turns the nut on the way: done at once, the turn fell in the transit,
 with the arm still folded over the pick, where the controller took it with the fifth and sixth joints and bent
-the sixth to its stop (Square: 7 of 80 attempts on tuning scenes ended there, against 2 with the turn on the way).
+the sixth to its stop (on Square's tuning scenes, several times as often as with the turn on the way).
 
 Either way, the arm first moves from where it is to the carried segment's first pose in
 :func:`kpflow.tasks.arm.motion.interpolate`'s straight steps (MimicGen's interpolation between segments), with the

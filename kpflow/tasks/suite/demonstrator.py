@@ -35,7 +35,7 @@ RETREAT = {"cubeB": 0.12, "bin": 0.06, "peg": 0.12}  # m up after opening
 CARRY_CLEARANCE = {"cubeB": 0.06, "bin": 0.14, "peg": 0.20}  # m of the held object's centre above its goal while carried
 #: where the can goes in its quarter of the target bin (from the bin's centre): the quarter's corner nearest the robot,
 #: kept one can's radius and 1 cm from its walls; the quarter is at the Panda's reach, and 1.5 cm further out (the
-#: first choice, (0.05, 0.065)) the elbow ended a place at its stop in 26 of 200 attempts
+#: first choice, (0.05, 0.065)) the elbow often ended a place at its stop
 CAN_COMPARTMENT = (0.035, 0.045, 0.0)
 MAX_PLACE_TURN = 0.75 * np.pi  # rad the wrist may turn the nut to align it with the peg
 WRIST_LIMIT = 2.65  # rad: the Panda's last joint stops at +-2.9
