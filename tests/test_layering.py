@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 KPFLOW = Path(__file__).resolve().parents[1] / "kpflow"
-GENERIC = ["maps", "policies", "serving", "utils", "data", "transport.py", "rotations.py"]
+GENERIC = ["geometry", "maps", "policies", "serving", "utils", "data", "transport.py", "trajectory.py"]
 ALLOWED = "kpflow.tasks.base"
 
 

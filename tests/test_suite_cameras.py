@@ -189,7 +189,7 @@ def test_a_picked_cube_is_carried_by_the_jaws():
     """The ring around a held cube's mask is fingers and floor, not what it stands on: the support is not trusted.
     The task's run signals the grasp to its camera perception, which then carries the cube from where it stood: the
     in-hand keypoints within a centimetre of the simulator's, with no capture needed."""
-    from kpflow.tasks.arm.motion import yaw_of as yaw
+    from kpflow.geometry.angles import yaw_of as yaw
     from kpflow.tasks.suite.demonstrator import plan_segment
     from kpflow.tasks.suite.keypoints import in_hand_keypoints
     from kpflow.tasks.suite.task import SuiteTask
