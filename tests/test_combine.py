@@ -4,16 +4,17 @@ the row one run over all their trials gives (real Push-T episodes through the on
 import yaml
 
 from kpflow.eval.combine import combine_tables
-from kpflow.eval.episode_trial import EpisodeTrial
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import run_trials
+from kpflow.tasks.pusht.task import PushTTask
 from tests.helpers import StandStill
 
 SPLIT = "in_distribution"
 
 
 def job(folder, first: int, n: int, seed: int = 0):
-    trial = EpisodeTrial(StandStill(), PushTReport(), "still", max_steps=5)
+    trial = PolicyTrial(PushTTask(), StandStill(), PushTReport(), "still", max_steps=5)
     run_trials(folder, trial, SPLIT, n_trials={SPLIT: n}, first_index={SPLIT: first}, seed=seed, workers=1, videos=0, progress=False)
     config = {"seed": seed, "policy": "still", "output_dir": str(folder), "n_configs": n,
               "experiment": {"trial": {"report": {"_target_": "kpflow.eval.reports.pusht.PushTReport"}, "max_steps": 5},

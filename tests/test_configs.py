@@ -12,7 +12,7 @@ from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from kpflow.cli.train import fill_from_data
-from kpflow.eval.gym_policy_trial import GymPolicyTrial
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.maps.base import TransportMap
 from tests.helpers import CONF, compose_config, keypoint_pair, train_learned_map, walk_to_block_store
 
@@ -230,7 +230,7 @@ def test_experiment_options_compose_and_instantiate(name, entry, store, tmp_path
     }.get(name, [])
     cfg = compose_config(entry, [f"experiment={name}", "logger=none", *extra], tmp_path)
     if name == "gym_policy":
-        assert get_class(cfg.experiment.trial._target_) is GymPolicyTrial and "task" not in cfg  # task=<yours> adds it
+        assert get_class(cfg.experiment.trial._target_) is PolicyTrial and "task" not in cfg  # task=<yours> adds it
     elif name == "kcfm":  # the model's size is left to the data
         assert cfg.model.n_keypoints is None
         fill_from_data(cfg.model, instantiate(cfg.data))

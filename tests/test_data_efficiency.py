@@ -3,16 +3,17 @@
 import pytest
 
 from kpflow.eval.data_efficiency import main, read_points, table
-from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import run_trials
 from kpflow.tasks.pusht.demonstrator import PushTExpert
+from kpflow.tasks.pusht.task import PushTTask, protocol_counts
 from tests.helpers import StandStill
 
 
 def test_points_table_and_figure_from_real_runs(tmp_path):
     for policy, n, make in (("still", 5, StandStill), ("still", 20, StandStill), ("expert", 5, PushTExpert)):
-        trial = EpisodeTrial(make(), PushTReport(), policy, max_steps=6)
+        trial = PolicyTrial(PushTTask(), make(), PushTReport(), policy, max_steps=6)
         run_trials(tmp_path / "runs" / policy / str(n), trial, "all", *protocol_counts(2), workers=1, videos=0, progress=False)
     points = read_points(tmp_path / "runs")
     assert {(p.policy, p.n_demos) for p in points} == {("still", 5), ("still", 20), ("expert", 5)}

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.eval.gym_policy_trial import GymPolicyTrial, scene_seed
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.success import SuccessReport
+from kpflow.tasks.base import scene_seed
 from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.rollout import StopEpisode, rollout
 
@@ -79,7 +80,7 @@ def test_collection_stores_the_experts_successes(tmp_path):
 
 def test_the_trial_scores_a_policy_on_evaluation_seeds():
     task = ReachTask()
-    trial = GymPolicyTrial(task, task.expert(), SuccessReport(), name="expert")
+    trial = PolicyTrial(task, task.expert(), SuccessReport(), name="expert")
     result = trial.run("default", 2, {"policy": "expert"}, seed=0)
     assert result.success and result.failure is None and result.scene == {"seed": scene_seed(0, 1, 2)}
     streams = {(s, c, i): scene_seed(s, c, i) for s in range(3) for c in (1, 2) for i in range(3)}
@@ -88,4 +89,4 @@ def test_the_trial_scores_a_policy_on_evaluation_seeds():
     with pytest.raises(ValueError, match="has no condition 'far'"):
         task.make_env("far")
     with pytest.raises(ValueError, match="runs Gymnasium tasks"):
-        GymPolicyTrial(object(), task.expert(), SuccessReport())
+        PolicyTrial(object(), task.expert(), SuccessReport())

@@ -153,11 +153,12 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
     (256, 256, pi/4), whatever n_configs and max_steps say; score = mean of min(max coverage / 0.95, 1)."""
     import shapely
 
-    from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
+    from kpflow.eval.policy_trial import PolicyTrial
     from kpflow.eval.reports.pusht import PushTReport
     from kpflow.eval.trials import cell_summary, run_trials
     from kpflow.tasks.pusht.geometry import AGENT_RADIUS, coverage, t_polygon
     from kpflow.tasks.pusht.scene import standard_config
+    from kpflow.tasks.pusht.task import PushTTask, protocol_counts
 
     class HoldStill:
         def reset(self, seed=None):
@@ -167,7 +168,7 @@ def test_standard_protocol_is_diffusion_policys(tmp_path):
             return np.asarray(obs["agent_pos"], float)[None]
 
     n_trials, first_index = protocol_counts(3, standard_episodes=12)
-    trial = EpisodeTrial(HoldStill(), PushTReport(), "still", max_steps=1200)
+    trial = PolicyTrial(PushTTask(), HoldStill(), PushTReport(), "still", max_steps=1200)
     results = run_trials(tmp_path, trial, "standard", n_trials, first_index, workers=2, videos=0, progress=False)
     episodes = results["trials"]
     assert [e["index"] for e in episodes] == list(range(100_000, 100_012))  # DP's test seeds

@@ -95,11 +95,12 @@ def _episode(tmp_path, overrides: list[str], split: str, index: int, max_steps: 
     """The scores of one episode of the policy that ``python evaluate.py <overrides>`` builds, as its run plays it."""
     from hydra.utils import instantiate
 
-    from kpflow.eval.episode_trial import EpisodeTrial
+    from kpflow.eval.policy_trial import PolicyTrial
+    from kpflow.tasks.pusht.task import PushTTask
     from tests.helpers import compose_config
 
     cfg = compose_config("evaluate", [*overrides, "logger=none"], tmp_path)
-    trial = EpisodeTrial(instantiate(cfg.policy), report=None, max_steps=max_steps)
+    trial = PolicyTrial(PushTTask(), instantiate(cfg.policy), report=None, max_steps=max_steps)
     return trial.run(split, index, {"policy": overrides[0].removeprefix("policy=")}, seed=cfg.seed).scores
 
 

@@ -6,20 +6,21 @@ import json
 import pytest
 
 from kpflow.eval.demo_transport_trial import DemoTransportTrial
-from kpflow.eval.episode_trial import FIRST_CONFIG, EpisodeTrial, protocol_counts
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.packing import PackingReport
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.maps import GPMap
 from kpflow.tasks.packing.task import PackingTask
 from kpflow.tasks.pusht.demonstrator import PushTExpert
+from kpflow.tasks.pusht.task import FIRST_CONFIG, PushTTask, protocol_counts
 from tests.helpers import StandStill
 
 
 def test_episode_grid_counts_rows_and_a_filmed_failure(tmp_path):
     n_trials, first_index = protocol_counts(2)
     n_trials["robot_ood"] = 3  # one number per condition
-    trial = EpisodeTrial(StandStill(), PushTReport(), "still", max_steps=5)
+    trial = PolicyTrial(PushTTask(), StandStill(), PushTReport(), "still", max_steps=5)
     results = run_trials(tmp_path, trial, ["in_distribution", "robot_ood"], n_trials, first_index, workers=2, videos=1, progress=False)
     assert [(t["condition"], t["index"]) for t in results["trials"]] == [
         ("in_distribution", FIRST_CONFIG), ("in_distribution", FIRST_CONFIG + 1),
@@ -37,7 +38,7 @@ def test_episode_grid_counts_rows_and_a_filmed_failure(tmp_path):
 
 
 def test_the_expert_succeeds_and_its_success_is_filmed(tmp_path):
-    trial = EpisodeTrial(PushTExpert("standard"), PushTReport(), "expert", max_steps=600)
+    trial = PolicyTrial(PushTTask(), PushTExpert("standard"), PushTReport(), "expert", max_steps=600)
     results = run_trials(tmp_path, trial, "in_distribution", 1, FIRST_CONFIG, workers=1, videos=1, progress=False)
     (episode,) = results["trials"]
     assert episode["success"] and episode["failure"] is None and episode["success_085"] and episode["steps_085"] <= episode["steps_095"]
@@ -45,7 +46,7 @@ def test_the_expert_succeeds_and_its_success_is_filmed(tmp_path):
 
 
 def test_bad_grids_are_named():
-    trial = EpisodeTrial(StandStill(), PushTReport())
+    trial = PolicyTrial(PushTTask(), StandStill(), PushTReport())
     with pytest.raises(ValueError, match="unknown condition"):
         run_trials("unused", trial, ["moved"])
     with pytest.raises(ValueError, match="n_trials names no value for condition 'object_ood'"):
@@ -53,7 +54,7 @@ def test_bad_grids_are_named():
     with pytest.raises(ValueError, match="n_trials and workers must be >= 1"):
         run_trials("unused", trial, "all", 0)
     with pytest.raises(ValueError, match="max_steps must be >= 1"):
-        EpisodeTrial(StandStill(), PushTReport(), max_steps=0)
+        PolicyTrial(PushTTask(), StandStill(), PushTReport(), max_steps=0)
     with pytest.raises(KeyError, match="0 summary rows"):
         cell_summary({"summary": [{"condition": "robot_ood"}]}, "in_distribution")
 

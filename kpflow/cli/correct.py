@@ -23,12 +23,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.eval import plots
-from kpflow.eval.episode_trial import EpisodeTrial, protocol_counts
+from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.pusht import PushTReport
 from kpflow.eval.trials import cell_summary, run_trials
 from kpflow.tasks.pusht.corrections import collect_corrections
 from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
+from kpflow.tasks.pusht.task import PushTTask, protocol_counts
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
@@ -125,7 +126,7 @@ def main(cfg: DictConfig) -> list[dict]:
         if not (cfg.eval_configs and rebuilt):
             return None
         policy = make_policy(EpisodeStore(store_path))
-        trial = EpisodeTrial(policy, PushTReport(), label, cfg.eval_max_steps)
+        trial = PolicyTrial(PushTTask(), policy, PushTReport(), label, cfg.eval_max_steps)
         n_trials, first_index = protocol_counts(cfg.eval_configs)
         results = run_trials(out / f"eval_{label}", trial, cfg.split, n_trials, first_index, cfg.seed, cfg.workers, videos=0)
         return cell_summary(results, cfg.split)

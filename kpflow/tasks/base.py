@@ -16,11 +16,36 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from kpflow.trajectory import Keypoints, Trajectory
+
+if TYPE_CHECKING:
+    from .rollout import Episode
+
+#: The evaluation stream's offset: scene ``i`` of a condition for run seed ``s`` is keyed ``(EVAL_SEED + s, c, i)``.
+EVAL_SEED = 1_000_000
+
+
+def scene_seed(seed: int, condition: int, index: int) -> int:
+    """The reset seed of evaluation scene ``index`` of condition number ``condition`` (from 1) for run ``seed``: 32
+    bits of numpy's ``SeedSequence((EVAL_SEED + seed, condition, index))``, the key Push-T's splits and the robosuite
+    tasks seed their scenes with. Each run seed has its own stream (seed 1's scene 0 is not seed 0's scene 1), each
+    condition its own, and none meets the small seeds collection draws demonstrations with (0, 1, 2, ...) but by a
+    2^-32 chance."""
+    return int(np.random.SeedSequence([EVAL_SEED + int(seed), int(condition), int(index)]).generate_state(1)[0])
+
+
+@dataclass(frozen=True)
+class EvaluationScene:
+    """How an evaluation episode starts: the env's ``reset`` arguments (``{"seed": s}``, ``{"options": {...}}``), the
+    seed the policy is reset with (its sampling noise) and what ``results.json`` records of the scene."""
+
+    reset: dict
+    policy_seed: int
+    record: dict
 
 
 @dataclass(frozen=True)
@@ -157,6 +182,13 @@ class GymTask(abc.ABC):
     name: str
     conditions: tuple[str, ...] = ("default",)
     max_steps: int = 200
+    #: the info keys an episode records at every step for :meth:`score` (:attr:`~kpflow.tasks.rollout.Episode.tracked`)
+    tracked: tuple[str, ...] = ()
+
+    @property
+    def default_conditions(self) -> tuple[str, ...]:
+        """The conditions an evaluation of ``all`` runs (every one, unless the task says otherwise)."""
+        return tuple(self.conditions)
 
     @property
     @abc.abstractmethod
@@ -174,3 +206,18 @@ class GymTask(abc.ABC):
     def check_condition(self, condition: str) -> None:
         if condition not in self.conditions:
             raise ValueError(f"{self.name} has no condition {condition!r}; choose from {', '.join(self.conditions)}")
+
+    def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
+        """Evaluation scene ``index`` of ``condition`` for run ``seed``: by default ``reset(seed=s)`` with ``s`` of
+        the held-out stream (:func:`scene_seed`), the policy reset with ``s`` too."""
+        s = scene_seed(seed, self.conditions.index(condition) + 1, index)
+        return EvaluationScene({"seed": s}, s, {"seed": s})
+
+    def steps_limit(self, condition: str, max_steps: int | None = None) -> int:
+        """The control steps an episode of ``condition`` may take: ``max_steps``, else the task's."""
+        return int(self.max_steps if max_steps is None else max_steps)
+
+    def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
+        """``(success, failure reason, scores)`` of an evaluation episode (:class:`~kpflow.tasks.rollout.Episode`):
+        by default the env's success, ``"time limit"`` otherwise, and the steps and decisions taken."""
+        return episode.success, None if episode.success else "time limit", {"steps": episode.steps, "decisions": episode.decisions}

@@ -10,14 +10,14 @@ a success), on ``terminated`` or ``truncated``, or after ``max_steps``.
 An :class:`Override` may take control from the policy for a while (an expert correcting it): each step it is asked
 first, and an action it returns replaces the policy's, whose pending chunk is dropped (it starts afresh when it gets
 control back). A policy ends the episode early by raising :class:`StopEpisode` (a person pressing Enter).
-``on_step(step, info)`` sees every step's info (Push-T's coverage thresholds, :mod:`kpflow.tasks.pusht.rollout`).
+``track`` names the info values kept at every step (Push-T's coverage, for its thresholds).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -46,14 +46,16 @@ class Override(Protocol):
 class Episode:
     """How an episode went: ``success`` (the env said ``is_success``), the ``steps`` taken, the policy's
     ``decisions`` (chunks asked for), the wall ``seconds``, the ``records`` (each recorded observation field and
-    ``action``, ``[T, ...]`` float32), the first and last ``info``, the ``frames`` (``env.render()``, when asked) and,
-    with an override, the steps it took (``overridden [T]``)."""
+    ``action``, ``[T, ...]`` float32), the ``tracked`` info values after each step (``[T]``), the first and last
+    ``info``, the ``frames`` (``env.render()``, when asked) and, with an override, the steps it took (``overridden
+    [T]``)."""
 
     success: bool
     steps: int
     decisions: int
     seconds: float
     records: dict[str, np.ndarray]
+    tracked: dict[str, np.ndarray]
     first_info: dict
     info: dict
     frames: list | None = None
@@ -77,14 +79,15 @@ def rollout(
     record: tuple[str, ...] = (),
     render: bool = False,
     override: Override | None = None,
-    on_step: Callable[[int, dict], None] | None = None,
+    track: tuple[str, ...] = (),
     action_dim: int | None = None,
 ) -> Episode:
     """Run ``policy`` in ``env`` (module docstring) for at most ``max_steps`` steps.
 
     ``reset``: the arguments of ``env.reset`` (``{"seed": s}``, ``{"options": {"config": c}}``); ``seed`` reseeds
     the policy (its sampling noise). ``record``: the observation fields kept before each step (with the actions);
-    ``render``: collect ``env.render()`` before the first step and after each; ``action_dim``: check the policy's
+    ``render``: collect ``env.render()`` before the first step and after each; ``track``: the ``info`` values kept
+    after each step; ``action_dim``: check the policy's
     chunks are ``[H, action_dim]`` and finite (:class:`~kpflow.policies.base.ClosedLoop`)."""
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
@@ -94,7 +97,7 @@ def rollout(
     loop.reset(seed)
     if override is not None:
         override.start(env, obs, info, seed)
-    log = {k: [] for k in (*record, "action")}
+    log, tracked = {k: [] for k in (*record, "action")}, {k: [] for k in track}
     frames = [env.render()] if render else None
     overridden, success, steps, start = [], False, 0, time.perf_counter()
     for step in range(int(max_steps)):
@@ -113,13 +116,14 @@ def rollout(
             override.update(step, info)
         if frames is not None:
             frames.append(env.render())
-        if on_step is not None:
-            on_step(step, info)
+        for k in track:
+            tracked[k].append(info[k])
         if info.get("is_success", False):
             success = True
             break
         if terminated or truncated:
             break
     records = {k: np.asarray(v, dtype=np.float32) for k, v in log.items()}
-    return Episode(success, steps, loop.decisions, time.perf_counter() - start, records, first_info, info, frames,
+    tracked = {k: np.asarray(v) for k, v in tracked.items()}
+    return Episode(success, steps, loop.decisions, time.perf_counter() - start, records, tracked, first_info, info, frames,
                    np.array(overridden, bool) if override is not None else None)  # fmt: skip

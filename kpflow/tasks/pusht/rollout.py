@@ -18,6 +18,12 @@ from .scene import Config
 RECORDED_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")
 
 
+def first_steps(coverage: np.ndarray, thresholds) -> dict:
+    """Threshold -> the first step (1-based) whose coverage ``[T]`` (after each step) reached it, or None."""
+    coverage = np.asarray(coverage)
+    return {th: int(np.flatnonzero(coverage >= th)[0]) + 1 if (coverage >= th).any() else None for th in thresholds}
+
+
 @dataclass
 class EpisodeResult:
     """Outcome of one episode. ``first_step`` maps a coverage threshold to the first step reaching it (or None)."""
@@ -54,21 +60,16 @@ def run_episode(
     """
     if render and env.render_mode != "rgb_array":
         raise ValueError(f"render=True needs an env made with render_mode='rgb_array', not {env.render_mode!r}")
-    first = {th: None for th in thresholds}
-    best = []
-
-    def on_step(step: int, info: dict) -> None:
-        best.append(info["coverage"])
-        first.update({th: step + 1 for th in thresholds if first[th] is None and info["coverage"] >= th})
-
-    episode = rollout(env, policy, max_steps, seed, {"options": {"config": config}}, RECORDED_FIELDS if record else (), render, override, on_step)
+    episode = rollout(env, policy, max_steps, seed, {"options": {"config": config}}, RECORDED_FIELDS if record else (), render, override,
+                      ("coverage",))  # fmt: skip
+    coverage = episode.tracked["coverage"]
     return EpisodeResult(
         success=episode.success,
         coverage=float(episode.info["coverage"]),
-        max_coverage=float(max([episode.first_info["coverage"], *best])),
+        max_coverage=float(max([episode.first_info["coverage"], *coverage.tolist()])),
         steps=episode.steps,
         seconds=episode.seconds,
-        first_step=first,
+        first_step=first_steps(coverage, thresholds),
         episode=episode.records if record else None,
         frames=episode.frames,
         overridden=episode.overridden,

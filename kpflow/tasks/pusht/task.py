@@ -1,26 +1,50 @@
-"""Push-T behind the task contract: the env for a split, the seeded scene (configuration) of a split and index and
-the scripted demonstrator. Keypoints are the env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success
-its ``info["is_success"]``.
+"""Push-T behind the task contract (:class:`~kpflow.tasks.base.GymTask`): the env for a condition, the seeded
+configuration of a condition and index, the scripted demonstrator, and how an episode is scored.
 
-Push-T is closed loop (a :class:`~kpflow.policies.base.Policy` acts on every observation): one trial is one
-:func:`~kpflow.tasks.pusht.rollout.run_episode` (:class:`~kpflow.eval.episode_trial.EpisodeTrial`).
+The conditions are Table 1's splits, whose configurations are the seeded :func:`~.scene.split_config` list
+(evaluation indices from :data:`FIRST_CONFIG` on, so they differ from the demonstrations' 0, 1, 2, ...), and
+Diffusion Policy's ``standard`` test protocol: its start-state draw (:func:`~.scene.standard_config`) on seeds from
+100000 (LeRobot's and DP's test seeds; 500 of them, LeRobot's count, where DP used 50), the fixed goal and at most
+300 steps. An episode runs until coverage 0.95 or the step limit; success at 0.85 means coverage reached 0.85 within
+the limit (the episode would have ended there at that threshold). The standard score is the mean over episodes of max
+over steps of clip(coverage / 0.95, 0, 1) (:class:`~kpflow.eval.reports.pusht.PushTReport`). Keypoints are the
+env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success its ``info["is_success"]``.
 """
 
 from __future__ import annotations
 
 from kpflow.policies.base import PolicyLayout
+from kpflow.tasks.base import EvaluationScene, GymTask
+from kpflow.tasks.rollout import Episode
 
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
 from .geometry import N_KEYPOINTS, N_T_KEYPOINTS
-from .scene import Config, split_config, standard_config
+from .rollout import first_steps
+from .scene import SPLITS, STANDARD_FIRST_SEED, Config, split_config, standard_config
+
+THRESHOLDS = (0.85, 0.95)  # coverage: Table 1's success, and Diffusion Policy's
+FIRST_CONFIG = 10_000  # the first evaluation configuration of each split
+STANDARD_EPISODES, STANDARD_MAX_STEPS = 500, 300  # Diffusion Policy's Push-T test protocol (LeRobot's 500 episodes)
 
 
-class PushTTask:
-    """``conditions``: Table 1's three splits and Diffusion Policy's ``standard`` protocol."""
+def protocol_counts(n_configs: int, standard_episodes: int = STANDARD_EPISODES, standard_first_seed: int = STANDARD_FIRST_SEED):
+    """``(n_trials, first_index)`` of :func:`~kpflow.eval.trials.run_trials`, per condition: ``n_configs``
+    configurations of each split from :data:`FIRST_CONFIG`, and ``standard_episodes`` standard episodes from
+    ``standard_first_seed``."""
+    n_trials = {**{s: n_configs for s in SPLITS}, "standard": standard_episodes}
+    first_index = {**{s: FIRST_CONFIG for s in SPLITS}, "standard": standard_first_seed}
+    return n_trials, first_index
+
+
+class PushTTask(GymTask):
+    """``conditions``: Table 1's three splits (the default ones) and Diffusion Policy's ``standard`` protocol."""
 
     name = "pusht"
     conditions = ENV_SPLITS
+    default_conditions = SPLITS
+    max_steps = 1200  # on the splits; ``standard``: 300, whatever is asked
+    tracked = ("coverage",)
     #: what its learned policies observe and return: 12 block, 12 goal and the agent's keypoints (px); agent targets
     policy_layout = PolicyLayout(
         N_KEYPOINTS, 2, 2,
@@ -28,15 +52,41 @@ class PushTTask:
         roles={"objects": ("block",), "goals": ("goal",), "robot": ("agent",)},
     )  # fmt: skip
 
-    def make_env(self, condition: str = "in_distribution", **kwargs) -> PushTEnv:
-        """The env of ``condition``'s workspace (``kwargs``: :class:`~.env.PushTEnv`'s options)."""
-        return PushTEnv(split=condition, **kwargs)
+    def make_env(self, condition: str = "in_distribution", render: bool = False, **kwargs) -> PushTEnv:
+        """The env of ``condition``'s workspace (``render``: 256-px RGB frames; ``kwargs``: :class:`~.env.PushTEnv`'s
+        options)."""
+        return PushTEnv(split=condition, **({"render_size": 256, "render_mode": "rgb_array"} if render else {}), **kwargs)
 
     def sample_scene(self, condition: str, index: int, seed: int = 0) -> Config:
         """Configuration ``index`` of ``condition``; for ``standard`` the index is Diffusion Policy's env seed."""
         if condition == "standard":
             return standard_config(index)
         return split_config(condition, index, seed, goal="random")
+
+    def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
+        """Configuration ``index`` of ``condition`` (:meth:`sample_scene`), the policy reset with ``index`` (for
+        ``standard``: Diffusion Policy's env seed)."""
+        config = self.sample_scene(condition, index, seed)
+        return EvaluationScene({"options": {"config": config}}, index, config.as_dict())
+
+    def steps_limit(self, condition: str, max_steps: int | None = None) -> int:
+        """300 on ``standard`` (Diffusion Policy's protocol), else ``max_steps`` (None: 1200)."""
+        return STANDARD_MAX_STEPS if condition == "standard" else super().steps_limit(condition, max_steps)
+
+    def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
+        """Success, and the coverage scores: whether 0.85 was reached, the first step reaching each threshold (None:
+        never), the final and the largest coverage, the steps taken."""
+        coverage = episode.tracked["coverage"]
+        first = first_steps(coverage, THRESHOLDS)
+        scores = {
+            "success_085": first[0.85] is not None,
+            "steps_085": first[0.85],
+            "steps_095": first[0.95],
+            "final_coverage": float(episode.info["coverage"]),
+            "max_coverage": float(max([episode.first_info["coverage"], *coverage.tolist()])),
+            "steps": episode.steps,
+        }
+        return episode.success, None if episode.success else "time limit", scores
 
     def demonstrator(self, config: Config) -> PushTExpert:
         """The scripted expert for ``config``'s workspace."""
