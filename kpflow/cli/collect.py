@@ -20,7 +20,7 @@ from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.utils.config_checks import SEED, Key
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import write_json
 from kpflow.utils.run import remove_unused_run_folder, start_run
 
@@ -38,6 +38,7 @@ KEYS = {
 }
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="collect")
 @command
 def main(cfg: DictConfig) -> dict:

@@ -31,7 +31,7 @@ from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.tasks.pusht.task import PushTTask, protocol_counts
 from kpflow.utils.config_checks import SEED, Key
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import atomic_dir, save_figure, write_json, write_text
 from kpflow.utils.run import start_run
 
@@ -106,6 +106,7 @@ def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path:
     plots.close(fig)
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="correct")
 @command
 def main(cfg: DictConfig) -> list[dict]:

@@ -16,7 +16,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from kpflow.utils.config_checks import SEED, Key
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
 KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str)}
@@ -47,6 +47,7 @@ def record_used(cfg: DictConfig, results: dict) -> None:
             cfg.experiment.trial.max_steps = int(limits)
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
 @command
 def main(cfg: DictConfig) -> dict:

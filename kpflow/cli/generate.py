@@ -36,7 +36,7 @@ from kpflow.eval.generation import generate
 from kpflow.eval.generation_journal import check_output, run_manifest, shard_indices
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.config_checks import SEED, Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import remove_unused_run_folder, start_run, write_config
 
 KEYS = {
@@ -55,6 +55,7 @@ KEYS = {
 }
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="generate")
 @command
 def main(cfg: DictConfig) -> dict:

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, ListConfig
 
 from kpflow.eval.generation import merge_shards
 from kpflow.utils.config_checks import Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 
 KEYS = {"out": Key(str), "progress": Key(bool)}
 GLOB = set("*?[")
@@ -47,6 +47,7 @@ def shard_folders(shards) -> list[Path]:
     return folders
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="merge")
 @command
 def main(cfg: DictConfig) -> dict:

@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
 from kpflow.utils.checkpoint import read_checkpoint
 from kpflow.utils.config_checks import Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import atomic_path
 
 KEEP = ("state_dict", "hyper_parameters", "pytorch-lightning_version")
@@ -90,6 +90,7 @@ KEYS = {
 }
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="release")
 @command
 def main(cfg: DictConfig) -> Path:

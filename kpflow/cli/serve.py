@@ -26,7 +26,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from kpflow.serving.deployment import load_deployment
 from kpflow.serving.server import PolicyServer, check_address
 from kpflow.utils.config_checks import Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 
 log = logging.getLogger("kpflow.serve")
 KEYS = {
@@ -47,6 +47,7 @@ KEYS = {
 }
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="serve")
 @command
 def main(cfg: DictConfig) -> None:

@@ -12,7 +12,7 @@ from kpflow.tasks.pusht.env import PushTEnv
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
 from kpflow.tasks.pusht.teleop import KeyboardTeleop
 from kpflow.utils.config_checks import Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 
 KEYS = {
     "store": Key(str),
@@ -28,6 +28,7 @@ KEYS = {
 }
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="teleop")
 @command
 def main(cfg: DictConfig) -> int:

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, open_dict
 
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
 from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import make_loggers, run_folder_contents, start_run, write_config
 
 KEYS = {"seed": SEED, "resume": Key(bool), "run_name": Key(str), **TRAINER_KEYS}
@@ -62,6 +62,7 @@ def check_resumable(model, last: Path) -> None:
         raise ValueError(f"{last} does not fit the configured model ({what}): resume with the run's own model config (see its config.yaml)")
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="train")
 @command
 def main(cfg: DictConfig) -> dict:

@@ -13,11 +13,12 @@ from omegaconf import DictConfig, ListConfig
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.utils.config_checks import Key, check_config
-from kpflow.utils.errors import command
+from kpflow.utils.errors import command, config_dir_checked
 
 KEYS = {"seal": Key(bool), "progress": Key(bool)}
 
 
+@config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="verify")
 @command
 def main(cfg: DictConfig) -> int:

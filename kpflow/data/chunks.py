@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import HindsightGoals, fragment_episodes
-from kpflow.data.lerobot_dataset import is_lerobot, open_lerobot
+from kpflow.data.lerobot_dataset import is_lerobot, naming_help, open_lerobot
 
 
 class ChunkDataset(Dataset):
@@ -183,7 +183,10 @@ class ChunkDataModule(lightning.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        store = open_lerobot(self.path) if is_lerobot(self.path) else EpisodeStore(self.path, mode="r")
+        lerobot = is_lerobot(self.path)
+        store = open_lerobot(self.path) if lerobot else EpisodeStore(self.path, mode="r")
+        if lerobot and (missing := [k for k in (self.obs_key, self.action_key) if k not in store.fields]):
+            raise ValueError(naming_help(self.path, missing[0], list(store.fields)))
         n = store.n_episodes if self.max_episodes is None else min(store.n_episodes, self.max_episodes)
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")

@@ -32,8 +32,10 @@ checks its arrays' dtypes and shapes against the record; every read (:meth:`Epis
 (``kpflow-verify STORE``) checks everything. A mismatch raises a ``ValueError`` naming the field and the
 episode: edited dtypes, flipped bytes and chunks swapped between fields are refused instead of read as plausible
 numbers. Stores written before checksums existed (and foreign ones, such as Diffusion Policy's replay buffers) have
-no record: they are read unverified (:attr:`EpisodeStore.sealed` is False), and appending to one that holds episodes
-is refused until ``kpflow-verify seal=true store=STORE`` has recorded their checksums. Every zarr read goes through
+no record: they are read unverified (:attr:`EpisodeStore.sealed` is False; opening one to read says so once per
+process, :class:`UnverifiedStoreWarning`, so training and evaluation on it say it too), and appending to one that
+holds episodes is refused until ``kpflow-verify seal=true store=STORE`` has recorded their checksums. A store whose
+field record survives but whose checksums are gone was sealed: it is refused, saying how to seal it again. Every zarr read goes through
 :class:`~kpflow.data.zarr_checks.CheckedStore`: no store can name a codec that runs code or a chunk that exhausts
 memory.
 
@@ -47,6 +49,7 @@ from __future__ import annotations
 
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -88,6 +91,32 @@ def episode_digests(values: np.ndarray, ends: list[int]) -> bytes:
 def _schema(values: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
     """Each field's dtype (numpy's string, e.g. ``<f4``) and trailing shape, as recorded in ``meta/.zattrs``."""
     return {name: {"dtype": v.dtype.str, "shape": list(v.shape[1:])} for name, v in values.items()}
+
+
+class UnverifiedStoreWarning(UserWarning):
+    """A store without checksums is being read: its values cannot be checked against what was written."""
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_unverified(path: Path) -> None:
+    """Say once per process and store that ``path`` is read unverified (training and evaluation then say so)."""
+    key = str(path.resolve())
+    if key not in _WARNED:
+        _WARNED.add(key)
+        warnings.warn(
+            f"{path} has no checksums (written before kpflow recorded them, or by another tool): its values are read "
+            f"unverified. kpflow-verify seal=true store={path} reads it whole once and records them",
+            UnverifiedStoreWarning,
+            stacklevel=3,
+        )
+
+
+def _field_spec_ok(spec: Any) -> bool:
+    """Whether a field record's entry is ``{"dtype": str, "shape": [int, ...]}``."""
+    return (isinstance(spec, dict) and isinstance(spec.get("dtype"), str) and isinstance(spec.get("shape", []), list)
+            and all(isinstance(d, int) and d >= 0 for d in spec.get("shape", [])))  # fmt: skip
 
 
 def _digests(checksums: Any, where: str) -> dict[str, bytes] | None:
@@ -198,6 +227,8 @@ class EpisodeStore:
         except BaseException:
             self.close()
             raise
+        if mode == "r" and not self.sealed and self.n_episodes:
+            _warn_unverified(self.path)
 
     def _check_group(self) -> None:
         """Raise ``ValueError`` unless ``path`` is a zarr group, or (mode ``"a"``) nothing but a lock file or nothing."""
@@ -253,7 +284,15 @@ class EpisodeStore:
             if self._digests is not None:
                 raise ValueError(f"{where}: meta/.zattrs holds checksums but no field record: the metadata is damaged")
             return
-        if not isinstance(self._schema, dict) or self._digests is None or set(self._digests) != set(self._schema):
+        if not isinstance(self._schema, dict) or not all(_field_spec_ok(spec) for spec in self._schema.values()):
+            raise ValueError(f"{where}: meta/.zattrs' field record is damaged: it must map each field to {{dtype, shape}}, got {str(self._schema)[:120]!r}")
+        if self._digests is None:
+            raise ValueError(
+                f"{where}: meta/.zattrs records the fields but lost its checksums: the store was sealed and cannot be verified "
+                f"now. If you trust its values, seal it again: kpflow-verify seal=true store={where} (after removing the field "
+                "record from meta/.zattrs), or restore the store from a copy"
+            )
+        if set(self._digests) != set(self._schema):
             raise ValueError(f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)")
         if self._n_checksums < n:
             raise ValueError(f"{where}: meta/.zattrs holds checksums for {self._n_checksums} episodes but the store has {n}: the metadata is damaged")

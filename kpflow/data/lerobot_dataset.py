@@ -31,7 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from kpflow.utils.formats import check_parquet_rows
+from kpflow.utils.formats import check_parquet_rows, read_parquet
 from kpflow.utils.io import atomic_dir
 
 from .episode_store import EpisodeStore
@@ -231,8 +231,10 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
     if not files:
         raise ValueError(f"{root} has no data files (data/*/*.parquet)")
     widths = {feature: _width(features[feature], f"{root}: feature {feature}") for feature in columns}
+    if int(info["total_frames"]) < 1:
+        raise ValueError(f"{root}: info.json declares {info['total_frames']} frames: a dataset to import needs at least one")
     check_parquet_rows(files, int(info["total_frames"]), {**widths, "episode_index": 1, "frame_index": 1}, str(root))
-    table = pa.concat_tables([pq.read_table(f, columns=[*columns, "episode_index", "frame_index"]) for f in files])
+    table = pa.concat_tables([read_parquet(f, [*columns, "episode_index", "frame_index"], str(root)) for f in files])
     episode = table["episode_index"].to_numpy()
     order = np.lexsort((table["frame_index"].to_numpy(), episode))
     values = {}
@@ -270,6 +272,20 @@ def open_lerobot(root: str | Path) -> EpisodeStore:
     store = EpisodeStore(folder / "episodes.zarr", mode="r")
     weakref.finalize(store, shutil.rmtree, folder, True)
     return store
+
+
+def naming_help(root: str | Path, field: str, fields: list[str]) -> str:
+    """Why the LeRobot dataset at ``root`` gave no store field ``field`` (it gave ``fields``): the names kpflow
+    expected, the names the dataset has, and what to change."""
+    features = read_info(root)["features"]
+    found = features.get("observation.state", {}).get("names")
+    shown = found[:8] if isinstance(found, list) else found
+    return (
+        f"{root}: the LeRobot dataset gave no field {field!r} (it gave {fields}). kpflow reads keypoints from feature "
+        f"observation.state named k0.x, k0.y[, k0.z], k1.x, ... (every keypoint's 2 or 3 axes, in that order); its "
+        f"observation.state is named {shown!r}{'...' if isinstance(found, list) and len(found) > 8 else ''}. Rename them so in "
+        f"meta/info.json, or read the flat state as it is: data.obs_key=state"
+    )
 
 
 def is_lerobot(root: str | Path) -> bool:

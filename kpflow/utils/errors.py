@@ -6,6 +6,10 @@ and ``error: <message>`` on stderr, followed by one line saying how to see the t
 variable ``KPFLOW_TRACEBACK=1`` (or Hydra's own ``HYDRA_FULL_ERROR=1``) the exception propagates unchanged, traceback
 and all. ``KeyboardInterrupt`` and ``SystemExit`` are never caught.
 
+Hydra reads a config group's YAML only when it composes it, and a file that does not parse then ends the run with
+Hydra's own traceback; :func:`config_dir_checked` reads every YAML under ``--config-dir`` first and refuses a broken
+one in the same single line, naming the file, line and column.
+
 Hydra's ``instantiate`` wraps a constructor's error in an ``InstantiationException`` whose text repeats the target
 and the config key; the message shown is the constructor's own (the innermost cause), prefixed with the config key.
 """
@@ -15,6 +19,7 @@ from __future__ import annotations
 import functools
 import os
 import sys
+from pathlib import Path
 from typing import Callable, TypeVar
 
 TRACEBACK_ENV = "KPFLOW_TRACEBACK"
@@ -58,5 +63,49 @@ def command(main: F) -> F:
             print(f"error: {describe(error)}", file=sys.stderr, flush=True)
             print(f"(set {TRACEBACK_ENV}=1 for the full traceback)", file=sys.stderr, flush=True)
             sys.exit(1)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def config_dirs(argv: list[str]) -> list[str]:
+    """The folders ``--config-dir DIR``, ``--config-dir=DIR`` and ``-cd DIR`` name in a command line."""
+    out = []
+    for i, arg in enumerate(argv):
+        if arg in ("--config-dir", "-cd") and i + 1 < len(argv):
+            out.append(argv[i + 1])
+        elif arg.startswith("--config-dir="):
+            out.append(arg.split("=", 1)[1])
+    return out
+
+
+def broken_yaml(folder: str) -> str | None:
+    """The first YAML file under ``folder`` that does not parse, as one line (file, line, column, problem), or None."""
+    import yaml
+
+    for path in sorted(p for p in Path(folder).rglob("*") if p.suffix in (".yaml", ".yml") and p.is_file()):
+        try:
+            yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f", line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+            return f"{path}{where}: not valid YAML ({getattr(e, 'problem', None) or e})"
+        except (OSError, UnicodeDecodeError) as e:
+            return f"{path}: unreadable ({e})"
+    return None
+
+
+def config_dir_checked(main: F) -> F:
+    """Wrap a Hydra entry point (outside ``hydra.main``) so that a broken YAML under ``--config-dir`` is refused in
+    one line before Hydra composes anything (module docstring)."""
+
+    @functools.wraps(main)
+    def wrapper(*args, **kwargs):
+        if not full_traceback_wanted():
+            for folder in config_dirs(sys.argv[1:]):
+                if (problem := broken_yaml(folder)) is not None:
+                    print(f"error: {problem}", file=sys.stderr, flush=True)
+                    print(f"(set {TRACEBACK_ENV}=1 for the full traceback)", file=sys.stderr, flush=True)
+                    sys.exit(1)
+        return main(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]

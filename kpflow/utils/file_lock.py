@@ -1,13 +1,18 @@
 """An exclusive inter-process lock on a file (``fcntl.flock``), released when closed or when its process dies.
 
+The lock file is opened without following a symbolic link (``O_NOFOLLOW``) and must be a regular file: a link planted
+in its place (to a file elsewhere) is refused by name, never written through (:class:`UnsafeLockFile`).
+
 A lock belongs to the process that took it: a child forked while it is held (a pool of workers) closes its copy of
 the descriptor at once, so that the lock is released when its owner dies, not when the last of its children does.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
+import stat
 import time
 import weakref
 from pathlib import Path
@@ -36,6 +41,25 @@ class LockHeld(TimeoutError):
         self.path, self.holder = path, holder
 
 
+class UnsafeLockFile(ValueError):
+    """A lock file that is a symbolic link or not a regular file: taking it would write through it."""
+
+
+def _open_lock_file(path: Path) -> int:
+    """``path`` opened read-write (created if missing) without following a link; :class:`UnsafeLockFile` for a link
+    or anything but a regular file."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise UnsafeLockFile(f"{path} is a symbolic link: a lock file is never followed (it would write into what it points to); remove the link") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise UnsafeLockFile(f"{path} is not a regular file: remove it (a lock file holds the holder's pid only)")
+    return fd
+
+
 class FileLock:
     """Hold ``flock(LOCK_EX)`` on ``path`` (created if missing); the holder's pid is written into the file so a
     waiter can say who holds it.
@@ -46,6 +70,7 @@ class FileLock:
         on_wait: called once, with the holder's pid (or None), when the lock is taken and we start waiting.
 
     Raises:
+        UnsafeLockFile: ``path`` is a symbolic link or not a regular file (nothing is written).
         LockHeld: (a ``TimeoutError``) the lock was still held after ``wait`` seconds, or is held by this process
             through another handle (waiting would deadlock); the message names the file and the holder, and so do
             its ``path`` and ``holder``.
@@ -55,7 +80,7 @@ class FileLock:
 
     def __init__(self, path: str | os.PathLike, wait: float | None = 0.0, on_wait=None) -> None:
         self.path = Path(path)
-        self._fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        self._fd: int | None = _open_lock_file(self.path)
         deadline = None if wait is None else time.monotonic() + wait
         waiting = False
         while True:

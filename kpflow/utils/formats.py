@@ -99,15 +99,37 @@ def read_yaml(path: str | Path):
     return OmegaConf.create(text)
 
 
+def parquet_metadata(path: Path, where: str):
+    """The footer of parquet file ``path``; ``ValueError`` naming the file (and ``where``) when it is not parquet."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.ParquetFile(path).metadata
+    except (pa.ArrowException, OSError) as e:
+        raise ValueError(f"{where}: {path} is not a readable parquet file ({e})") from None
+
+
+def read_parquet(path: Path, columns: list[str], where: str):
+    """Columns ``columns`` of parquet file ``path`` (a pyarrow table); ``ValueError`` naming the file for one that
+    does not read (a schema with duplicated names, a damaged page, a missing column)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError, KeyError) as e:
+        raise ValueError(f"{where}: {path} does not read as parquet with columns {columns} ({e})") from None
+
+
 def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], where: str) -> None:
     """Raise ``ValueError`` unless the parquet ``files`` declare ``rows`` rows in all and, for each column of
     ``columns`` (name -> values per row), at most 16 bytes per value and row uncompressed (float32 or int64 values
     plus list offsets and validity), read from their footers only."""
-    import pyarrow.parquet as pq
 
     total = 0
     for f in files:
-        meta = pq.ParquetFile(f).metadata
+        meta = parquet_metadata(f, where)
         total += meta.num_rows
         for g in range(meta.num_row_groups):
             group = meta.row_group(g)

@@ -43,13 +43,17 @@ class SuiteCameras:
             raise ValueError(f"image size must be at least 8 x 8 pixels; got {self.height} x {self.width}")
         object.__setattr__(self, "names", tuple(self.names))
 
-    def check(self, env) -> None:
-        """Refuse cameras the model lacks, or an environment that cannot render."""
+    def check_names(self, env) -> None:
+        """Refuse cameras the model lacks (``ValueError`` naming them and the model's cameras)."""
         model = env.sim.model
         have = [model.camera_id2name(i) for i in range(model.ncam)]
         missing = [n for n in self.names if n not in have]
         if missing:
-            raise ValueError(f"{env.spec.name} has no camera {missing}; its cameras are {have}")
+            raise ValueError(f"{env.spec.name} has no camera {missing}; its cameras are {have} (keypoints.cameras=[...])")
+
+    def check(self, env) -> None:
+        """Refuse cameras the model lacks, or an environment that cannot render."""
+        self.check_names(env)
         if not env.env.has_offscreen_renderer:
             raise ValueError(f"{env.spec.name}: build the environment with render=True to capture camera frames")
 

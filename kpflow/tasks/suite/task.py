@@ -70,8 +70,12 @@ class SuiteTask:
         self.perception = CameraKeypoints.from_source(self.keypoints) if self.keypoints.camera else SimulatorPoses()
 
     def make_env(self, render: bool = False) -> SuiteEnv:
-        """A simulator for this task (rendering when asked, or when its keypoints come from cameras)."""
-        return SuiteEnv(self.spec, render=render or self.keypoints.camera)
+        """A simulator for this task (rendering when asked, or when its keypoints come from cameras, whose names are
+        checked against the model's here: an unknown camera is refused before any episode)."""
+        env = SuiteEnv(self.spec, render=render or self.keypoints.camera)
+        if isinstance(self.perception, CameraKeypoints):
+            self.perception.cameras.check_names(env)
+        return env
 
     def sample_scene(self, env: SuiteEnv, variant: str, index: int, seed: int = 0) -> Scene:
         return sample_scene(self.spec, env, variant, index, seed)
