@@ -10,6 +10,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -171,3 +172,122 @@ def test_an_unknown_camera_is_refused_before_any_episode():
     task = SuiteTask("lift", KeypointSource("camera", cameras=("nosuchcam",)))
     with pytest.raises(ValueError, match=r"lift has no camera \['nosuchcam'\]; its cameras are \[.*'frontview'"):
         task.make_env()
+
+
+# 1-7: resources a small file can claim, refused before anything is allocated or decompressed
+def _checkpoint(hparams: dict, path: Path) -> Path:
+    import torch
+
+    torch.save({"state_dict": {}, "hyper_parameters": hparams}, path)
+    return path
+
+
+@pytest.mark.parametrize("key, value, hparams", [
+    ("objective_options.train_steps", 10**7, {"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**7}}),
+    ("horizon", 1 << 22, {"n_keypoints": 25, "horizon": 1 << 22}),
+    ("down_dims", 1 << 20, {"n_keypoints": 25, "down_dims": [64, 1 << 20]}),
+])  # fmt: skip
+def test_a_checkpoint_asking_beyond_the_limits_is_refused_before_building(tmp_path, key, value, hparams):
+    from kpflow import load_policy
+
+    path = _checkpoint(hparams, tmp_path / "big.ckpt")
+    with pytest.raises(ValueError, match=rf"big.ckpt: hyper-parameter {key} = {value} is beyond kpflow's limit \d+ \(kpflow/utils/limits.py\)"):
+        load_policy(path)
+
+
+def test_a_learned_map_checkpoint_of_a_million_layers_is_refused_at_once(tmp_path):
+    from kpflow.maps.map_module import MapModule
+    from kpflow.utils.checkpoint import load_checkpoint
+
+    path = _checkpoint({"n_keypoints": 25, "dim": 2, "n_layers": 10**6}, tmp_path / "map.ckpt")
+    with pytest.raises(ValueError, match=r"map.ckpt: hyper-parameter n_layers = 1000000 is beyond kpflow's limit 256"):
+        load_checkpoint(MapModule, path)
+
+
+def _zip_bomb(path: Path, member: str, declared: int, prefix: bytes = b"") -> Path:
+    """A zip whose ``member`` deflates ``declared`` bytes of zeros (after ``prefix``) into a few hundred kB."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z, z.open(member, "w", force_zip64=True) as f:
+        f.write(prefix)
+        zeros = bytes(1 << 24)
+        for _ in range(declared // len(zeros)):
+            f.write(zeros)
+    return path
+
+
+BOMB = 1 << 30  # 1 GiB declared
+
+
+def test_compressed_entries_that_would_expand_are_refused_before_decompressing(tmp_path):
+    from kpflow.data.source_index import SourceIndex
+
+    ckpt = _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
+    with pytest.raises(ValueError, match=r"bomb.ckpt: member 'archive/data/0' claims 1073741824 bytes from \d+ stored, beyond 64 times"):
+        from kpflow import load_policy
+
+        load_policy(ckpt)
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
+    header["shape"] = (BOMB // 4,)
+    buf = __import__("io").BytesIO()
+    np.lib.format.write_array_header_1_0(buf, header)
+    npz = _zip_bomb(tmp_path / "bomb.source_index.npz", "keypoints.npy", BOMB, buf.getvalue())
+    with pytest.raises(ValueError, match=r"array 'keypoints' claims \d+ bytes from \d+ stored, beyond 64 times"):
+        SourceIndex.load(npz)
+
+
+def test_a_sparse_zarr_chunk_of_gigabytes_is_refused_unread(store):
+    from kpflow.data.zarr_checks import UnsafeStoreError
+
+    chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
+    os.truncate(chunk, 8 << 30)  # 8 GiB on disk, sparse: nothing written
+    with pytest.raises(UnsafeStoreError, match=rf"keypoints/{chunk.name} is 8589934592 bytes on disk, more than it can hold"):
+        EpisodeStore(store).field("keypoints")
+
+
+def test_a_small_parquet_declaring_millions_of_frames_is_refused(dataset, tmp_path):
+    info_path = dataset / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    files = sorted(dataset.glob("data/*/*.parquet"))
+    template = pq.read_table(files[0])
+    n = 2_000_000
+    columns = {}
+    for name in template.column_names:  # every frame the same: dictionary and run-length encodings shrink it to kB
+        columns[name] = template.column(name).combine_chunks().take(pa.array(np.zeros(n, np.int64)))
+    for f in files:
+        f.unlink()
+    pq.write_table(pa.table(columns), files[0], compression="zstd", compression_level=19)
+    assert files[0].stat().st_size < 1_000_000  # against hundreds of MB decoded
+    info["total_frames"], info["total_episodes"] = n, 1
+    info_path.write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=rf"{files[0].name} declares 2000000 frames of \d+ values \(\d+ bytes\) in a \d+-byte file"):
+        import_lerobot(dataset, tmp_path / "x.zarr")
+
+
+def test_refusals_keep_memory_bounded(tmp_path, store):
+    """In a fresh process, the 1 GiB checkpoint and npz bombs and the 8 GiB sparse chunk are refused while its peak
+    resident memory grows by less than 200 MB: what they declare is never allocated."""
+    _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
+    header["shape"] = (BOMB // 4,)
+    buf = __import__("io").BytesIO()
+    np.lib.format.write_array_header_1_0(buf, header)
+    _zip_bomb(tmp_path / "bomb.npz", "keypoints.npy", BOMB, buf.getvalue())
+    chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
+    os.truncate(chunk, 8 << 30)
+    script = (
+        "import resource, sys\n"
+        "import kpflow\n"
+        "from kpflow.data.episode_store import EpisodeStore\n"
+        "from kpflow.utils.formats import read_npz\n"
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "for load in (lambda: kpflow.load_policy(sys.argv[1]), lambda: read_npz(sys.argv[2], ['keypoints']),\n"
+        "             lambda: EpisodeStore(sys.argv[3]).field('keypoints')):\n"
+        "    try:\n        load()\n    except ValueError as e:\n        print('refused', str(e)[:60])\n"
+        "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "bomb.ckpt"), str(tmp_path / "bomb.npz"), str(store)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0 and done.stdout.count("refused") == 3, done.stdout + done.stderr[-2000:]
+    grew = int(done.stdout.rsplit("grew_kb", 1)[1])
+    assert grew < 200_000, done.stdout

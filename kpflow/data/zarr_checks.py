@@ -10,7 +10,9 @@ a byte:
 - every ``.zarray`` (:func:`check_array_metadata`): zarr format 2; a plain numeric dtype (:data:`DTYPE_KINDS`: bool,
   signed and unsigned integers, floats, at most 8 bytes; no object, string, structured or sub-array dtype); a
   compressor among :data:`COMPRESSORS` (blosc, or none); no filters; a chunk of at most :data:`MAX_CHUNK_BYTES`;
-- every chunk: its decoded size, read from the blosc header (or its length, uncompressed), is exactly one chunk.
+- every chunk: its size on disk, before it is read, is at most one chunk plus blosc's overhead (a sparse file can
+  declare gigabytes it does not hold), and its decoded size, read from the blosc header (or its length,
+  uncompressed), is exactly one chunk; ``.zattrs`` is at most :data:`MAX_ATTRS_BYTES` on disk.
 
 Anything else raises :class:`UnsafeStoreError` naming the store, the array and the offending entry. Beyond that,
 zarr reads a missing chunk as the array's fill value and reports damaged metadata or chunks with errors that name
@@ -36,6 +38,9 @@ DTYPE_KINDS = "biuf"
 COMPRESSORS = ("blosc",)
 #: the largest decoded chunk read (256 MiB; Diffusion Policy's image chunks are 18 MB, kpflow writes at most 4 MB).
 MAX_CHUNK_BYTES = 256 << 20
+#: the largest .zattrs read (a store's checksums and episode records: a few MB for 10^5 episodes).
+MAX_ATTRS_BYTES = 64 << 20
+_BLOSC_OVERHEAD = 16 + 256  # blosc 1's largest overhead over the raw bytes (16), with room to spare
 #: the largest ``.zarray`` read (its JSON is tiny; anything bigger is not zarr metadata).
 MAX_METADATA_BYTES = 64 << 10
 _MAX_DIMS = 8
@@ -126,14 +131,32 @@ class CheckedStore(zarr.storage.DirectoryStore):
         self._arrays: dict[str, dict[str, Any]] = {}  # array path -> its checked metadata
 
     def __getitem__(self, key: str) -> bytes:
-        value = super().__getitem__(key)
         parent, _, name = key.rpartition("/")
+        self._check_size(key, name)  # before the file is read: a sparse file can declare gigabytes
+        value = super().__getitem__(key)
         if name == ".zarray":
             self._arrays[parent] = check_array_metadata(value, f"{self.path}/{parent}")
         elif name not in (".zattrs", ".zgroup"):
             array = self._array_of(key)
             check_chunk(value, self._meta(array), f"{self.path}/{array}", key)
         return value
+
+    def _check_size(self, key: str, name: str) -> None:
+        """Refuse a file larger than what it can hold: ``.zarray``/``.zgroup`` beyond :data:`MAX_METADATA_BYTES`,
+        ``.zattrs`` beyond :data:`MAX_ATTRS_BYTES`, a chunk
+        beyond its array's chunk plus blosc's 16-byte overhead."""
+        try:
+            size = os.stat(os.path.join(self.path, key)).st_size
+        except OSError:
+            return  # missing: zarr's own KeyError follows
+        if name == ".zattrs":
+            most = MAX_ATTRS_BYTES
+        elif name in (".zarray", ".zgroup"):
+            most = MAX_METADATA_BYTES
+        else:
+            most = self._meta(self._array_of(key))["chunk_bytes"] + _BLOSC_OVERHEAD
+        if size > most:
+            raise UnsafeStoreError(f"{self.path}: {key} is {size} bytes on disk, more than it can hold ({most}); refusing to read it")
 
     def __setitem__(self, key: str, value) -> None:
         super().__setitem__(key, value)

@@ -25,7 +25,9 @@ import lightning
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
+from kpflow.utils.formats import check_zip_expansion
 from kpflow.utils.io import atomic_path
+from kpflow.utils.limits import check_hyper_parameters
 
 M = TypeVar("M", bound=lightning.LightningModule)
 
@@ -47,6 +49,7 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    check_zip_expansion(path)  # a compressed entry could expand to gigabytes inside torch.load
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
@@ -101,12 +104,13 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     trained on a GPU loads anywhere), in eval mode. Reads through :func:`read_checkpoint`.
 
     Raises ``FileNotFoundError`` for a missing file, :class:`UnsafeCheckpointError` for a file that could run code,
-    and ``ValueError`` naming the file for a corrupt or foreign one, non-finite weights, or hyper-parameters that do
-    not build a module with the weights' names and shapes (checked on the meta device before anything is allocated:
+    and ``ValueError`` naming the file for a corrupt or foreign one, non-finite weights, hyper-parameters beyond
+    :data:`kpflow.utils.limits.LIMITS` (checked before anything is built), or hyper-parameters that do not build a module with the weights' names and shapes (checked on the meta device before anything is allocated:
     :func:`shape_mismatches`).
     """
     checkpoint = read_checkpoint(path, map_location)
     hparams = checkpoint.get("hyper_parameters", {})
+    check_hyper_parameters(hparams, str(path))  # before even the skeleton: its size follows them
     complete = getattr(cls, "complete_state_dict", None)  # a released file may hold part of the weights (kpflow-release)
     state = complete(checkpoint["state_dict"]) if complete else checkpoint["state_dict"]
     try:

@@ -5,8 +5,10 @@ the entry that is refused:
 
 - **npz** (:func:`read_npz`): numpy's ``allow_pickle=False`` (an object array is refused, not unpickled); each
   member's ``.npy`` header must declare a plain numeric dtype and exactly the bytes the zip entry holds, and the
-  entry may expand at most :data:`MAX_DEFLATE_RATIO` times its stored size (deflate's own limit is 1032), so that a
-  small file cannot declare gigabytes that numpy would allocate before reading.
+  entry may expand to at most :data:`MAX_DEFLATE_RATIO` times its stored size plus :data:`EXPANSION_SLACK` (kpflow's
+  own arrays compress 2-7 times; runs of one integer, a source index's episode ids, ~270 times over a few hundred
+  kB), so that a small file cannot declare gigabytes that numpy would allocate before reading. A checkpoint's zip
+  entries are held to the same bound (:func:`check_zip_expansion`; ``torch.save`` stores them uncompressed).
 - **YAML** (:func:`read_yaml`): at most :data:`MAX_YAML_BYTES`, and no anchors or aliases (an alias-expanding "billion
   laughs" document is a few hundred bytes that OmegaConf would expand into gigabytes); parsed by OmegaConf, whose
   loader is PyYAML's safe one (no Python tags).
@@ -26,8 +28,10 @@ from typing import Iterable
 
 import numpy as np
 
-#: how many times its stored size a deflated npz member may expand (deflate cannot exceed 1032).
-MAX_DEFLATE_RATIO = 1100
+#: how many times its stored size a compressed zip member may expand, beyond :data:`EXPANSION_SLACK`.
+MAX_DEFLATE_RATIO = 64
+#: bytes any zip member may expand to whatever its ratio (small arrays of repeated values compress without bound).
+EXPANSION_SLACK = 1 << 20
 #: the largest YAML file read (run configs are a few kB).
 MAX_YAML_BYTES = 1 << 20
 _NPY_KINDS = "biuf"
@@ -61,8 +65,7 @@ def _check_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
         info = archive.getinfo(f"{name}.npy")
     except KeyError:
         raise ValueError(f"{path} has no array {name!r} (it has {sorted(n.removesuffix('.npy') for n in archive.namelist())})") from None
-    if info.compress_type != zipfile.ZIP_STORED and info.file_size > MAX_DEFLATE_RATIO * max(info.compress_size, 1) + 4096:
-        raise ValueError(f"{path}: array {name!r} claims {info.file_size} bytes from {info.compress_size} stored; refusing to read it")
+    _check_ratio(info, path, f"array {name!r}")
     with archive.open(info) as member:
         try:
             version = np.lib.format.read_magic(member)
@@ -78,6 +81,26 @@ def _check_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
     declared = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     if header + declared != info.file_size:
         raise ValueError(f"{path}: array {name!r} declares {shape} x {dtype} ({declared} bytes) but holds {info.file_size - header}")
+
+
+def _check_ratio(info: zipfile.ZipInfo, path: Path, what: str) -> None:
+    if info.compress_type != zipfile.ZIP_STORED and info.file_size > MAX_DEFLATE_RATIO * info.compress_size + EXPANSION_SLACK:
+        raise ValueError(
+            f"{path}: {what} claims {info.file_size} bytes from {info.compress_size} stored, beyond {MAX_DEFLATE_RATIO} times "
+            f"plus {EXPANSION_SLACK} bytes; refusing to decompress it"
+        )
+
+
+def check_zip_expansion(path: str | Path) -> None:
+    """Raise ``ValueError`` naming ``path`` and the member when a zip file (a checkpoint, an npz) has a compressed
+    member that would expand beyond the bound of the module docstring; a file that is not a zip is left to its
+    reader."""
+    path = Path(path)
+    if not zipfile.is_zipfile(path):
+        return
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            _check_ratio(info, path, f"member {info.filename!r}")
 
 
 def read_yaml(path: str | Path):
@@ -125,12 +148,21 @@ def read_parquet(path: Path, columns: list[str], where: str):
 def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], where: str) -> None:
     """Raise ``ValueError`` unless the parquet ``files`` declare ``rows`` rows in all and, for each column of
     ``columns`` (name -> values per row), at most 16 bytes per value and row uncompressed (float32 or int64 values
-    plus list offsets and validity), read from their footers only."""
+    plus list offsets and validity), read from their footers only; and unless each file holds at least
+    ``1 / MAX_DEFLATE_RATIO`` of the float32 values it declares (beyond :data:`EXPANSION_SLACK`): a few kB cannot
+    declare millions of frames that decoding would allocate (dictionary and run-length encodings shrink what a
+    footer says is uncompressed, so the file's own size is the bound)."""
 
     total = 0
     for f in files:
         meta = parquet_metadata(f, where)
         total += meta.num_rows
+        need, size = 4 * meta.num_rows * sum(columns.values()), Path(f).stat().st_size
+        if need > MAX_DEFLATE_RATIO * size + EXPANSION_SLACK:
+            raise ValueError(
+                f"{where}: {Path(f).name} declares {meta.num_rows} frames of {sum(columns.values())} values ({need} bytes) in a "
+                f"{size}-byte file, beyond {MAX_DEFLATE_RATIO} times its size; refusing to decode it"
+            )
         for g in range(meta.num_row_groups):
             group = meta.row_group(g)
             for c in range(group.num_columns):
