@@ -291,3 +291,22 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
     assert done.returncode == 0 and done.stdout.count("refused") == 3, done.stdout + done.stderr[-2000:]
     grew = int(done.stdout.rsplit("grew_kb", 1)[1])
     assert grew < 200_000, done.stdout
+
+
+@pytest.mark.parametrize("spelling", ["list", "nested", "motors", "string"])
+def test_3d_keypoint_names_in_lerobots_spellings_import_as_keypoints(tmp_path, spelling):
+    """``k0.x, k0.y, k0.z, ...`` reads as 3-D keypoints whichever way LeRobot spells a feature's names."""
+    with EpisodeStore(tmp_path / "s.zarr", mode="a") as s:
+        for _ in range(2):
+            s.add_episode({"keypoints": np.random.default_rng(0).random((5, 4, 3), np.float32), "action": np.zeros((5, 10), np.float32)})
+    with EpisodeStore(tmp_path / "s.zarr") as s:
+        root = export_lerobot(s, tmp_path / "lr", fps=10.0, task="t", robot_type="r")
+    info_path = root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    names = info["features"]["observation.state"]["names"]
+    info["features"]["observation.state"]["names"] = {
+        "list": names, "nested": [names[i : i + 3] for i in range(0, 12, 3)], "motors": {"motors": names}, "string": ", ".join(names),
+    }[spelling]  # fmt: skip
+    info_path.write_text(json.dumps(info))
+    store = import_lerobot(root, tmp_path / "back.zarr")
+    assert store.field("keypoints").shape == (10, 4, 3)

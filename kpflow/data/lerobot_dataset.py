@@ -61,9 +61,23 @@ def _width(spec: dict, where: str) -> int:
     return width
 
 
+def flat_names(names) -> list | None:
+    """A feature's value names as one flat list, in LeRobot's spellings: a list, a list of lists (one per axis of a
+    multi-dimensional feature), ``{"motors": [...]}``-style (one list under one key), or one comma-separated string."""
+    if isinstance(names, str):
+        return [n.strip() for n in names.split(",")]
+    if isinstance(names, dict) and len(names) == 1:
+        names = next(iter(names.values()))
+    if isinstance(names, list) and names and all(isinstance(n, list) for n in names):
+        return [n for row in names for n in row]
+    return names if isinstance(names, list) else None
+
+
 def keypoint_layout(names: list[str] | None) -> tuple[int, int] | None:
     """``(K, D)`` when ``names`` are exactly kpflow's keypoint names ``k0.x, k0.y, ..., k<K-1>.<axis D-1>`` in that
-    order (what :func:`export_lerobot` writes), else None: repeated, missing or shuffled names are not keypoints."""
+    order (what :func:`export_lerobot` writes; in any of :func:`flat_names`' spellings), else None: repeated,
+    missing or shuffled names are not keypoints."""
+    names = flat_names(names)
     if not names or not all(isinstance(n, str) and re.fullmatch(r"k\d+\.[xyz]", n) for n in names):
         return None
     d = len({n.split(".")[1] for n in names})
@@ -76,6 +90,7 @@ def keypoint_layout(names: list[str] | None) -> tuple[int, int] | None:
 def _keypoints_shaped(flat: np.ndarray, names, field: str, where: str) -> np.ndarray:
     """``flat [T, F]`` for store field ``field``; kpflow's keypoint names reshape it to ``[T, K, D]``. Names that repeat,
     or keypoint names out of order, are refused (they would import as a different layout)."""
+    names = flat_names(names)
     if isinstance(names, list) and len(set(map(str, names))) != len(names):
         repeated = sorted({str(n) for n in names if names.count(n) > 1})
         raise ValueError(f"{where} names its values with repeats ({repeated[:3]}): each value needs its own name")
