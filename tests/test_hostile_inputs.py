@@ -265,7 +265,8 @@ def test_a_small_parquet_declaring_millions_of_frames_is_refused(dataset, tmp_pa
 
 
 def test_refusals_keep_memory_bounded(tmp_path, store):
-    """In a fresh process, the 1 GiB checkpoint and npz bombs and the 8 GiB sparse chunk are refused while its peak
+    """In a fresh process, the 1 GiB checkpoint and npz bombs, the 8 GiB sparse chunk and the checkpoints asking for
+    10^8 diffusion steps (issue 57: 1.5 GB at 10^7) and a 2^27-action chunk (34 GB) are refused while its peak
     resident memory grows by less than 200 MB: what they declare is never allocated."""
     _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
     header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
@@ -275,6 +276,8 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
     _zip_bomb(tmp_path / "bomb.npz", "keypoints.npy", BOMB, buf.getvalue())
     chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
     os.truncate(chunk, 8 << 30)
+    _checkpoint({"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**8}}, tmp_path / "steps.ckpt")
+    _checkpoint({"n_keypoints": 25, "horizon": 1 << 27}, tmp_path / "horizon.ckpt")
     script = (
         "import resource, sys\n"
         "import kpflow\n"
@@ -282,13 +285,14 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
         "from kpflow.utils.formats import read_npz\n"
         "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
         "for load in (lambda: kpflow.load_policy(sys.argv[1]), lambda: read_npz(sys.argv[2], ['keypoints']),\n"
-        "             lambda: EpisodeStore(sys.argv[3]).field('keypoints')):\n"
+        "             lambda: EpisodeStore(sys.argv[3]).field('keypoints'), lambda: kpflow.load_policy(sys.argv[4]),\n"
+        "             lambda: kpflow.load_policy(sys.argv[5])):\n"
         "    try:\n        load()\n    except ValueError as e:\n        print('refused', str(e)[:60])\n"
         "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
     )
-    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "bomb.ckpt"), str(tmp_path / "bomb.npz"), str(store)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0 and done.stdout.count("refused") == 3, done.stdout + done.stderr[-2000:]
+    files = [tmp_path / "bomb.ckpt", tmp_path / "bomb.npz", store, tmp_path / "steps.ckpt", tmp_path / "horizon.ckpt"]
+    done = subprocess.run([sys.executable, "-c", script, *map(str, files)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.count("refused") == 5, done.stdout + done.stderr[-2000:]
     grew = int(done.stdout.rsplit("grew_kb", 1)[1])
     assert grew < 200_000, done.stdout
 
