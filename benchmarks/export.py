@@ -6,7 +6,7 @@ Run::
     python benchmarks/export.py [--checkpoint release/pusht_standard_kcfm_human.ckpt] [--reps 300] [--warmup 50]
                                 [--batches 1 8] [--out outputs/benchmarks/export.md]
 
-The released Push-T K-CFM's EMA network (:class:`~kpflow.policies.unet1d.ConditionalUnet1D`) is called as the
+The released Push-T K-CFM's EMA network (:class:`~kpflow.policies.kcfm.networks.unet1d.ConditionalUnet1D`) is called as the
 sampler calls it, ``net(x [B, H, A], t [B], c [B, C])``, in these forms (each built for the batch size of its row
 group, since traced and exported graphs fix the shapes):
 
@@ -53,7 +53,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from kpflow.policies.kcfm import KCFM  # noqa: E402
+from kpflow.policies.kcfm.model import KCFM  # noqa: E402
 from kpflow.utils.checkpoint import load_checkpoint  # noqa: E402
 from kpflow.utils.io import publish  # noqa: E402
 

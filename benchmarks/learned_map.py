@@ -144,7 +144,7 @@ def decision_latency(make_map, store: str, kcfm: str | None, n: int = 50) -> tup
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
     from kpflow.policies.chunk_transport import TransportPolicy
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
     from kpflow.tasks.pusht import PushTEnv, split_config
     from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights

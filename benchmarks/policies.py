@@ -48,8 +48,8 @@ from sklearn.neighbors import NearestNeighbors
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.policies.chunk_transport import TransportPolicy
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.collection import collect_pusht

@@ -28,7 +28,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from kpflow.policies.traced import TracedNetwork  # noqa: E402
+from kpflow.policies.kcfm.traced import TracedNetwork  # noqa: E402
 from kpflow.serving import PolicyClient, PolicyServer, load_deployment  # noqa: E402
 from kpflow.serving.batching import DEFAULT_MAX_WAIT_MS  # noqa: E402
 from kpflow.tasks.pusht.task import PushTTask  # noqa: E402
@@ -137,7 +137,7 @@ def main() -> None:
             base = in_process(deployment, obs)
             lines.append("| in-process `act()` | 1 | {:.1f} | {:.1f} | {:.1f} | 1.00 | {:.0f} | | 1.00 |".format(*q(base), 1e3 / np.mean(base)))
         with PolicyServer(deployment, port=0).running() as uri:
-            for clients in args.clients:  # warm-up: the policies' traces, one per batch size met (kpflow/policies/traced.py)
+            for clients in args.clients:  # warm-up: the policies' traces, one per batch size met (kpflow/policies/kcfm/traced.py)
                 served(uri, obs[:10], clients)
             one = None
             for clients in args.clients:

@@ -34,7 +34,7 @@ from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.chunk_transport import TransportPolicy, transport_chunk
 from kpflow.policies.factory import make_kcfm, make_transported_kcfm, source_index_path
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.checkpoint import load_checkpoint
 from kpflow.utils.io import publish

@@ -29,7 +29,7 @@ from kpflow.data.episode_store import EpisodeStore  # noqa: E402
 from kpflow.data.source_index import SourceIndex  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
 from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
-from kpflow.policies.kcfm_policy import KCFMPolicy  # noqa: E402
+from kpflow.policies.kcfm.policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights  # noqa: E402
 from kpflow.tasks.pusht.task import PushTTask  # noqa: E402

@@ -15,7 +15,7 @@ import numpy as np
 import kpflow
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 
 
 def walking_store(path: Path, episodes: int = 40) -> Path:

@@ -23,6 +23,6 @@ def load_policy(path, steps: int | None = None, execute: int | None = None):
     ``ValueError`` naming the file. Wrap it in :class:`kpflow.policies.transported_kcfm.TransportedKCFMPolicy` for
     online transport, or in :class:`kpflow.policies.subgoal.SubgoalPolicy` to show it its goal within reach and turn.
     """
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.policy import KCFMPolicy
 
     return KCFMPolicy.from_checkpoint(path, steps=steps, execute=execute)

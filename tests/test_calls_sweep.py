@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from kpflow.eval.calls_sweep import main, read_run
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 
 

@@ -16,7 +16,7 @@ import torch
 
 import kpflow
 from kpflow.data.chunks import ChunkDataModule
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import SafeCheckpointIO, UnsafeCheckpointError, load_checkpoint, read_checkpoint
 from tests.helpers import walk_to_block_store

@@ -209,7 +209,7 @@ def test_keypoint_options_switch_every_entry_points_task(entry, overrides, keypo
 
 def square_kcfm(tmp_path) -> Path:
     """An untrained K-CFM checkpoint with the square task's layout (its policy keypoints and end-effector actions)."""
-    from kpflow.policies.kcfm import KCFM
+    from kpflow.policies.kcfm.model import KCFM
     from kpflow.tasks.suite.task import SuiteTask
 
     layout = SuiteTask("square").policy_layout

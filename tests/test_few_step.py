@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from kpflow.data.chunks import ChunkDataModule
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import load_checkpoint
 

@@ -11,8 +11,10 @@ import torch
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.policies.checks import INPUT_MARGIN
-from kpflow.policies.kcfm import KCFM, MAX_STEPS, fill_padding, masked_mse
-from kpflow.policies.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.losses import fill_padding, masked_mse
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.networks.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.sampling import MAX_STEPS
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, observation_keypoints
 from kpflow.tasks.pusht.geometry import goal_frame as pusht_goal_frame
 from tests.helpers import walk_to_block_store

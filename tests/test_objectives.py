@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from kpflow.policies.objectives import DDPM, ICFM, OBJECTIVES, OTCFM, SOLVERS, MeanFlow, Reflow, build_objective
-from kpflow.policies.objectives.solvers import integrate, intervals
+from kpflow.policies.kcfm.objectives import DDPM, ICFM, OBJECTIVES, OTCFM, SOLVERS, MeanFlow, Reflow, build_objective
+from kpflow.policies.kcfm.objectives.solvers import integrate, intervals
 
 
 def _data(b=6, h=8, a=2, seed=0):

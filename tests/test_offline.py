@@ -10,7 +10,7 @@ import pytest
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.offline import evaluate_offline
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from kpflow.data.source_index import SourceIndex
 from kpflow.geometry.rotations import matrix_to_rot6d
 from kpflow.maps import ILWRMap
 from kpflow.policies.base import PolicyLayout
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.phases import Grip, Phase, Phases
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
 from tests.helpers import cube_corners as _cube

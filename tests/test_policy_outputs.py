@@ -19,8 +19,8 @@ from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.checks import INPUT_MARGIN, check_actions
 from kpflow.policies.factory import source_index_path
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment

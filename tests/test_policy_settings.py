@@ -13,8 +13,8 @@ from kpflow.cli.evaluate import record_used
 from kpflow.cli.release import release
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.factory import kcfm
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings, effective_settings
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.serving.deployment import load_deployment

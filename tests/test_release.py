@@ -12,7 +12,7 @@ import torch
 from kpflow import load_policy
 from kpflow.cli.release import KEEP, main, release
 from kpflow.data.chunks import ChunkDataModule
-from kpflow.policies.kcfm import KCFM
+from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.settings import CHECKPOINT_KEY
 from kpflow.tasks.pusht import PushTEnv, split_config, standard_config
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS

@@ -12,8 +12,8 @@ import torch
 from omegaconf import OmegaConf
 
 from kpflow.cli.serve import KEYS
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.networks.unet1d import ConditionalUnet1D
 from kpflow.serving import PolicyClient, PolicyServer, load_deployment
 from kpflow.serving.batching import BatchedNetwork, BatchedPolicy
 from kpflow.tasks.pusht.task import PushTTask
@@ -103,8 +103,8 @@ def test_rows_from_four_threads_are_their_lone_calls_in_fewer_passes(trace):
 
 def test_a_batched_network_is_not_traced_itself():
     """It declares itself untraceable, so a policy's TracedNetwork around the model's ema_net calls it eagerly
-    (kpflow/policies/traced.py, no trace recorded) and the batches are traced inside; tracing it anyway raises."""
-    from kpflow.policies.traced import TracedNetwork
+    (kpflow/policies/kcfm/traced.py, no trace recorded) and the batches are traced inside; tracing it anyway raises."""
+    from kpflow.policies.kcfm.traced import TracedNetwork
 
     batched = BatchedNetwork(unet(), trace=True)
     outer = TracedNetwork(batched)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.subgoal import SubgoalPolicy, subgoal_shift, subgoal_turn
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, PUSHT_GOAL, goal_frame, observation_keypoints

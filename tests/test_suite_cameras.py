@@ -144,7 +144,7 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     """The released Lift K-CFM in closed loop on camera keypoints: the cameras are read at the steps whose
     observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
     is the same for the same seed."""
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.tasks.suite.rollout import PolicyEpisode, run_policy_episode
 
     policy = KCFMPolicy.from_checkpoint("release/suite_lift_kcfm.ckpt", steps=2, execute=8)

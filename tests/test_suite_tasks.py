@@ -320,8 +320,8 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
     import lightning
 
     from kpflow.data.chunks import ChunkDataModule
-    from kpflow.policies.kcfm import KCFM
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.model import KCFM
+    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.tasks.suite.rollout import run_policy_episode
 
     out, _ = generated
@@ -478,8 +478,8 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     from kpflow.cli.release import release, release_source_index
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.chunk_transport import TransportPolicy
-    from kpflow.policies.kcfm import KCFM
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.model import KCFM
+    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.policies.nearest import NearestNeighbourPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
     from kpflow.tasks.suite.rollout import run_policy_episode

@@ -17,8 +17,8 @@ from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.chunk_transport import TransportPolicy, transport_chunk
-from kpflow.policies.kcfm import KCFM
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from tests.helpers import cube_corners as _cube
 from tests.helpers import yaw_matrix as _yaw

@@ -3,8 +3,8 @@ network wherever a trace cannot be recorded, and new weights seen by existing tr
 
 import torch
 
-from kpflow.policies.traced import TracedNetwork
-from kpflow.policies.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.networks.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.traced import TracedNetwork
 
 
 def test_traces_equal_the_eager_network_per_signature_and_follow_its_weights():

@@ -16,8 +16,9 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.base import Policy
-from kpflow.policies.kcfm import KCFM, MAX_STEPS
-from kpflow.policies.kcfm_policy import KCFMPolicy
+from kpflow.policies.kcfm.model import KCFM
+from kpflow.policies.kcfm.policy import KCFMPolicy
+from kpflow.policies.kcfm.sampling import MAX_STEPS
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.task import PushTTask

@@ -50,7 +50,7 @@ def read_run(label: str, folder: str | Path) -> list[SweepRow]:
     policy = yaml.safe_load((folder / "config.yaml").read_text())["policy"]
     steps, solver = policy.get("steps"), policy.get("solver")
     if steps is None or solver is None:  # the checkpoint's own settings
-        from kpflow.policies.kcfm import KCFM
+        from kpflow.policies.kcfm.model import KCFM
         from kpflow.utils.checkpoint import load_checkpoint
 
         steps, solver = load_checkpoint(KCFM, policy["checkpoint"]).sampler(steps, solver)

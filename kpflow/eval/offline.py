@@ -30,7 +30,7 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
                      execute: int = 8, every: int = 4, progress: bool = True) -> dict:  # fmt: skip
     """Run the offline check (module docstring) of the K-CFM at ``checkpoint`` on ``data``'s held-out episodes."""
     from kpflow.eval.plots import offline_figure
-    from kpflow.policies.kcfm_policy import KCFMPolicy
+    from kpflow.policies.kcfm.policy import KCFMPolicy
 
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")

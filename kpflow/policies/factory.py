@@ -114,9 +114,9 @@ def _map_factory(make_map, layout: PolicyLayout, fit: tuple[int, ...] | None, wh
 
 def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,
               reach: float | None = None, turn_deg: float | None = None, solver: str | None = None):  # fmt: skip
-    """A loaded K-CFM as a policy (:class:`~.kcfm_policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``; None:
+    """A loaded K-CFM as a policy (:class:`~.kcfm.policy.KCFMPolicy`), its goal within ``reach``/``turn_deg``; None:
     the checkpoint's own settings (:mod:`.settings`; ``reach``/``turn_deg`` False: the goal as observed)."""
-    from .kcfm_policy import KCFMPolicy
+    from .kcfm.policy import KCFMPolicy
 
     limits = model.settings.given(reach=reach, turn_deg=turn_deg)
     return within_reach(KCFMPolicy(model, steps, execute, input_margin, solver), layout, limits.reach, limits.turn_deg)
@@ -160,7 +160,7 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = 
     """The K-CFM at ``checkpoint`` for ``task`` (:func:`make_kcfm`; ``steps``/``solver`` None: the checkpoint's); a
     checkpoint trained on another task's keypoints or actions is refused here, naming both layouts
     (:func:`check_checkpoint_fits`)."""
-    from .kcfm_policy import KCFMPolicy
+    from .kcfm.policy import KCFMPolicy
 
     model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
     check_checkpoint_fits(checkpoint, model.hparams, task)
@@ -177,7 +177,7 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
     map, search frame and weights as the task declares them); ``options``: the source choice. The checkpoint
     is checked against the task and a learned map against the keypoints it is fitted on, before the
     demonstrations are built (the config is not instantiated recursively: a refused file collects nothing)."""
-    from .kcfm_policy import KCFMPolicy
+    from .kcfm.policy import KCFMPolicy
 
     task = _built(task)
     layout = layout_of(task)

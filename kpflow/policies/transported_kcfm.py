@@ -43,7 +43,7 @@ each segment, and the map never has to stretch the space between two objects tha
 
 The observation is held to the K-CFM's training range before anything is fitted, and the K-CFM's input after the
 pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that come out NaN or inf are refused
-(:func:`~kpflow.policies.checks.check_actions`), as :class:`~kpflow.policies.kcfm_policy.KCFMPolicy` does.
+(:func:`~kpflow.policies.checks.check_actions`), as :class:`~kpflow.policies.kcfm.policy.KCFMPolicy` does.
 """
 
 from __future__ import annotations
@@ -61,8 +61,8 @@ from ..maps.base import TransportMap
 from .base import PolicyLayout
 from .checks import INPUT_MARGIN, check_actions
 from .chunk_transport import fitted_keypoints, robot_and_rotation, transport_chunk
-from .kcfm import KCFM
-from .kcfm_policy import KCFMPolicy
+from .kcfm.model import KCFM
+from .kcfm.policy import KCFMPolicy
 from .phases import Phase, Phases
 from .source_choice import SourceChoice
 
@@ -124,14 +124,14 @@ class TransportedKCFMPolicy:
         index: its training configurations (e.g. ``SourceIndex.from_store(store, episodes=train_episodes,
             reference=PUSHT_BLOCK)``); only their keypoints are used.
         make_map: builds an unfitted map with an inverse (``ILWRMap``: exact inverse, rigid alignment first).
-        steps, solver: network calls per chunk and the sampler (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`;
+        steps, solver: network calls per chunk and the sampler (:class:`~kpflow.policies.kcfm.policy.KCFMPolicy`;
             None: the model's own).
         execute: how many actions of the chunk :meth:`act` returns (None: the checkpoint's setting, else 8).
         pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
         fit_on: indices of the keypoints the map is fitted on (None: all).
         input_margin: how far outside the K-CFM's training keypoints an observation may lie
-            (:class:`~kpflow.policies.kcfm_policy.KCFMPolicy`); None: no range check.
+            (:class:`~kpflow.policies.kcfm.policy.KCFMPolicy`); None: no range check.
         layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation);
             required (None is refused, naming it).
         segments: follow the layout's phases (module docstring; ``fit_on`` and the index's weights and frame are then

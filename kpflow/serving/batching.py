@@ -3,7 +3,7 @@
 The policy server answers each connection's ``act`` in a worker thread, and every connection's policy shares one
 loaded K-CFM (:mod:`kpflow.serving.deployment`). ``act`` ends in :meth:`~kpflow.policies.kcfm.KCFM.sample`, which
 calls the model's ``ema_net(x [B, H, A], t, c [B, C])`` once per solver step with ``B = 1`` (through a
-:class:`~kpflow.policies.traced.TracedNetwork` of it). On a CPU such a call of a small network costs far less than
+:class:`~kpflow.policies.kcfm.traced.TracedNetwork` of it). On a CPU such a call of a small network costs far less than
 proportionally more for more rows (one pass of eight rows of the released Push-T U-Net takes a few times one row's,
 ``results/serving.md``). :class:`BatchedNetwork` is a drop-in for ``ema_net`` that gathers the
 calls arriving from different threads within a bounded wait and runs them as one pass: the dynamic batching of
@@ -108,11 +108,11 @@ class BatchedNetwork(nn.Module):
         max_wait_ms: the longest a queued call waits for others before its batch runs (0: a batch takes what is
             queued); no wait at all once every request in flight (:meth:`request`) has a call queued.
         trace: run the passes through TorchScript traces of ``net``, one per batch size, each recorded at its first
-            use (:class:`~kpflow.policies.traced.TracedNetwork`: what a :class:`~kpflow.policies.kcfm_policy.KCFMPolicy`
+            use (:class:`~kpflow.policies.kcfm.traced.TracedNetwork`: what a :class:`~kpflow.policies.kcfm.policy.KCFMPolicy`
             runs, so that a lone caller computes the bits an unbatched policy does); False: eagerly.
 
     A ``BatchedNetwork`` cannot itself be traced (it gathers the calls of several threads at run time): it declares
-    ``traceable = False``, so a policy's :class:`~kpflow.policies.traced.TracedNetwork` around the model's ``ema_net``
+    ``traceable = False``, so a policy's :class:`~kpflow.policies.kcfm.traced.TracedNetwork` around the model's ``ema_net``
     calls it eagerly, and the tracing happens inside, per batch; tracing it anyway raises ``RuntimeError``.
 
     The wrapped network stays a submodule, and :meth:`state_dict` and :meth:`load_state_dict` read and write its keys
@@ -120,7 +120,7 @@ class BatchedNetwork(nn.Module):
     ``net``. :meth:`stats` counts the network calls received, the forward passes run and their rows.
     """
 
-    traceable = False  # kpflow.policies.traced.TracedNetwork calls it eagerly
+    traceable = False  # kpflow.policies.kcfm.traced.TracedNetwork calls it eagerly
 
     def __init__(self, net: nn.Module, max_batch: int = DEFAULT_MAX_BATCH, max_wait_ms: float = DEFAULT_MAX_WAIT_MS, trace: bool = False) -> None:
         super().__init__()
@@ -129,7 +129,7 @@ class BatchedNetwork(nn.Module):
             raise ValueError(f"net must be a callable network, got {type(net).__name__}")
         self.net = net
         if trace:
-            from ..policies.traced import TracedNetwork
+            from ..policies.kcfm.traced import TracedNetwork
 
             self._traced = TracedNetwork(net)
         else:

@@ -82,8 +82,8 @@ def load_deployment(
     """
     from ..maps.learned import check_map_factory
     from ..policies.factory import check_checkpoint_fits, fit_on_indices, layout_of, make_kcfm, make_transported_kcfm
-    from ..policies.kcfm import KCFM
-    from ..policies.kcfm_policy import check_steps_and_execute
+    from ..policies.kcfm.model import KCFM
+    from ..policies.kcfm.policy import check_steps_and_execute
     from ..utils.checkpoint import load_checkpoint
 
     check_batching(max_batch, max_wait_ms)

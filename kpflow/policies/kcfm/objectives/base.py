@@ -42,7 +42,7 @@ class Objective(Protocol):
 
     ``solvers`` names its samplers, the first the default; ``n_times`` is how many times the network takes per row
     (1: ``t [B]``; 2: ``t [B, 2]``, the start and end of an interval, :mod:`.meanflow`); ``time_scale`` the scale
-    of the network's sinusoidal time embedding (:class:`~kpflow.policies.unet1d.SinusoidalEmbedding`).
+    of the network's sinusoidal time embedding (:class:`~kpflow.policies.kcfm.networks.unet1d.SinusoidalEmbedding`).
     """
 
     solvers: tuple[str, ...]

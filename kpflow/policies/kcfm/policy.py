@@ -20,8 +20,8 @@ import torch
 
 from kpflow.utils.config_checks import RESET_SEED, Key
 
-from .checks import INPUT_MARGIN, check_actions
-from .kcfm import KCFM
+from ..checks import INPUT_MARGIN, check_actions
+from .model import KCFM
 from .traced import TracedNetwork
 
 _INPUT_MARGIN = Key(float, lo=0, nullable=True)

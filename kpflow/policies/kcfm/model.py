@@ -4,7 +4,7 @@ A policy ``pi(a_{t:t+H} | k_{t-n+1..t})`` that generates a chunk of ``H`` action
 the last ``n_obs`` observations of a task's ``K`` keypoints ``k`` (Push-T: 25, block T, goal T and agent,
 :mod:`kpflow.tasks.pusht.geometry`) by denoising Gaussian noise with a conditional network.
 
-The generative objective is injected by name (:mod:`kpflow.policies.objectives`): ``"icfm"`` (conditional flow
+The generative objective is injected by name (:mod:`kpflow.policies.kcfm.objectives`): ``"icfm"`` (conditional flow
 matching, the straight path with ``sigma = 0``: Lipman et al. 2023 eqs. 20-23, the default), ``"otcfm"`` (with
 minibatch optimal-transport couplings, Tong et al. 2024), ``"ddpm"`` (DDPM training and DDIM sampling as Diffusion
 Policy does it: with the same network, data and budget, the DP-equivalent baseline), ``"meanflow"`` (average
@@ -13,9 +13,9 @@ velocities, one step from noise to data, Geng et al. 2025) or ``"reflow"`` (dist
 unpadded steps of each chunk (:func:`masked_mse`). How a chunk is sampled by default is part of the model
 (``sample_steps`` network calls of ``solver``), so a checkpoint carries the settings it was made for.
 
-The network is injected by name too: the 1-D temporal U-Net with FiLM (:class:`~kpflow.policies.unet1d.ConditionalUnet1D`,
+The network is injected by name too: the 1-D temporal U-Net with FiLM (:class:`~kpflow.policies.kcfm.networks.unet1d.ConditionalUnet1D`,
 any widths up to DP's (256, 512, 1024)) or a small transformer
-(:class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`). The condition ``c`` is the ``n_obs`` frames of
+(:class:`~kpflow.policies.kcfm.networks.transformer1d.ConditionalTransformer1D`). The condition ``c`` is the ``n_obs`` frames of
 keypoints, each standardised with the same per-coordinate statistics and flattened. With a ``goal_frame`` (planar
 tasks: which keypoints are the goal's, and their ``template``, where they lie in the goal's own body frame; the task's
 config gives it, e.g. :func:`kpflow.tasks.pusht.geometry.goal_frame`) every frame is first expressed in the frame of
@@ -45,12 +45,15 @@ import torch
 
 from kpflow.geometry.alignment import fit_affine
 from kpflow.policies.checks import INPUT_MARGIN
-from kpflow.policies.objectives import build_objective
+from kpflow.policies.kcfm.networks.transformer1d import ConditionalTransformer1D
+from kpflow.policies.kcfm.networks.unet1d import ConditionalUnet1D
+from kpflow.policies.kcfm.objectives import build_objective
 from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
-from kpflow.policies.transformer1d import ConditionalTransformer1D
-from kpflow.policies.unet1d import ConditionalUnet1D
 
-MAX_STEPS = 100  # most network calls :meth:`KCFM.sample` takes (solver steps of a flow, DDIM steps of a diffusion)
+from .frames import check_frames, from_frame, to_frame
+from .losses import fill_padding, masked_mse
+from .sampling import check_sampler
+
 NETWORKS = ("unet", "transformer")
 LR_SCHEDULES = ("cosine", "constant")
 _MIN_STD = 1e-3  # px: a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
@@ -59,97 +62,6 @@ _BOX_STDS = 3.0  # the box of one keypoint coordinate: its training mean +- this
 
 
 # ------------------------------------------------------------------------------------------------- losses
-
-
-def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared error over the steps where ``mask`` is True.
-
-    ``pred, target [B, H, A]``, ``mask [B, H]`` (bool): ``sum_{b,h} m_bh ||pred_bh - target_bh||^2 / (A sum m)``;
-    0 when no step is real. Masked-out steps contribute nothing, whatever their values (even NaN).
-    """
-    m = mask.to(pred.dtype)
-    err = torch.where(mask[..., None], pred - target, torch.zeros((), dtype=pred.dtype, device=pred.device))
-    return err.square().mean(-1).mul(m).sum() / m.sum().clamp_min(1.0)
-
-
-def fill_padding(actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """``actions [B, H, A]`` with each masked-out step replaced by the latest real step before it (the first real
-    step if none comes before), which is how :class:`~kpflow.data.chunks.ChunkDataset` pads past an episode's
-    end. So the values stored at padded steps never reach the network: together with :func:`masked_mse`,
-    padding does not affect training at all."""
-    h = torch.arange(mask.shape[-1], device=mask.device).expand_as(mask)
-    first = mask.to(torch.int64).argmax(-1, keepdim=True).expand_as(mask)
-    idx = torch.where(mask, h, -1).cummax(-1).values
-    idx = torch.where(idx < 0, first, idx)
-    return actions.gather(1, idx[..., None].expand_as(actions))
-
-
-def check_sampler(objective, steps, solver: str | None) -> None:
-    """Raise ``ValueError`` unless ``steps`` is an integer in ``1..MAX_STEPS`` and ``solver`` is None or one of the
-    ``objective``'s samplers."""
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
-        raise ValueError(f"steps must be an integer in 1..{MAX_STEPS} (network calls per chunk); got {steps!r}")
-    if solver is not None and solver not in objective.solvers:
-        raise ValueError(f"solver must be one of {objective.solvers} for this objective ({type(objective).__name__}); got {solver!r}")
-
-
-# -------------------------------------------------------------------------------------------- goal frame
-
-
-def check_goal_frame(goal_frame, n_keypoints: int) -> None:
-    """Raise ``ValueError`` unless ``goal_frame`` is None or ``{"keypoints": [G distinct indices in 0..K-1],
-    "template": [G points [x, y]]}`` with G >= 2, finite coordinates and a template that is not one point (its
-    rotation would be undetermined)."""
-    if goal_frame is None:
-        return
-    form = '{"keypoints": [G indices], "template": [G points [x, y]]}'
-    if not isinstance(goal_frame, dict) or set(goal_frame) != {"keypoints", "template"}:
-        raise ValueError(f"goal_frame must be None or {form} (the goal's keypoints and their body frame); got {goal_frame!r}")
-    index, template = goal_frame["keypoints"], np.asarray(goal_frame["template"], dtype=np.float64)
-    if not (isinstance(index, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool) for i in index)):
-        raise ValueError(f"goal_frame['keypoints'] must list keypoint indices; got {index!r}")
-    if len(index) < 2 or len(set(index)) != len(index) or not all(0 <= i < n_keypoints for i in index):
-        raise ValueError(f"goal_frame['keypoints'] must list at least 2 distinct indices in 0..{n_keypoints - 1}; got {index}")
-    if template.shape != (len(index), 2) or not np.isfinite(template).all():
-        raise ValueError(f"goal_frame['template'] must hold {len(index)} finite points [x, y], one per goal keypoint; got shape {template.shape}")
-    if np.ptp(template, axis=0).max() == 0:
-        raise ValueError("goal_frame['template'] is one point: the goal's rotation would be undetermined")
-
-
-def check_frames(goal_frame, relative: bool, origin, n_keypoints: int, keypoint_dim: int, action_dim: int) -> None:
-    """Raise ``ValueError`` unless the frames keypoints and actions are expressed in fit the layout: ``goal_frame``
-    (:func:`check_goal_frame`) and ``relative`` are planar; ``origin`` is a keypoint index, alone, with actions that
-    start with a position."""
-    check_goal_frame(goal_frame, n_keypoints)
-    if (goal_frame is not None or relative) and keypoint_dim != 2:
-        raise ValueError(f"goal_frame and relative are planar: they need keypoint_dim=2; got {keypoint_dim}")
-    if goal_frame is not None and action_dim != 2:
-        raise ValueError(f"goal_frame maps actions into the goal's plane: it needs 2-D actions; got {action_dim}")
-    if relative and action_dim != 2:
-        raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
-    if origin is None:
-        return
-    if isinstance(origin, bool) or not isinstance(origin, (int, np.integer)) or not -n_keypoints <= origin < n_keypoints:
-        raise ValueError(f"origin must be a keypoint index in [-{n_keypoints}, {n_keypoints}); got {origin!r}")
-    if goal_frame is not None or relative:
-        raise ValueError("origin translates keypoints and actions to one keypoint: use it without goal_frame and relative")
-    if action_dim < keypoint_dim:
-        raise ValueError(f"origin needs actions that start with a position of keypoint_dim={keypoint_dim} values; got action_dim={action_dim}")
-
-
-def to_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """World points ``[B, N, D]`` into the frame ``(R [B, D, D], p [B, D])``: ``R^T (x - p)`` (like
-    ``geometry.to_body``); rows with more than ``D`` values (an action's rotation, gripper) keep the rest as they are."""
-    d = rot.shape[-1]
-    moved = (points[..., :d] - origin[:, None]) @ rot
-    return moved if points.shape[-1] == d else torch.cat([moved, points[..., d:]], -1)
-
-
-def from_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """Frame points ``[B, N, D(+)]`` back to the world: ``R q + p`` (the inverse of :func:`to_frame`)."""
-    d = rot.shape[-1]
-    moved = points[..., :d] @ rot.mT + origin[:, None]
-    return moved if points.shape[-1] == d else torch.cat([moved, points[..., d:]], -1)
 
 
 def _float64(x) -> torch.Tensor:
@@ -182,15 +94,15 @@ class KCFM(lightning.LightningModule):
             first ``keypoint_dim`` values) are taken relative to, in any dimension (module docstring). None: off.
             Not with ``goal_frame`` or ``relative``.
         objective: ``"icfm"``, ``"otcfm"``, ``"ddpm"``, ``"meanflow"`` or ``"reflow"``
-            (:data:`~kpflow.policies.objectives.OBJECTIVES`), built with ``objective_options`` (e.g.
+            (:data:`~kpflow.policies.kcfm.objectives.OBJECTIVES`), built with ``objective_options`` (e.g.
             ``{"train_steps": 100}`` for ``"ddpm"``; ``{"teacher": "path/to/teacher.ckpt"}`` for ``"reflow"``, whose
             teacher is read when training starts, :meth:`attach_teacher`).
         sample_steps: network calls per chunk when :meth:`sample` is not told (1..``MAX_STEPS``).
         solver: the objective's sampler when :meth:`sample` is not told (``"euler"``, ``"midpoint"``, ``"heun"`` for
-            flows, ``"ddim"`` for ``"ddpm"``; :mod:`~kpflow.policies.objectives.solvers`); None: the objective's first.
+            flows, ``"ddim"`` for ``"ddpm"``; :mod:`~kpflow.policies.kcfm.objectives.solvers`); None: the objective's first.
         network: ``"unet"`` or ``"transformer"``.
-        down_dims, kernel_size, n_groups: the :class:`~kpflow.policies.unet1d.ConditionalUnet1D`.
-        d_model, n_layers, n_heads: the :class:`~kpflow.policies.transformer1d.ConditionalTransformer1D`.
+        down_dims, kernel_size, n_groups: the :class:`~kpflow.policies.kcfm.networks.unet1d.ConditionalUnet1D`.
+        d_model, n_layers, n_heads: the :class:`~kpflow.policies.kcfm.networks.transformer1d.ConditionalTransformer1D`.
         time_dim: size of the network's time embedding.
         lr, weight_decay: AdamW.
         lr_schedule: ``"cosine"`` (to 0 over the trainer's ``estimated_stepping_batches``) or ``"constant"``.
@@ -442,7 +354,7 @@ class KCFM(lightning.LightningModule):
         """The objective's masked regression loss on a :class:`~kpflow.data.chunks.ChunkDataset` batch.
 
         ``L = masked_mse(net(x_t, t, c[i]), target, mask[i])`` with ``(x_t, t, target, i)`` the objective's
-        :class:`~kpflow.policies.objectives.TrainingTarget` for ``x1``, the normalised chunks (padding filled by
+        :class:`~kpflow.policies.kcfm.objectives.TrainingTarget` for ``x1``, the normalised chunks (padding filled by
         :func:`fill_padding`); noise from ``generator``. ``net`` defaults to the trained (non-EMA) network.
         """
         actions, mask = batch["actions"], batch["mask"]
@@ -610,7 +522,7 @@ class KCFM(lightning.LightningModule):
         The objective's sampler ``solver`` (an ODE solver of the flow, DDIM for the diffusion) with ``steps`` calls of
         the EMA network (None: the model's own settings, :meth:`sampler`), from ``x ~ N(0, I)`` drawn with
         ``generator`` (on the generator's device). Deterministic given the generator's state. ``net``: what runs the
-        EMA network, e.g. its :class:`~kpflow.policies.traced.TracedNetwork` (None: the module itself).
+        EMA network, e.g. its :class:`~kpflow.policies.kcfm.traced.TracedNetwork` (None: the module itself).
         ``input_margin``: refuse keypoints far outside the training data, as :meth:`check_in_range` does (None: not
         checked). The goal's frame is fitted once and serves the check, the condition and the actions' frame.
 

@@ -3,7 +3,7 @@ small enough to run a 10-step flow in a few milliseconds on one CPU thread.
 
 The network maps a chunk ``x [B, H, A]``, a scalar flow time ``t [B]`` and a condition ``c [B, C]`` to a velocity
 ``[B, H, A]``; built with ``n_times=2`` it takes an interval ``t [B, 2] = (s, t)`` instead (an average velocity,
-:mod:`~kpflow.policies.objectives.meanflow`), embedded as ``emb(s) + emb'(t - s)``. Convolutions run over the time axis ``H`` with the ``A`` action dimensions as input channels. Every
+:mod:`~kpflow.policies.kcfm.objectives.meanflow`), embedded as ``emb(s) + emb'(t - s)``. Convolutions run over the time axis ``H`` with the ``A`` action dimensions as input channels. Every
 residual block is FiLM-conditioned on ``[emb(t), c]``. The down path halves ``H`` ``len(down_dims) - 1`` times and
 the up path doubles it back, with skip connections laid out as in Diffusion Policy. An ``H`` that is not a multiple
 of ``2 ** (len(down_dims) - 1)`` is zero-padded at the end and the output cropped back, so any ``H >= 1`` works.
