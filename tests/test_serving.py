@@ -351,7 +351,7 @@ def test_serve_cli_answers_then_stops_on_sigterm():
     try:
         line = ""
         deadline = time.time() + 120
-        while "serving kcfm on ws://" not in line and time.time() < deadline:
+        while not ("serving kcfm" in line and " on ws://" in line) and time.time() < deadline:  # kcfm/reach=60/turn_deg=60: the release's settings
             line = proc.stdout.readline()  # Hydra logs to stdout
             assert line or proc.poll() is None, "the server exited before serving"
         address = line.split("on ", 1)[1].split()[0]
