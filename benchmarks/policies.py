@@ -54,6 +54,7 @@ from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, goal_frame, pusht_weights
+from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.io import publish
 
 VARIANTS = [
@@ -163,14 +164,14 @@ def main(argv=None) -> str:
 
     agree = np.mean([np.isclose(weighted(index.query(q)[0], q), weighted(int(sklearn_query(q)[0, 0]), q), rtol=1e-3)
                      for q in query_kps[:50]])  # fmt: skip
-    transport = median_ms(TransportPolicy(index, execute=20).act, queries)
+    transport = median_ms(TransportPolicy(index, execute=20, layout=PushTTask.policy_layout).act, queries)
 
     model = KCFM(N_KEYPOINTS, horizon=20, goal_frame=goal_frame())  # the configuration kpflow/conf/experiment/pusht_kcfm.yaml trains
     model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
     k1, k10, k20 = (KCFMPolicy(model, steps=n, execute=8) for n in (1, 10, 20))
     k1.reset(0), k10.reset(0), k20.reset(0)
     kcfm1, kcfm10, kcfm20 = (median_ms(k.act, queries) for k in (k1, k10, k20))
-    transported = TransportedKCFMPolicy(model, index, steps=10, execute=8)
+    transported = TransportedKCFMPolicy(model, index, steps=10, execute=8, layout=PushTTask.policy_layout)
     transported.reset(0)
     tkcfm = median_ms(transported.act, queries)
 
