@@ -219,6 +219,17 @@ def _zip_bomb(path: Path, member: str, declared: int, prefix: bytes = b"") -> Pa
 BOMB = 1 << 30  # 1 GiB declared
 
 
+def _npz_bomb(path: Path) -> Path:
+    """An npz whose ``keypoints`` member declares (and holds, as deflated zeros) 1 GiB of float32."""
+    import io
+
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
+    header["shape"] = (BOMB // 4,)
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, header)
+    return _zip_bomb(path, "keypoints.npy", BOMB, buf.getvalue())
+
+
 def test_compressed_entries_that_would_expand_are_refused_before_decompressing(tmp_path):
     from kpflow.data.source_index import SourceIndex
 
@@ -227,11 +238,7 @@ def test_compressed_entries_that_would_expand_are_refused_before_decompressing(t
         from kpflow import load_policy
 
         load_policy(ckpt)
-    header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
-    header["shape"] = (BOMB // 4,)
-    buf = __import__("io").BytesIO()
-    np.lib.format.write_array_header_1_0(buf, header)
-    npz = _zip_bomb(tmp_path / "bomb.source_index.npz", "keypoints.npy", BOMB, buf.getvalue())
+    npz = _npz_bomb(tmp_path / "bomb.source_index.npz")
     with pytest.raises(ValueError, match=r"array 'keypoints' claims \d+ bytes from \d+ stored, beyond 64 times"):
         SourceIndex.load(npz)
 
@@ -269,11 +276,7 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
     10^8 diffusion steps (issue 57: 1.5 GB at 10^7) and a 2^27-action chunk (34 GB) are refused while its peak
     resident memory grows by less than 200 MB: what they declare is never allocated."""
     _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
-    header = np.lib.format.header_data_from_array_1_0(np.zeros(4, np.float32))
-    header["shape"] = (BOMB // 4,)
-    buf = __import__("io").BytesIO()
-    np.lib.format.write_array_header_1_0(buf, header)
-    _zip_bomb(tmp_path / "bomb.npz", "keypoints.npy", BOMB, buf.getvalue())
+    _npz_bomb(tmp_path / "bomb.npz")
     chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
     os.truncate(chunk, 8 << 30)
     _checkpoint({"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**8}}, tmp_path / "steps.ckpt")
