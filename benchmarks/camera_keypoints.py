@@ -40,8 +40,8 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from kpflow.eval.generation import SOURCE_SEED
 from kpflow.eval.stats import wilson_interval
+from kpflow.generation.generate import SOURCE_SEED
 from kpflow.geometry.angles import yaw_of
 from kpflow.maps import match_keypoints
 from kpflow.tasks.suite.cameras import SuiteCameras

@@ -165,7 +165,7 @@ def test_task_options_build_tasks_that_sample_scenes(name, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "generate"))
 def test_generation_tasks_and_transports_build_from_the_generate_config(name, tmp_path):
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.segment_transport import SegmentTransport
 
     cfg = compose_config("generate", [f"task={name}"], tmp_path)
     task = instantiate(cfg.task)

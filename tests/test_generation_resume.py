@@ -1,5 +1,5 @@
-"""Generation's numbers depend on the settings and seed only, and a stopped run resumes (kpflow/eval/generation.py,
-kpflow/eval/generation_journal.py): an attempt is the same to the bit whichever attempts its worker ran before, a
+"""Generation's numbers depend on the settings and seed only, and a stopped run resumes (kpflow/generation/generate.py,
+kpflow/generation/journal.py): an attempt is the same to the bit whichever attempts its worker ran before, a
 cell's journal and store recover from a kill at any point and refuse anything else, and a real
 ``kpflow-generate`` killed with SIGKILL and resumed ends as an uninterrupted run with other workers does."""
 
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.eval.generation_journal import CellJournal, check_output
+from kpflow.generation.journal import CellJournal, check_output
 from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,8 +34,8 @@ def assert_same_episode(a: dict, b: dict) -> None:
 def test_an_attempt_is_the_same_in_a_fresh_generator_and_after_other_attempts():
     """Before, robosuite drew Lift's cube side from an unseeded generator whenever a worker built its simulator: the
     same attempt differed by 0.15 in the state and 2 pi in an action's rotation vector between two generators."""
-    from kpflow.eval.generation import Generator
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.generate import Generator
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.tasks.suite.task import SuiteTask
 
     task, families = SuiteTask("lift"), {"mimicgen": SegmentTransport(None, in_hand=False)}
@@ -159,9 +159,9 @@ def journal_lines(run: Path) -> int:
 
 @pytest.mark.slow
 def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_results(tmp_path):
-    from kpflow.eval.generation import generate
+    from kpflow.generation.generate import generate
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.suite.task import SuiteTask
 
     n, variants, names = 4, ["wide"], ["mimicgen", "rigid"]

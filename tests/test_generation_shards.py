@@ -1,4 +1,4 @@
-"""Generation past one machine (kpflow/eval/generation.py, kpflow/data/store_merge.py, kpflow/cli/merge.py): a run
+"""Generation past one machine (kpflow/generation/generate.py, kpflow/data/store_merge.py, kpflow/cli/merge.py): a run
 split into shards (``shards=S shard=K``: the attempts ``i % S == K``) and merged is the unsharded run, to the bit;
 the merge refuses anything but the finished shards of one run, each once, and leaves nothing behind when it fails;
 and the real multirun command line through a Hydra launcher, then ``kpflow-merge``, gives the same folder."""
@@ -18,7 +18,7 @@ import pytest
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.store_merge import merge_stores
-from kpflow.eval.generation_journal import check_output, run_manifest, shard_indices
+from kpflow.generation.journal import check_output, run_manifest, shard_indices
 from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,8 +163,8 @@ def test_the_shards_of_a_sweep_compose_with_every_launcher_into_folders_named_by
 
 
 def families() -> dict:
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     return {"mimicgen": SegmentTransport(None, in_hand=False), "rigid": SegmentTransport(partial(AffineMap, kind="rigid"))}
 
@@ -173,7 +173,7 @@ def families() -> dict:
 def runs(tmp_path_factory):
     """Lift's d0 scenes, two families, four attempts each, with the robomimic export: one run and the same run as two
     shards."""
-    from kpflow.eval.generation import generate
+    from kpflow.generation.generate import generate
     from kpflow.tasks.suite.task import SuiteTask
 
     root = tmp_path_factory.mktemp("shards")
@@ -186,7 +186,7 @@ def runs(tmp_path_factory):
 
 @pytest.mark.slow
 def test_two_shards_merged_are_the_unsharded_run_to_the_bit(runs, tmp_path):
-    from kpflow.eval.generation import merge_shards
+    from kpflow.generation.generate import merge_shards
 
     single, out = runs / "single", tmp_path / "merged"
     for k in range(2):
@@ -218,7 +218,7 @@ def copy_shard(runs: Path, k: int, to: Path) -> Path:
 
 @pytest.mark.slow
 def test_the_merge_refuses_anything_but_the_finished_shards_of_one_run_and_writes_nothing(runs, tmp_path):
-    from kpflow.eval.generation import generate, merge_shards
+    from kpflow.generation.generate import generate, merge_shards
     from kpflow.tasks.suite.task import SuiteTask
 
     s0, s1, out = runs / "shard0", runs / "shard1", tmp_path / "out"

@@ -17,7 +17,7 @@ LAYERS = [
     {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
     {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it
     {"policies"},
-    {"eval", "serving"},
+    {"eval", "serving", "generation"},  # generation: segment transport and whole datasets, beside evaluation
     {"cli", "conf", "__init__"},  # the commands (kpflow/cli/) and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}

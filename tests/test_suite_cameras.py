@@ -167,9 +167,9 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
 def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():
     """keypoints=camera in generation: a Lift attempt succeeds on perceived keypoints, and the noise is drawn per
     attempt (an attempt's record and episode do not depend on which attempts the worker ran before)."""
-    from kpflow.eval.generation import Generator
+    from kpflow.generation.generate import Generator
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.suite.task import SuiteTask
     from kpflow.vision.keypoint_source import KeypointSource
 

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.robomimic_export import export_robomimic
+from kpflow.generation.robomimic_export import export_robomimic
 from kpflow.maps import GPMap, ILWRMap
 from kpflow.tasks.suite.keypoints import object_keypoints, reduced_yaw
 from kpflow.tasks.suite.scene import Scene
@@ -171,7 +171,7 @@ def test_symmetric_keypoints_turn_the_gripper_least():
 
 @pytest.mark.parametrize("family", ["mimicgen", "ilwr", "gp"])
 def test_transport_into_the_source_scene_reproduces_the_source(worlds, family):
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.segment_transport import SegmentTransport
 
     transport = SegmentTransport({"mimicgen": None, "ilwr": ILWRMap, "gp": GPMap}[family], in_hand=family != "mimicgen")
     task, env, segments, *_ = worlds["square"]
@@ -199,8 +199,8 @@ def test_failure_reasons(worlds):
 def test_the_source_distance_is_mimicgens_pose_measure_and_the_keypoints_see_symmetry():
     from functools import partial
 
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import SegmentStart
 
     def start(pos, yaw):
@@ -219,9 +219,9 @@ def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seed
     from dataclasses import replace
     from functools import partial
 
-    from kpflow.eval.generation import Generator
+    from kpflow.generation.generate import Generator
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
 
     task, env, segments, *_ = worlds["square"]
 
@@ -247,8 +247,8 @@ def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seed
 def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
     from dataclasses import replace
 
-    from kpflow.eval.generation import Generator
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.generate import Generator
+    from kpflow.generation.segment_transport import SegmentTransport
 
     task, env, segments, *_ = worlds["square"]
     pick, place = segments
@@ -268,8 +268,8 @@ def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
     """Two generation attempts per family on lift's d0 scenes, written like a CLI run."""
-    from kpflow.eval.generation import generate
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.generate import generate
+    from kpflow.generation.segment_transport import SegmentTransport
 
     out = tmp_path_factory.mktemp("generated")
     families = {"mimicgen": SegmentTransport(None, in_hand=False), "gp": SegmentTransport(GPMap)}
@@ -303,8 +303,8 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
 
 
 def test_generation_refuses_an_earlier_runs_folder_unless_resumed_with_its_settings(generated):
-    from kpflow.eval.generation import generate
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
+    from kpflow.generation.generate import generate
+    from kpflow.generation.segment_transport import SegmentTransport
 
     out, _ = generated
     before = (out / "results.json").read_text()
@@ -364,8 +364,8 @@ def _rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarr
 def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
     from functools import partial
 
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import Segment, SegmentStart
 
     rng = np.random.default_rng(0)
@@ -398,7 +398,7 @@ def test_the_six_dimensional_rotation_round_trips():
 
 
 def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_its_centre():
-    from kpflow.tasks.arm.segment_transport import in_hand_path, turn_ramp
+    from kpflow.generation.segment_transport import in_hand_path, turn_ramp
 
     phases = np.array(["carry"] * 5 + ["lower"] * 3)
     np.testing.assert_allclose(turn_ramp(phases), [0, 0.25, 0.5, 0.75, 1, 1, 1, 1])
@@ -444,8 +444,8 @@ def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
 def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_centre_on_the_source_path():
     from functools import partial
 
+    from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.arm.segment_transport import SegmentTransport
     from kpflow.tasks.base import Segment, SegmentStart
 
     ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])

@@ -1,11 +1,11 @@
 """Generate demonstrations for a robosuite benchmark task: ``kpflow-generate task=square n=200``.
 
 Transports ``n_sources`` scripted demonstrations into ``n`` new scenes per variant and family, segment by segment
-(:mod:`kpflow.eval.generation`), and keeps the successes: ``<variant>/<family>/episodes.zarr`` and robomimic's
+(:mod:`kpflow.generation.generate`), and keeps the successes: ``<variant>/<family>/episodes.zarr`` and robomimic's
 ``demos.hdf5``, with ``results.json``, ``results.md`` (generation rates with 95% intervals, failure reasons,
 throughput), a video and the resolved config in the run folder.
 
-Every attempt is committed as it finishes (:mod:`kpflow.eval.generation_journal`), so a run that was stopped (a
+Every attempt is committed as it finishes (:mod:`kpflow.generation.journal`), so a run that was stopped (a
 kill, a crash, a lost machine) continues in its folder with the same command plus ``resume=true`` and its folder:
 ``run_name=NAME`` (the folder ``outputs/generate/<task>/NAME``) or ``hydra.run.dir=FOLDER``. It skips the attempts
 already committed and ends with the stores and results an uninterrupted run writes (the throughput counts the
@@ -32,8 +32,8 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from kpflow.eval.generation import generate
-from kpflow.eval.generation_journal import check_output, run_manifest, shard_indices
+from kpflow.generation.generate import generate
+from kpflow.generation.journal import check_output, run_manifest, shard_indices
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.config_checks import SEED, Key, check_config
 from kpflow.utils.errors import command, config_dir_checked

@@ -2,7 +2,7 @@
 
 A generation run split into shards (``kpflow-generate -m ... shards=S 'shard=range(S)'``, :mod:`kpflow.cli.generate`)
 leaves one folder per shard. This joins them into ``out``, the folder one unsharded run writes
-(:func:`kpflow.eval.generation.merge_shards`): per variant and family the episodes in attempt order, the same to the
+(:func:`kpflow.generation.generate.merge_shards`): per variant and family the episodes in attempt order, the same to the
 bit, the robomimic export if the shards had one, ``results.json`` and ``results.md`` over all the attempts, and the
 resolved config. ``shards`` is a list of folders (``'shards=[A,B]'``) or a glob (``'shards=DIR/*'``: the folders it
 matches; quote it, so that the shell passes it on). The shards must be of one run (the same settings and seed, each
@@ -18,7 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, ListConfig
 
-from kpflow.eval.generation import merge_shards
+from kpflow.generation.generate import merge_shards
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command, config_dir_checked
 

@@ -3,7 +3,7 @@ segment, what is observed at a segment's start, and running a segment.
 
 A source demonstration is a list of :class:`~kpflow.tasks.base.Segment`: each holds the commanded trajectory and
 what the scene looked like when it began (every object's pose, the keypoints that the segment depends on, the grip
-site), so a generator (:mod:`kpflow.tasks.arm.segment_transport`) can carry it into a new scene once that segment's
+site), so a generator (:mod:`kpflow.generation.segment_transport`) can carry it into a new scene once that segment's
 start is reached there.
 """
 

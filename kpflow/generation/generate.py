@@ -4,7 +4,7 @@ Each worker records the ``n_sources`` scripted source demonstrations (scenes of 
 drawn with the seed ``SOURCE_SEED + seed``, kept when they succeed), then runs attempts: attempt ``i`` of a
 variant resets to that variant's scene ``i``, takes a source (seeded by ``seed`` and ``i``, so every family gets
 the same source in the same scene), and for each segment observes its start, plans it with the family's
-:class:`~kpflow.tasks.arm.segment_transport.SegmentTransport`, and runs it; a segment that fails (the arm stuck or at
+:class:`~kpflow.generation.segment_transport.SegmentTransport`, and runs it; a segment that fails (the arm stuck or at
 a joint limit, the object not in the jaws) ends the attempt with its reason, otherwise robosuite's success test
 decides; with ``stop_early`` False every segment runs and the success test decides anyway (MimicGen's way: it checks
 only the task's success), the first failed check kept as the reason of an attempt that fails. Successes are kept:
@@ -39,9 +39,10 @@ import numpy as np
 from omegaconf import OmegaConf, open_dict
 
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.data.robomimic_export import export_robomimic
 from kpflow.data.store_merge import merge_stores
-from kpflow.eval.generation_journal import (
+from kpflow.eval.parallel import iter_jobs
+from kpflow.eval.stats import success_cells, success_summary
+from kpflow.generation.journal import (
     JOURNAL,
     STORE,
     CellJournal,
@@ -51,9 +52,8 @@ from kpflow.eval.generation_journal import (
     shard_indices,
     write_manifest,
 )
-from kpflow.eval.parallel import iter_jobs
-from kpflow.eval.stats import success_cells, success_summary
-from kpflow.tasks.arm.segment_transport import SegmentTransport
+from kpflow.generation.robomimic_export import export_robomimic
+from kpflow.generation.segment_transport import SegmentTransport
 from kpflow.tasks.suite.env import MODEL_SEED, controller_config
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.utils.formats import read_yaml
@@ -97,7 +97,7 @@ class Generator:
         """The source an attempt follows, from the scene just reset: with ``candidates`` None any source (drawn
         with ``seed`` and ``index``: MimicGen's ``random``), else one drawn uniformly among the ``candidates``
         sources whose first segment's reference object lies nearest, by ``transport``'s
-        :meth:`~kpflow.tasks.arm.segment_transport.SegmentTransport.distance` (MimicGen's
+        :meth:`~kpflow.generation.segment_transport.SegmentTransport.distance` (MimicGen's
         ``nearest_neighbor_object``, its ``nn_k`` being 3)."""
         rng = np.random.default_rng([self.seed, index])
         if self.candidates is None:

@@ -21,7 +21,7 @@ Shards. A run may do one shard of the attempts (``shards`` > 1): shard ``k`` of 
 ``k + j * S``), and its ``generation.json`` records ``shards`` and ``shard`` (an unsharded run's records neither, so
 it is what it always was). :func:`read_shards` checks that folders are the complete, finished shards of one run, and
 :meth:`CellJournal.finished` reads a finished cell without changing anything, for
-:func:`kpflow.eval.generation.merge_shards`.
+:func:`kpflow.generation.generate.merge_shards`.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from kpflow.utils.io import write_json, write_text
 MANIFEST = "generation.json"
 JOURNAL = "attempts.jsonl"
 STORE = "episodes.zarr"
-#: what the journal reads of an attempt's record (:meth:`kpflow.eval.generation.Generator.attempt`)
+#: what the journal reads of an attempt's record (:meth:`kpflow.generation.generate.Generator.attempt`)
 RECORD_KEYS = ("variant", "index", "family", "source", "success", "failure")
 #: what a stored episode's attrs repeat of its record
 EPISODE_ATTRS = ("variant", "index", "family", "source")
