@@ -43,6 +43,7 @@ def test_the_check_decides_on_held_out_steps_and_scores_the_baseline_exactly(che
     assert result["hold_first_action_median"] == 0.0 and result["hold_chunk_median"] == 0.0  # constant actions
     assert result["first_action_median"] > 0 and np.isfinite(result["chunk_p90"])  # an untrained network is not exact
     assert (out / "offline.png").is_file() and "| repeat the previous action | 0 | 0 |" in result["table"]
+    assert not result["beats_baseline"] and "**The K-CFM loses to repeating the previous action**" in result["table"]
 
 
 def test_every_must_be_positive(checkpoint_and_data, tmp_path):

@@ -6,7 +6,9 @@ the training run's validation episodes). At every ``every``-th step of each held
 recorded observation history and returns its chunk of ``execute`` actions; the error of a decision is the mean
 Euclidean distance between its actions and the recorded ones over the steps the episode still has. The report gives
 the median error of the first action and of the chunk (with the 90th percentile), beside the same errors of a
-baseline that repeats the action taken before the step, and plots one episode's recorded and predicted actions.
+baseline that repeats the action taken before the step, says in one line whether the policy beats that baseline
+(``beats_baseline``: its median chunk error is below the baseline's), and plots one episode's recorded and predicted
+actions.
 """
 
 from __future__ import annotations
@@ -60,13 +62,21 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         "chunk_p90": float(np.percentile(errors[:, 1], 90)), "hold_first_action_median": float(np.median(errors[:, 2])),
         "hold_chunk_median": float(np.median(errors[:, 3])),
     }  # fmt: skip
+    summary["beats_baseline"] = summary["chunk_median"] < summary["hold_chunk_median"]
+    ours, hold = summary["chunk_median"], summary["hold_chunk_median"]
+    verdict = (
+        f"The K-CFM beats repeating the previous action: median chunk error {ours:.4g} against {hold:.4g}."
+        if summary["beats_baseline"] else
+        f"**The K-CFM loses to repeating the previous action**: median chunk error {ours:.4g} against {hold:.4g}. It has "
+        "learned less than holding still: train longer, or check the data (the action field, the frames) and the checkpoint."
+    )  # fmt: skip
     table = (
         f"# Offline check of {checkpoint}\n\n{summary['decisions']} decisions on {summary['episodes']} {which} episodes"
         f" (every {every}th step; {steps} network calls per chunk, {execute} actions compared).\n\n"
         "| policy | first action error, median | chunk error, median | chunk error, 90th percentile |\n|---|---|---|---|\n"
         f"| K-CFM | {summary['first_action_median']:.4g} | {summary['chunk_median']:.4g} | {summary['chunk_p90']:.4g} |\n"
         f"| repeat the previous action | {summary['hold_first_action_median']:.4g} | {summary['hold_chunk_median']:.4g} |"
-        f" {np.percentile(errors[:, 3], 90):.4g} |\n"
+        f" {np.percentile(errors[:, 3], 90):.4g} |\n\n{verdict}\n"
     )
     shown = rows[0][0]  # the first held-out episode, plotted with every decision taken in it
     picked = [i for i, row in enumerate(rows) if row[0] == shown]
