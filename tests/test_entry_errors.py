@@ -76,3 +76,11 @@ def test_a_learned_map_of_other_keypoints_is_refused_naming_both_layouts(tmp_pat
     (error, *_) = evaluate(tmp_path, *args, "map=learned", f"map.checkpoint={checkpoint}")
     assert f"the learned map {checkpoint} was trained on 4 keypoints in 2-D, but {use}" in error
     assert not list((tmp_path / "run").glob("*.png"))
+
+
+def test_a_required_key_left_out_is_named_with_how_to_give_it(tmp_path):
+    """``kpflow-train experiment=kcfm`` without ``data.path`` (a ``???`` in the config): one line naming the key."""
+    cmd = [sys.executable, "train.py", "experiment=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and lines[0] == "error: config key data.path is required and not given: add data.path=<value> to the command", done.stderr
