@@ -1,6 +1,7 @@
 """Released checkpoints: weights and config only, loadable with weights_only through kpflow.load_policy; and the
 ones committed under release/ load and act on the CPU."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -205,8 +206,13 @@ DOCUMENTED = [
 @pytest.mark.slow  # minutes: every episode of the documented row
 @pytest.mark.parametrize("name, overrides, row", DOCUMENTED, ids=[d[0].removesuffix(".ckpt") for d in DOCUMENTED])
 def test_a_released_checkpoint_loaded_with_no_overrides_reproduces_its_documented_row(tmp_path, name, overrides, row):
-    """The release's own settings (kpflow/policies/settings.py) are all its documented figure needs."""
+    """The release's own settings (kpflow/policies/settings.py) are all its documented figure needs. Every episode of
+    the row runs (1 to 10 minutes each on 2 cores, 22 in all): opt in with ``KPFLOW_RELEASE_ROWS=1 pytest -m slow -k
+    documented_row``, as after a change to the policies, the tasks or a release (results/releases.md)."""
     from hydra.utils import instantiate
+
+    if os.environ.get("KPFLOW_RELEASE_ROWS", "0") in ("", "0"):
+        pytest.skip("the released rows take 22 minutes in all: KPFLOW_RELEASE_ROWS=1 runs them")
 
     from tests.helpers import compose_config
 
