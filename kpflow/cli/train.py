@@ -92,6 +92,8 @@ def main(cfg: DictConfig) -> dict:
     trainer.fit(model, datamodule=datamodule, ckpt_path=str(last) if cfg.resume else None)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     print(f"checkpoints: {Path(checkpoints.dirpath)}  best: {checkpoints.best_model_path}  metrics: {metrics}")
+    if (Path(cfg.output_dir) / "results.md").is_file():  # the training report (kpflow/conf/callbacks/default.yaml)
+        print(f"results: {Path(cfg.output_dir) / 'results.md'}  plot: {Path(cfg.output_dir) / 'loss.png'}")
     return metrics
 
 
