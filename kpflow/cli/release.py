@@ -43,8 +43,7 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
     not set) on top of those ``src`` holds (module docstring); returns ``dst``."""
     checkpoint = read_checkpoint(src)
     out = {k: checkpoint[k] for k in KEEP if k in checkpoint}
-    given = {k: v for k, v in (settings or {}).items() if v is not None}
-    merged = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY), str(src)).given(**PolicySettings.from_record(given, "settings").record())
+    merged = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY), str(src)).given(**(settings or {}))
     if merged.record():
         out[CHECKPOINT_KEY] = merged.record()
     earlier = checkpoint.get("release") if isinstance(checkpoint.get("release"), dict) else {}

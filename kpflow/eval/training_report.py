@@ -60,7 +60,7 @@ class TrainingReport(Callback):
         self.out.mkdir(parents=True, exist_ok=True)
         vals = [r for r in self.rows if r["val_loss"] is not None]
         best = min(vals, key=lambda r: r["val_loss"]) if vals else None
-        write_json(self.out / "results.json", {"model": model, "epochs": self.rows, "best_epoch": best and best["epoch"]})
+        write_json(self.out / "results.json", {"model": model, "epochs": self.rows, "best_epoch": None if best is None else best["epoch"]})
         fmt = lambda v: "-" if v is None else f"{v:.4g}"  # noqa: E731
         lines = [f"# Training of {model}", "", f"{len(self.rows)} epochs, {self.rows[-1]['steps']} steps."]
         if best is not None:

@@ -15,7 +15,7 @@ record, the model's own (``sample_steps``, ``solver``) or the built-in default (
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Mapping
 
 from kpflow.maps.validation import check_positive
@@ -59,11 +59,8 @@ class PolicySettings:
             return cls()
         if not isinstance(record, Mapping):
             raise ValueError(f"{where}: {CHECKPOINT_KEY!r} must be a mapping of settings, got {type(record).__name__}")
-        unknown = sorted(set(map(str, record)) - set(KEYS))
-        if unknown:
-            raise ValueError(f"{where}: {CHECKPOINT_KEY!r} names unknown setting(s) {unknown}; known: {sorted(KEYS)}")
         try:
-            return cls(**{k: (float(v) if KEYS[k].kind is float and isinstance(v, int) and not isinstance(v, bool) else v) for k, v in record.items()})
+            return cls().given(**{str(k): v for k, v in record.items()})
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
 
@@ -74,9 +71,8 @@ class PolicySettings:
     def given(self, **values) -> PolicySettings:
         """These settings with ``values`` (config keys, arguments) on top: None keeps this record's value, and
         ``False`` for ``reach``/``turn_deg`` clears it (the goal as observed)."""
-        known = {f.name for f in fields(self)}
-        if set(values) - known:
-            raise TypeError(f"unknown policy setting(s) {sorted(set(values) - known)}")
+        if unknown := sorted(set(values) - set(KEYS)):
+            raise ValueError(f"{CHECKPOINT_KEY!r} names unknown setting(s) {unknown}; known: {sorted(KEYS)}")
         changed = {}
         for name, value in values.items():
             if value is False and name in ("reach", "turn_deg"):

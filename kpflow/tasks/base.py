@@ -31,8 +31,8 @@ EVAL_SEED = 1_000_000
 
 def scene_seed(seed: int, condition: int, index: int) -> int:
     """The reset seed of evaluation scene ``index`` of condition number ``condition`` (from 1) for run ``seed``: 32
-    bits of numpy's ``SeedSequence((EVAL_SEED + seed, condition, index))``, the key Push-T's splits and the robosuite
-    tasks seed their scenes with. Each run seed has its own stream (seed 1's scene 0 is not seed 0's scene 1), each
+    bits of numpy's ``SeedSequence((EVAL_SEED + seed, condition, index))``: a key of the same shape as Push-T's splits'
+    ``(seed, split, i)`` and the robosuite tasks' ``(20_000 + seed, variant, i)``. Each run seed has its own stream (seed 1's scene 0 is not seed 0's scene 1), each
     condition its own, and none meets the small seeds collection draws demonstrations with (0, 1, 2, ...) but by a
     2^-32 chance."""
     return int(np.random.SeedSequence([EVAL_SEED + int(seed), int(condition), int(index)]).generate_state(1)[0])

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kpflow.tasks.rollout import Override, rollout
+from kpflow.tasks.rollout import Episode, Override, rollout
 
 from .env import PushTEnv
 from .scene import Config
@@ -18,10 +18,12 @@ from .scene import Config
 RECORDED_FIELDS = ("keypoints", "agent_pos", "block_pose", "goal_pose")
 
 
-def first_steps(coverage: np.ndarray, thresholds) -> dict:
-    """Threshold -> the first step (1-based) whose coverage ``[T]`` (after each step) reached it, or None."""
-    coverage = np.asarray(coverage)
-    return {th: int(np.flatnonzero(coverage >= th)[0]) + 1 if (coverage >= th).any() else None for th in thresholds}
+def coverage_summary(episode: Episode, thresholds) -> tuple[dict, float, float]:
+    """An episode's coverage (its ``tracked["coverage"]`` after each step): threshold -> the first step (1-based)
+    reaching it (None: never), the final coverage and the largest, the start's included."""
+    coverage = np.asarray(episode.tracked["coverage"])
+    first = {th: int(np.flatnonzero(coverage >= th)[0]) + 1 if (coverage >= th).any() else None for th in thresholds}
+    return first, float(episode.info["coverage"]), float(max([episode.first_info["coverage"], *coverage.tolist()]))
 
 
 @dataclass
@@ -62,14 +64,14 @@ def run_episode(
         raise ValueError(f"render=True needs an env made with render_mode='rgb_array', not {env.render_mode!r}")
     episode = rollout(env, policy, max_steps, seed, {"options": {"config": config}}, RECORDED_FIELDS if record else (), render, override,
                       ("coverage",))  # fmt: skip
-    coverage = episode.tracked["coverage"]
+    first, final, best = coverage_summary(episode, thresholds)
     return EpisodeResult(
         success=episode.success,
-        coverage=float(episode.info["coverage"]),
-        max_coverage=float(max([episode.first_info["coverage"], *coverage.tolist()])),
+        coverage=final,
+        max_coverage=best,
         steps=episode.steps,
         seconds=episode.seconds,
-        first_step=first_steps(coverage, thresholds),
+        first_step=first,
         episode=episode.records if record else None,
         frames=episode.frames,
         overridden=episode.overridden,

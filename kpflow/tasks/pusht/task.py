@@ -20,7 +20,7 @@ from kpflow.tasks.rollout import Episode
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
 from .geometry import N_KEYPOINTS, N_T_KEYPOINTS
-from .rollout import first_steps
+from .rollout import coverage_summary
 from .scene import SPLITS, STANDARD_FIRST_SEED, Config, split_config, standard_config
 
 THRESHOLDS = (0.85, 0.95)  # coverage: Table 1's success, and Diffusion Policy's
@@ -76,14 +76,13 @@ class PushTTask(GymTask):
     def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
         """Success, and the coverage scores: whether 0.85 was reached, the first step reaching each threshold (None:
         never), the final and the largest coverage, the steps taken."""
-        coverage = episode.tracked["coverage"]
-        first = first_steps(coverage, THRESHOLDS)
+        first, final, best = coverage_summary(episode, THRESHOLDS)
         scores = {
             "success_085": first[0.85] is not None,
             "steps_085": first[0.85],
             "steps_095": first[0.95],
-            "final_coverage": float(episode.info["coverage"]),
-            "max_coverage": float(max([episode.first_info["coverage"], *coverage.tolist()])),
+            "final_coverage": final,
+            "max_coverage": best,
             "steps": episode.steps,
         }
         return episode.success, None if episode.success else "time limit", scores
