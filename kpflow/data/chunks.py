@@ -4,7 +4,7 @@ the observation and the next ``H`` actions, split by episode into train and vali
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import lightning
 import numpy as np
@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import HindsightGoals, fragment_episodes
-from kpflow.data.lerobot_dataset import is_lerobot, naming_help, open_lerobot
+from kpflow.data.lerobot_dataset import KeypointMap, is_lerobot, naming_help, open_lerobot
 
 
 class ChunkDataset(Dataset):
@@ -140,17 +140,38 @@ def split_episodes(n_episodes: int, val_fraction: float = 0.1, seed: int = 0) ->
     return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
 
 
+#: Diffusion Policy's raw Push-T replay buffer (pusht_cchi_v7_replay.zarr): its arrays, and the command that imports it
+DP_REPLAY_ARRAYS = ("data/state", "data/action", "data/keypoint", "meta/episode_ends")
+DP_REPLAY_IMPORT = "python -m kpflow.tasks.pusht.replay_import"
+
+
+def raw_replay_help(path: Path, obs_key: str) -> str | None:
+    """What to do when ``path`` is Diffusion Policy's raw Push-T replay buffer (it has :data:`DP_REPLAY_ARRAYS` and no
+    field ``obs_key``), read from its folder before it is opened; None for anything else."""
+    if (path / "data" / obs_key).exists() or not all((path / name).exists() for name in DP_REPLAY_ARRAYS):
+        return None
+    return (
+        f"{path} is Diffusion Policy's raw Push-T replay buffer ({', '.join(DP_REPLAY_ARRAYS)}; its keypoint is the "
+        f"block's 9 points, without the agent or the goal), not a kpflow store: it has no field {obs_key!r}. Import it "
+        f"once into a store with kpflow's 25 keypoints: {DP_REPLAY_IMPORT} {path} data/pusht_human.zarr, then train on "
+        f"that: data=pusht_human (or data.path=data/pusht_human.zarr)"
+    )
+
+
 class ChunkDataModule(lightning.LightningDataModule):
     """Train/val :class:`ChunkDataset` s from the episode store at ``path``, split by episode.
 
     Args:
         path: an episode store (opened read-only) or a LeRobot v3 dataset folder (read through a temporary store,
-            :func:`~kpflow.data.lerobot_dataset.open_lerobot`: its ``observation.state`` named ``k<i>.<axis>``
-            becomes ``keypoints [T, K, D]``, its ``action`` the ``action``).
+            :func:`~kpflow.data.lerobot_dataset.open_lerobot`: its ``observation.state`` named ``k<i>.<axis>``, or
+            mapped by ``keypoint_map``, becomes ``keypoints [T, K, D]``, its ``action`` the ``action``).
         horizon, n_obs, obs_key, action_key: see :class:`ChunkDataset`.
         val_fraction, seed: see :func:`split_episodes`; ``seed`` also fixes the training shuffle order.
         max_episodes: use only the first ``max_episodes`` episodes (all if None).
         hindsight, relabel_fragments: see :class:`ChunkDataset`.
+        keypoint_map: for a LeRobot dataset whose ``observation.state`` is not named ``k0.x, k0.y, ...``: which of its
+            columns are keypoints and which the robot's (:class:`~kpflow.data.lerobot_dataset.KeypointMap`, or its
+            config ``{keypoints: {name: [x, y(, z)], ...}, robot: [x, y(, z)]}``); None: the names say it.
     """
 
     def __init__(
@@ -167,6 +188,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         n_obs: int = 1,
         hindsight: HindsightGoals | None = None,
         relabel_fragments: bool = False,
+        keypoint_map: KeypointMap | Mapping | None = None,
     ) -> None:
         super().__init__()
         if max_episodes is not None and max_episodes < 1:
@@ -175,6 +197,7 @@ class ChunkDataModule(lightning.LightningDataModule):
         self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
         self.seed, self.max_episodes, self.n_obs, self.hindsight = seed, max_episodes, n_obs, hindsight
         self.relabel_fragments = relabel_fragments
+        self.keypoint_map = None if keypoint_map is None else KeypointMap.from_config(keypoint_map)
         self.train_episodes: list[int] | None = None
         self.val_episodes: list[int] | None = None
         self.train_set: ChunkDataset | None = None
@@ -184,9 +207,17 @@ class ChunkDataModule(lightning.LightningDataModule):
         if self.train_set is not None:
             return
         lerobot = is_lerobot(self.path)
-        store = open_lerobot(self.path) if lerobot else EpisodeStore(self.path, mode="r")
-        if lerobot and (missing := [k for k in (self.obs_key, self.action_key) if k not in store.fields]):
-            raise ValueError(naming_help(self.path, missing[0], list(store.fields)))
+        if not lerobot and self.keypoint_map is not None:
+            raise ValueError(f"data.keypoint_map maps a LeRobot dataset's observation.state, but {self.path} is not one (no meta/info.json): "
+                             f"an episode store's field {self.obs_key!r} is read as it is; leave keypoint_map out (null)")  # fmt: skip
+        if not lerobot and (raw := raw_replay_help(self.path, self.obs_key)):
+            raise ValueError(raw)
+        store = open_lerobot(self.path, self.keypoint_map) if lerobot else EpisodeStore(self.path, mode="r")
+        if missing := [k for k in (self.obs_key, self.action_key) if k not in store.fields]:
+            if lerobot:
+                raise ValueError(naming_help(self.path, missing[0], list(store.fields)))
+            raise ValueError(f"{self.path} has no field {missing[0]!r} (it has {list(store.fields)}): training reads keypoints [T, K, D] "
+                             f"and actions [T, A]; with data=store, name its fields with data.obs_key=FIELD and data.action_key=FIELD")  # fmt: skip
         n = store.n_episodes if self.max_episodes is None else min(store.n_episodes, self.max_episodes)
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
@@ -208,7 +239,8 @@ class ChunkDataModule(lightning.LightningDataModule):
             raise ValueError(
                 f"{self.path}: a K-CFM observes keypoints [T, K, D] and acts [T, A], but field {self.obs_key!r} is"
                 f" {list(obs.shape)} and {self.action_key!r} {list(actions.shape)} (a LeRobot dataset's observation.state"
-                " is read as keypoints when its names are k0.x, k0.y, ...: kpflow.data.lerobot_dataset)"
+                " is read as keypoints when its names are k0.x, k0.y, ... or data.keypoint_map says which columns are"
+                " keypoints: kpflow.data.lerobot_dataset)"
             )
         return dict(zip(self.MODEL_DIMS, (int(obs.shape[1]), int(obs.shape[2]), int(actions.shape[1]))))
 

@@ -18,14 +18,18 @@ Several episodes share a data file until it reaches ``data_files_size_in_mb``; a
 ``keypoints [T, K, D]`` as ``observation.state`` named ``k0.x, k0.y, ...`` (so :func:`import_lerobot` restores
 their shape), the ``action`` as ``action``, any other field ``f`` as ``observation.f``. Videos are not written.
 The dataset is built in a temporary folder and renamed into place: a reader never sees half of one.
+
+Another dataset's ``observation.state`` is read as keypoints through a :class:`KeypointMap` (``data.keypoint_map`` in
+a data config): which of its named columns are each keypoint's x, y[, z], and which are the robot's, placed last.
 """
 
 from __future__ import annotations
 
 import json
 import re
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -85,6 +89,116 @@ def keypoint_layout(names: list[str] | None) -> tuple[int, int] | None:
         return None
     k = len(names) // d
     return (k, d) if list(names) == [f"k{i}.{AXES[j]}" for i in range(k) for j in range(d)] else None
+
+
+MAP_HELP = "docs/concepts/data.md#lerobot-datasets-with-other-state-names"
+MAP_EXAMPLE = "data.keypoint_map='{keypoints:{cube:[cube_x,cube_y]},robot:[ee_x,ee_y]}'"
+
+
+@dataclass(frozen=True)
+class KeypointMap:
+    """Which named columns of a LeRobot dataset's ``observation.state`` are keypoints, and which are the robot's.
+
+    ``columns`` holds each keypoint's columns (its x, y[, z]: ``D`` of them, the same ``D``, 2 or 3, for every
+    keypoint) in kpflow's order, the robot's ``robot`` keypoints last (kpflow's layout: ``model.origin=-1`` is the
+    robot); ``names`` names each keypoint. Other columns of the state are not read. From a config
+    (:meth:`from_config`, ``data.keypoint_map``)::
+
+        keypoint_map:
+          keypoints:                   # each keypoint's columns, by name: {name: [x, y(, z)], ...} or [[x, y], ...]
+            cube: [cube_x, cube_y]
+            target: [target_x, target_y]
+          robot: [ee_x, ee_y]          # the robot's keypoint, placed last (several: [[l_x, l_y], [r_x, r_y]])
+    """
+
+    columns: tuple[tuple[str, ...], ...]
+    names: tuple[str, ...]
+    robot: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.columns:
+            raise ValueError(f"keypoint_map maps no keypoints: give keypoints and robot columns, e.g. {MAP_EXAMPLE} ({MAP_HELP})")
+        if len(self.names) != len(self.columns) or not 0 <= self.robot <= len(self.columns):
+            raise ValueError(f"keypoint_map: {len(self.columns)} keypoints need as many names ({len(self.names)} given) and at most that many robot ones")
+        dims = {len(c) for c in self.columns}
+        if len(dims) != 1 or not dims <= {2, 3}:
+            given = ", ".join(f"{n}: {list(c)}" for n, c in zip(self.names, self.columns))
+            raise ValueError(f"keypoint_map: every keypoint needs the same number of columns, 2 (x, y) or 3 (x, y, z); it gives {given}")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"keypoint_map names two keypoints alike: {list(self.names)} (the robot's are robot, robot0, robot1, ...)")
+        flat = self.flat_columns
+        if len(set(flat)) != len(flat):
+            raise ValueError(f"keypoint_map names the columns {sorted({c for c in flat if flat.count(c) > 1})} more than once: each column is one value of one keypoint")
+
+    @classmethod
+    def from_config(cls, spec: KeypointMap | Mapping) -> KeypointMap:
+        """The map of a config node ``{keypoints: {name: [x, y(, z)], ...} | [[x, y], ...], robot: [x, y] | [[x, y], ...]}``
+        (``robot`` may be left out: no robot keypoint)."""
+        if isinstance(spec, KeypointMap):
+            return spec
+        if not isinstance(spec, Mapping) or "keypoints" not in spec or set(spec) - {"keypoints", "robot"}:
+            found = f"the keys {sorted(map(str, spec))}" if isinstance(spec, Mapping) else f"a {type(spec).__name__}"
+            raise ValueError(f"keypoint_map takes the keys keypoints and robot, e.g. {MAP_EXAMPLE}; it has {found} ({MAP_HELP})")
+        named = _keypoint_columns(spec["keypoints"], "keypoints")
+        robot = _keypoint_columns(spec.get("robot") or [], "robot")
+        keypoints = named + robot
+        return cls(tuple(c for _, c in keypoints), tuple(n for n, _ in keypoints), len(robot))
+
+    @property
+    def dim(self) -> int:
+        """``D``: each keypoint's columns."""
+        return len(self.columns[0])
+
+    @property
+    def flat_columns(self) -> list[str]:
+        return [c for cols in self.columns for c in cols]
+
+    def indices(self, names, where: str) -> np.ndarray:
+        """Where each keypoint's columns are among a state's column ``names`` (any of :func:`flat_names`' spellings):
+        ``[K, D]`` ints. ``ValueError`` naming the columns the map expected and the state lacks, and those it has."""
+        found = flat_names(names)
+        if not isinstance(found, list) or not found:
+            raise ValueError(f"{where} has no column names in meta/info.json, and keypoint_map picks columns by name: "
+                             f"add its names there (features.observation.state.names: [..., ...])")  # fmt: skip
+        found = [str(n) for n in found]
+        if missing := [c for c in self.flat_columns if c not in found]:
+            raise ValueError(f"{where} has no columns {missing} that keypoint_map names; its columns are {found}: correct data.keypoint_map ({MAP_HELP})")
+        if repeated := sorted({c for c in self.flat_columns if found.count(c) > 1}):
+            raise ValueError(f"{where} names more than one column {repeated}: keypoint_map cannot tell which one is meant")
+        return np.array([[found.index(c) for c in cols] for cols in self.columns], np.int64)
+
+    def apply(self, state: np.ndarray, names, where: str = "observation.state") -> np.ndarray:
+        """``state [..., F]`` (columns named ``names``, the dataset's order) as keypoints ``[..., K, D]``: what a policy
+        trained through this map observes, e.g. on the robot."""
+        state, index = np.asarray(state), self.indices(names, where)
+        if state.shape[-1] != len(flat_names(names)):
+            raise ValueError(f"{where}: {state.shape[-1]} values per frame but {len(flat_names(names))} column names")
+        return state[..., index]
+
+
+def _keypoint_columns(spec, key: str) -> list[tuple[str, tuple[str, ...]]]:
+    """``(name, columns)`` per keypoint of a config's ``keypoints`` or ``robot``: ``{name: [x, y(, z)], ...}``, a list of
+    such column lists, or (``robot`` only) one keypoint's column list."""
+
+    def is_list(value) -> bool:
+        return isinstance(value, Sequence) and not isinstance(value, str)
+
+    def columns(value, name: str) -> tuple[str, ...]:
+        if not is_list(value) or not all(isinstance(c, str) for c in value):
+            raise ValueError(f"keypoint_map.{key}: {name} must be a list of its 2 or 3 column names (x, y[, z]); got {value!r}")
+        return tuple(value)
+
+    if isinstance(spec, Mapping):
+        return [(str(name), columns(value, str(name))) for name, value in spec.items()]
+    if is_list(spec) and spec and all(isinstance(c, str) for c in spec):
+        if key == "robot":
+            return [("robot", tuple(spec))]
+        raise ValueError(f"keypoint_map.keypoints lists column names {list(spec)}: give each keypoint its own list, "
+                         f"[[a_x, a_y], [b_x, b_y]], or name them, {{a: [a_x, a_y], b: [b_x, b_y]}}")  # fmt: skip
+    if is_list(spec):
+        prefix = "robot" if key == "robot" else "k"
+        return [(f"{prefix}{i}", columns(value, f"{key}[{i}]")) for i, value in enumerate(spec)]
+    raise ValueError(f"keypoint_map.{key} must map names to column lists or list column lists, e.g. {MAP_EXAMPLE}; got {spec!r}")
 
 
 def _keypoints_shaped(flat: np.ndarray, names, field: str, where: str) -> np.ndarray:
@@ -223,22 +337,26 @@ def read_info(root: str | Path) -> dict:
     return info
 
 
-def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[str, str] | None = None) -> EpisodeStore:
+def import_lerobot(
+    root: str | Path, store_path: str | Path, columns: Mapping[str, str] | None = None, keypoint_map: KeypointMap | Mapping | None = None
+) -> EpisodeStore:
     """The state/action columns of the LeRobot v3 dataset at ``root`` as a new :class:`EpisodeStore` at
     ``store_path``, one episode per ``episode_index`` in order.
 
     ``columns`` maps a feature to a store field (default: ``observation.state -> keypoints`` when its names are
-    kpflow's ``k<i>.<axis>``, else ``-> state``; ``action -> action``). A keypoint feature is reshaped to
-    ``[T, K, D]``. Raises ``FileExistsError`` if ``store_path`` exists and ``ValueError`` naming the problem for a
-    dataset that does not hold what it says.
+    kpflow's ``k<i>.<axis>`` or a ``keypoint_map`` is given, else ``-> state``; ``action -> action``). A keypoint
+    feature is reshaped to ``[T, K, D]``: by its ``k<i>.<axis>`` names, or with ``keypoint_map``
+    (:class:`KeypointMap`) its columns picked by name, the robot's keypoints last. Raises ``FileExistsError`` if
+    ``store_path`` exists and ``ValueError`` naming the problem for a dataset that does not hold what it says.
     """
     root, store_path = Path(root), Path(store_path)
     if store_path.exists():
         raise FileExistsError(f"{store_path} exists already: import into a new store")
     info = read_info(root)
     features = info["features"]
+    keypoint_map = None if keypoint_map is None else KeypointMap.from_config(keypoint_map)
     if columns is None:
-        layout = keypoint_layout(features.get("observation.state", {}).get("names"))
+        layout = keypoint_map or keypoint_layout(features.get("observation.state", {}).get("names"))
         columns = {"observation.state": "keypoints" if layout else "state", "action": "action"}
     if unknown := sorted(set(columns) - set(features)):
         raise ValueError(f"{root} has no features {unknown} (it has {sorted(features)})")
@@ -246,6 +364,8 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
     if not files:
         raise ValueError(f"{root} has no data files (data/*/*.parquet)")
     widths = {feature: _width(features[feature], f"{root}: feature {feature}") for feature in columns}
+    picked = {feature: keypoint_map.indices(features[feature].get("names"), f"{root}: feature {feature}")
+              for feature, name in columns.items() if name == "keypoints" and keypoint_map is not None}  # fmt: skip
     if int(info["total_frames"]) < 1:
         raise ValueError(f"{root}: info.json declares {info['total_frames']} frames: a dataset to import needs at least one")
     check_parquet_rows(files, int(info["total_frames"]), {**widths, "episode_index": 1, "frame_index": 1}, str(root))
@@ -258,8 +378,12 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
         shape = features[feature]["shape"]
         if flat.shape[1] != int(np.prod(shape)):
             raise ValueError(f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame")
-        flat = _keypoints_shaped(flat, features[feature].get("names"), name, f"{root}: feature {feature}")
-        values[name] = flat
+        if feature in picked:
+            if len(flat_names(features[feature].get("names"))) != flat.shape[1]:
+                raise ValueError(f"{root}: feature {feature} names {len(flat_names(features[feature]['names']))} columns for its {flat.shape[1]} values")
+            values[name] = flat[:, picked[feature]]
+        else:
+            values[name] = _keypoints_shaped(flat, features[feature].get("names"), name, f"{root}: feature {feature}")
     episode = episode[order]
     bounds = np.flatnonzero(np.diff(episode)) + 1
     if len(bounds) + 1 != info["total_episodes"]:
@@ -270,17 +394,17 @@ def import_lerobot(root: str | Path, store_path: str | Path, columns: Mapping[st
     return EpisodeStore(store_path)
 
 
-def open_lerobot(root: str | Path) -> EpisodeStore:
+def open_lerobot(root: str | Path, keypoint_map: KeypointMap | Mapping | None = None) -> EpisodeStore:
     """The LeRobot v3 dataset at ``root`` as a read-only :class:`EpisodeStore` in a temporary folder (imported with
-    :func:`import_lerobot`'s default columns, removed when the store is garbage-collected or the process exits):
-    what a datamodule reads a LeRobot dataset through, without writing beside it."""
+    :func:`import_lerobot`'s default columns and ``keypoint_map``, removed when the store is garbage-collected or the
+    process exits): what a datamodule reads a LeRobot dataset through, without writing beside it."""
     import shutil
     import tempfile
     import weakref
 
     folder = Path(tempfile.mkdtemp(prefix="kpflow-lerobot-"))
     try:
-        import_lerobot(root, folder / "episodes.zarr")
+        import_lerobot(root, folder / "episodes.zarr", keypoint_map=keypoint_map)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
@@ -292,14 +416,19 @@ def open_lerobot(root: str | Path) -> EpisodeStore:
 def naming_help(root: str | Path, field: str, fields: list[str]) -> str:
     """Why the LeRobot dataset at ``root`` gave no store field ``field`` (it gave ``fields``): the names kpflow
     expected, the names the dataset has, and what to change."""
+    if field != "keypoints":
+        return (f"{root}: the LeRobot dataset gave no field {field!r} (it gave {fields}): kpflow reads its observation.state as "
+                f"'keypoints' (or as 'state' when no keypoint names or data.keypoint_map say its layout) and its action as 'action'; "
+                f"name one of {fields} with data.obs_key / data.action_key")  # fmt: skip
     features = read_info(root)["features"]
-    found = features.get("observation.state", {}).get("names")
+    found = flat_names(features.get("observation.state", {}).get("names"))
     shown = found[:8] if isinstance(found, list) else found
     return (
         f"{root}: the LeRobot dataset gave no field {field!r} (it gave {fields}). kpflow reads keypoints from feature "
         f"observation.state named k0.x, k0.y[, k0.z], k1.x, ... (every keypoint's 2 or 3 axes, in that order); its "
-        f"observation.state is named {shown!r}{'...' if isinstance(found, list) and len(found) > 8 else ''}. Rename them so in "
-        f"meta/info.json, or read the flat state as it is: data.obs_key=state"
+        f"observation.state is named {shown!r}{'...' if isinstance(found, list) and len(found) > 8 else ''}. Say which of "
+        f"its columns are keypoints and which the robot's with data.keypoint_map, e.g. {MAP_EXAMPLE} ({MAP_HELP}), rename "
+        f"them so in meta/info.json, or read the flat state as it is: data.obs_key=state"
     )
 
 
