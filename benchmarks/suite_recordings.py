@@ -79,7 +79,7 @@ def record(task_name: str, n_scenes: int, seed: int) -> list[Recording]:
 
     task = SuiteTask(task_name)
     spec = task_spec(task_name)
-    env = task.make_env()
+    env = task.make_sim()
     out, index = [], 0
     while len(out) < n_scenes:
         if index > 4 * n_scenes + 10:

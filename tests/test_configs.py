@@ -171,7 +171,7 @@ def test_generation_tasks_and_transports_build_from_the_generate_config(name, tm
     task = instantiate(cfg.task)
     assert task.name == name and set(cfg.families) <= set(cfg.transports)
     assert all(isinstance(instantiate(t), SegmentTransport) for t in cfg.transports.values())
-    env = task.make_env()
+    env = task.make_sim()
     scenes = [task.sample_scene(env, "wide", i).as_dict() for i in (0, 0, 1)]
     assert scenes[0] == scenes[1] != scenes[2]
 

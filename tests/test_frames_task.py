@@ -239,7 +239,7 @@ def test_frames_task_scenes_and_keypoints():
     assert task.sample_scene("random", 2, seed=1).as_dict() == task.sample_scenes("random", 3, seed=1)[2].as_dict()
     with pytest.raises(ValueError, match="lasa condition has 2 scenes"):
         task.sample_scenes("lasa", 3)
-    with pytest.raises(ValueError, match="unknown frames condition"):
+    with pytest.raises(ValueError, match="frames has no condition"):
         task.sample_scene("moved", 0)
     with pytest.raises(ValueError, match="frame_size must be > 0"):
         FramesTask(frame_size=0.0)

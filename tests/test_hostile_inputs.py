@@ -171,7 +171,7 @@ def test_an_unknown_camera_is_refused_before_any_episode():
 
     task = SuiteTask("lift", KeypointSource("camera", cameras=("nosuchcam",)))
     with pytest.raises(ValueError, match=r"lift has no camera \['nosuchcam'\]; its cameras are \[.*'frontview'"):
-        task.make_env()
+        task.make_env("d0")
 
 
 # 1-7: resources a small file can claim, refused before anything is allocated or decompressed

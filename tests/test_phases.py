@@ -223,7 +223,7 @@ def test_in_robosuites_stack_the_phase_switches_at_the_grasp_and_back_at_the_rel
     from kpflow.tasks.suite.task import SuiteTask
 
     task = SuiteTask("stack")
-    env = task.make_env()
+    env = task.make_sim()
     env.reset_to(task.sample_scene(env, "d0", 0))
     home_yaw = yaw_of(env.home_pose[1])
     phases, grasps, grasping = [], [], []

@@ -145,23 +145,28 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
     is the same for the same seed."""
     from kpflow.policies.kcfm.policy import KCFMPolicy
-    from kpflow.tasks.suite.rollout import PolicyEpisode, run_policy_episode
+    from kpflow.tasks.rollout import rollout
+    from kpflow.tasks.suite.gym_env import SuiteGymEnv
+    from kpflow.tasks.suite.task import SuiteTask
 
     policy = KCFMPolicy.from_checkpoint("release/suite_lift_kcfm.ckpt", steps=2, execute=8)
-    scene = sample_scene(SPEC, env, "d0", 0, seed=20_000)
+    n_keypoints = SuiteTask("lift").policy_layout.n_keypoints
+    scene = {"seed": 0, "options": {"stream": 20_000}}
     runs = []
     for _ in range(2):
         perception = CountingCameras(SuiteCameras(("frontview", "agentview")), seed=3)
-        frames: list = []
-        episode = run_policy_episode(env, policy, scene, max_steps=20, seed=0, frames=frames, frame_every=10, perception=perception)
+        episode = rollout(SuiteGymEnv(env, "d0", n_keypoints, perception, "rgb_array"), policy, 20, 0, scene, render=True)
         runs.append((episode, perception.captures, env.ee_pose()[0].copy()))
     (episode, captures, tip), (again, captures_again, tip_again) = runs
-    assert episode.steps == 20 and episode.decisions == 3  # steps 0, 8, 16
+    assert episode.steps == 20 and episode.decisions == 3 and len(episode.frames) == 21  # decisions at steps 0, 8, 16
     assert captures == 1 + 2 + 2 == captures_again  # step 0, then steps 6-7 and 14-15 before the next two chunks
-    assert again == episode and episode.failure == "time limit" and episode.unseen == 0
+    assert not episode.success and episode.info["unseen_reads"] == 0 and "failure" not in episode.first_info
+    assert (again.steps, again.decisions, again.info["unseen_reads"]) == (episode.steps, episode.decisions, 0)
     np.testing.assert_array_equal(tip, tip_again)
+    np.testing.assert_array_equal(episode.records["action"], again.records["action"])
     blind = CameraKeypoints(SuiteCameras(("agentview",)), segmenter=_Nothing())  # never sees the cube: no pose to keep
-    assert run_policy_episode(env, policy, scene, max_steps=20, perception=blind) == PolicyEpisode(False, 0, 0, 1, "not perceived")
+    unseen = rollout(SuiteGymEnv(env, "d0", n_keypoints, blind), policy, 20, 0, scene)
+    assert (unseen.steps, unseen.decisions, unseen.first_info["failure"], unseen.first_info["unseen_reads"]) == (0, 0, "not perceived", 1)
 
 
 def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():

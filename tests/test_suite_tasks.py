@@ -29,7 +29,7 @@ def worlds():
     out = {}
     for name in TASKS:
         task = SuiteTask(name)
-        env = task.make_env()
+        env = task.make_sim()
         segments, success, failure = task.demonstrate(env, task.sample_scene(env, "d0", 0))
         out[name] = (task, env, segments, success, failure)
     return out
@@ -322,7 +322,7 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.kcfm.model import KCFM
     from kpflow.policies.kcfm.policy import KCFMPolicy
-    from kpflow.tasks.suite.rollout import run_policy_episode
+    from kpflow.tasks.rollout import rollout
 
     out, _ = generated
     data = ChunkDataModule(out / "d0" / "gp" / "episodes.zarr", horizon=16, obs_key="keypoints", action_key="ee_target",
@@ -337,10 +337,10 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
     assert type(policy.model.objective) is type(model.objective)
     with pytest.raises(ValueError, match=r"\[B, 2, 11, 3\]"):
         policy.model.sample(np.zeros((2, 11, 2)))
-    task = SuiteTask("lift")
-    env = task.make_env()
-    episode = run_policy_episode(env, policy, task.sample_scene(env, "d0", 0, seed=20_000), max_steps=24)
+    env = SuiteTask("lift").make_env("d0")
+    episode = rollout(env, policy, 24, 0, {"seed": 0, "options": {"stream": 20_000}}, action_dim=10)
     assert episode.steps <= 24 and episode.decisions == (episode.steps + 7) // 8
+    assert episode.first_info["scene"]["objects"].keys() == {"cube"}
 
 
 def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):
@@ -482,7 +482,7 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.policies.nearest import NearestNeighbourPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-    from kpflow.tasks.suite.rollout import run_policy_episode
+    from kpflow.tasks.rollout import rollout
 
     out, _ = generated
     store = out / "d0" / "gp" / "episodes.zarr"
@@ -514,7 +514,6 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     transported = policies["transported_kcfm"]
     pick = transported.transports[0]  # segment by segment (the experiment's default): Lift's one phase, on the cube
     assert transported.phases is not None and pick.fit_on.tolist() == list(range(8)) and pick.pulled.tolist() == [8, 9, 10] and transported.rotation
-    task = SuiteTask("lift")
-    env = task.make_env()
-    episode = run_policy_episode(env, transported, task.sample_scene(env, "far", 0, seed=20_000), max_steps=16)
+    env = SuiteTask("lift").make_env("far")
+    episode = rollout(env, transported, 16, 0, {"seed": 0, "options": {"stream": 20_000}}, action_dim=10)
     assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None and transported.last_phase == "pick"

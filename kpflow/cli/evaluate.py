@@ -43,7 +43,8 @@ def record_used(cfg: DictConfig, results: dict) -> None:
         if isinstance(limits, dict):
             limits = {limits[c] for c in {row["condition"] for row in results.get("summary", [])} if c in limits}
             limits = limits.pop() if len(limits) == 1 else None
-        if limits is not None and OmegaConf.select(cfg, "experiment.trial.max_steps", default=None) is not None:
+        trial = OmegaConf.select(cfg, "experiment.trial", default=None)
+        if limits is not None and trial is not None and "max_steps" in trial:
             cfg.experiment.trial.max_steps = int(limits)
 
 

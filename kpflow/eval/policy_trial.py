@@ -5,8 +5,8 @@ your own (``experiment=gym_policy task=<task>``). The task says everything task-
 (:class:`~kpflow.tasks.base.GymTask`): which scene an index of a condition is and how the env is reset to it
 (:meth:`~kpflow.tasks.base.GymTask.evaluation_scene`: by default the held-out seed stream, Push-T's configurations),
 how many steps an episode may take and how it is scored; the episode is the one closed loop,
-:func:`~kpflow.tasks.rollout.rollout`. Every episode gets a fresh env, and the decisions are timed
-(``latency_ms``, the median).
+:func:`~kpflow.tasks.rollout.rollout`. Every episode gets a fresh env from the task, and the decisions are timed (``latency_ms``, the median). The scene recorded is the task's record with what the env
+says of it at reset (``info["scene"]``, where it says anything).
 """
 
 from __future__ import annotations
@@ -73,10 +73,12 @@ class PolicyTrial:
             frames.extend(episode.frames)
         success, failure, scores = self.task.score(episode)
         scores["latency_ms"] = 1e3 * float(np.median(policy.latencies)) if policy.latencies else float("nan")
-        return TrialResult(condition, index, dict(variant), scene.record, success, failure, scores, {"episode": episode})
+        record = {**scene.record, **episode.first_info.get("scene", {})}
+        return TrialResult(condition, index, dict(variant), record, success, failure, scores, {"episode": episode})
 
     def describe(self) -> dict:
-        """The policy's name, the settings it acts with (:func:`~kpflow.policies.settings.effective_settings`) and
-        each condition's step limit."""
+        """The policy's name, the settings it acts with (:func:`~kpflow.policies.settings.effective_settings`),
+        each condition's step limit and the task's own description (:meth:`~kpflow.tasks.base.GymTask.describe`)."""
         limits = {c: self.task.steps_limit(c, self.max_steps) for c in self.conditions}
-        return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": limits}
+        return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": limits,
+                **self.task.describe()}  # fmt: skip

@@ -2,8 +2,7 @@
 
 A :class:`Trial` knows how to run one trial of one task: an open-loop transport of a recorded demonstration for the
 robosuite tasks (:class:`~kpflow.eval.demo_transport_trial.DemoTransportTrial`), a closed-loop policy episode on a
-Gymnasium task, Push-T's too (:class:`~kpflow.eval.policy_trial.PolicyTrial`), or on a robosuite benchmark task
-(:class:`~kpflow.eval.suite_policy_trial.SuitePolicyTrial`). Its ``variants`` are the grid's other axes (keypoint
+Gymnasium task, Push-T's and the robosuite benchmark tasks' too (:class:`~kpflow.eval.policy_trial.PolicyTrial`). Its ``variants`` are the grid's other axes (keypoint
 source and map, or policy), and its ``report`` (:mod:`kpflow.eval.reports`) summarises, tabulates and draws.
 
 For each condition, variant and trial index (``first_index``, ``first_index + 1``, ...: the same scenes for every

@@ -83,7 +83,7 @@ class Generator:
 
         torch.set_num_threads(1)
         if self.env is None:  # one simulator per worker: a rendering one freed while another renders breaks that one
-            self.env = self.task.make_env(render=self.render)
+            self.env = self.task.make_sim(render=self.render)
         self.sources = []
         for i in range(self.n_sources):
             scene = self.task.sample_scene(self.env, "d0", i, SOURCE_SEED + self.seed)

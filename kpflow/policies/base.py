@@ -143,5 +143,10 @@ class ClosedLoop:
             self.decisions += 1
         return self.queue.popleft()
 
+    def reads_next(self) -> bool:
+        """Whether the next observation will be in the history of a decision: the queue holds fewer actions than
+        the history's length (so the steps left before the next decision all feed it)."""
+        return len(self.queue) < self.n_obs
+
     def drop(self) -> None:
         self.queue.clear()

@@ -127,15 +127,34 @@ class TrialResult:
 ORACLE = "oracle"
 
 
-class ArmTask(abc.ABC):
+class Task:
+    """What every task is: a ``name`` and the ``conditions`` (scene distributions) an evaluation can ask for, the
+    first the training one. Two kinds build on it: a :class:`GymTask` runs policies in closed loop (Push-T, the
+    robosuite benchmark tasks, a task of your own), an :class:`ArmTask` transports one recorded demonstration per
+    scene (packing, stacking). A task with neither (the frames task, whose scenes feed the map figures) declares
+    only these."""
+
+    name: str
+    conditions: tuple[str, ...] = ("default",)
+
+    @property
+    def default_conditions(self) -> tuple[str, ...]:
+        """The conditions an evaluation of ``all`` runs (every one, unless the task says otherwise)."""
+        return tuple(self.conditions)
+
+    def check_condition(self, condition: str) -> None:
+        """Refuse a condition the task does not have, naming the ones it has."""
+        if condition not in self.conditions:
+            raise ValueError(f"{self.name} has no condition {condition!r}; choose from {', '.join(self.conditions)}")
+
+
+class ArmTask(Task, abc.ABC):
     """A robosuite task solved zero-shot by transporting one demonstration (packing, stacking).
 
     ``conditions`` name the test conditions; ``keypoint_sources`` the ways the task can find keypoints (the
     evaluation grid's ``keypoints`` axis: a backbone name, ``"oracle"``, or the task's single ``"camera"``).
     """
 
-    name: str
-    conditions: tuple[str, ...]
     source_scene: Any
     #: the failure reason of a trial in which no keypoints were found (nothing is executed)
     no_keypoints = "no correspondences"
@@ -162,7 +181,7 @@ class ArmTask(abc.ABC):
         """Run ``trajectory`` and say whether the task succeeded, and if not why (appending video frames)."""
 
 
-class GymTask(abc.ABC):
+class GymTask(Task, abc.ABC):
     """A task whose simulator is a Gymnasium env: what a new task implements, in a folder of its own, to be collected
     (``kpflow-collect``), trained on (``kpflow-train``), evaluated in closed loop (``kpflow-evaluate
     experiment=gym_policy``) and served (``kpflow-serve``); its YAML in a ``task/`` config folder names the class
@@ -179,16 +198,9 @@ class GymTask(abc.ABC):
       none: its demonstrations then come from elsewhere, e.g. a LeRobot dataset).
     """
 
-    name: str
-    conditions: tuple[str, ...] = ("default",)
     max_steps: int = 200
     #: the info keys an episode records at every step for :meth:`score` (:attr:`~kpflow.tasks.rollout.Episode.tracked`)
     tracked: tuple[str, ...] = ()
-
-    @property
-    def default_conditions(self) -> tuple[str, ...]:
-        """The conditions an evaluation of ``all`` runs (every one, unless the task says otherwise)."""
-        return tuple(self.conditions)
 
     @property
     @abc.abstractmethod
@@ -203,10 +215,6 @@ class GymTask(abc.ABC):
         """A scripted policy that solves the task, or None."""
         return None
 
-    def check_condition(self, condition: str) -> None:
-        if condition not in self.conditions:
-            raise ValueError(f"{self.name} has no condition {condition!r}; choose from {', '.join(self.conditions)}")
-
     def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
         """Evaluation scene ``index`` of ``condition`` for run ``seed``: by default ``reset(seed=s)`` with ``s`` of
         the held-out stream (:func:`scene_seed`), the policy reset with ``s`` too."""
@@ -216,6 +224,11 @@ class GymTask(abc.ABC):
     def steps_limit(self, condition: str, max_steps: int | None = None) -> int:
         """The control steps an episode of ``condition`` may take: ``max_steps``, else the task's."""
         return int(self.max_steps if max_steps is None else max_steps)
+
+    def describe(self) -> dict:
+        """What an evaluation's ``results.json`` records of the task's set-up besides its name (e.g. where its
+        keypoints come from)."""
+        return {}
 
     def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
         """``(success, failure reason, scores)`` of an evaluation episode (:class:`~kpflow.tasks.rollout.Episode`):

@@ -11,6 +11,11 @@ An :class:`Override` may take control from the policy for a while (an expert cor
 first, and an action it returns replaces the policy's, whose pending chunk is dropped (it starts afresh when it gets
 control back). A policy ends the episode early by raising :class:`StopEpisode` (a person pressing Enter).
 ``track`` names the info values kept at every step (Push-T's coverage, for its thresholds).
+
+Two optional hooks let an env with costly observations (a camera capture) take part: before each step the loop
+tells it whether a decision will read the observation that step returns (``env.unwrapped.will_read(bool)``, where
+the env has it: the policy's history is refilled before its queue runs dry), and an env that cannot start the
+episode (a camera that placed nothing) says so in reset's ``info["failure"]``, which ends the episode before any step.
 """
 
 from __future__ import annotations
@@ -95,12 +100,13 @@ def rollout(
     first_info = info
     loop = ClosedLoop(policy, action_dim)
     loop.reset(seed)
+    will_read = getattr(env.unwrapped, "will_read", None)
     if override is not None:
         override.start(env, obs, info, seed)
     log, tracked = {k: [] for k in (*record, "action")}, {k: [] for k in track}
     frames = [env.render()] if render else None
     overridden, success, steps, start = [], False, 0, time.perf_counter()
-    for step in range(int(max_steps)):
+    for step in range(0 if info.get("failure") else int(max_steps)):
         loop.observe(obs)
         try:
             action, took_over = _next_action(loop, override, step, obs)
@@ -110,6 +116,8 @@ def rollout(
         for k in record:
             log[k].append(obs[k])
         log["action"].append(action)
+        if will_read is not None:
+            will_read(loop.reads_next())
         obs, _, terminated, truncated, info = env.step(action)
         steps += 1
         if override is not None:

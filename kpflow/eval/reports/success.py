@@ -11,6 +11,14 @@ from kpflow.eval.stats import success_cells, success_summary
 from kpflow.tasks.base import TrialResult
 
 
+def step_limits(trial) -> str:
+    """The control steps an episode of ``trial`` may take: one number, or each condition's."""
+    limits = trial.describe()["max_steps"]
+    if not isinstance(limits, dict):
+        return str(limits)
+    return str(next(iter(set(limits.values())))) if len(set(limits.values())) == 1 else ", ".join(f"{c}: {n}" for c, n in limits.items())
+
+
 class SuccessReport:
     """Success [95% interval], failure reasons and the median steps to success, one row per condition."""
 
@@ -31,7 +39,7 @@ class SuccessReport:
 
     def header(self, trial, n_trials: dict[str, int]) -> str:
         return (f"# {trial.name}: {trial.policy_name} in closed loop\n\n"
-                f"Episodes per condition: {n_trials}; at most {trial.max_steps} control steps; the env's own success test.\n\n")  # fmt: skip
+                f"Episodes per condition: {n_trials}; at most {step_limits(trial)} control steps; the env's own success test.\n\n")  # fmt: skip
 
     def showcase(self, trials: list[TrialResult], videos: int) -> list[tuple[TrialResult, bool]]:
         return [(t, True) for t in trials if t.index == trials[0].index][:videos]

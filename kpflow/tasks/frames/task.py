@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from kpflow.tasks.base import Task
+
 from .frames import scene_keypoints
 from .lasa import lasa_frames, load_lasa
 from .scene import Scene, moved, random_scenes
@@ -19,8 +21,9 @@ CONDITIONS = ("lasa", "random")
 LASA_MOVES = ("goal moved", "both moved")  # Figure 1's scenes, in order
 
 
-class FramesTask:
-    """``frame_size``: the keypoints' distance from a frame's origin; ``n_points``: samples per demonstration;
+class FramesTask(Task):
+    """The frames task, a :class:`~kpflow.tasks.base.Task` of scenes and keypoints only (no simulator):
+    ``frame_size``: the keypoints' distance from a frame's origin; ``n_points``: samples per demonstration;
     ``lasa_shape``: Figure 1's LASA motion."""
 
     name = "frames"
@@ -50,7 +53,7 @@ class FramesTask:
             return [Scene(s, g, demo) for s, g in moves[:n]]
         if condition == "random":
             return random_scenes(n, self.n_points, seed)
-        raise ValueError(f"unknown frames condition {condition!r}; choose from {CONDITIONS}")
+        self.check_condition(condition)
 
     def sample_scene(self, condition: str, index: int, seed: int = 0) -> Scene:
         """Scene ``index`` of ``condition`` (the scenes are drawn in sequence from ``seed``)."""

@@ -1,5 +1,6 @@
-"""A robosuite benchmark task behind one class: scenes, the scripted source demonstration recorded segment by
-segment, what is observed at a segment's start, and running a segment.
+"""A robosuite benchmark task behind one class: a :class:`~kpflow.tasks.base.GymTask` (its closed loop runs in
+:class:`~.gym_env.SuiteGymEnv`), scenes, the scripted source demonstration recorded segment by segment, what is
+observed at a segment's start, and running a segment.
 
 A source demonstration is a list of :class:`~kpflow.tasks.base.Segment`: each holds the commanded trajectory and
 what the scene looked like when it began (every object's pose, the keypoints that the segment depends on, the grip
@@ -15,12 +16,13 @@ import numpy as np
 
 from kpflow.geometry.angles import yaw_of
 from kpflow.geometry.rotations import matrix_to_rot6d
-from kpflow.tasks.base import Segment, SegmentStart
+from kpflow.tasks.base import EvaluationScene, GymTask, Segment, SegmentStart
 from kpflow.trajectory import Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 
 from .demonstrator import path_cost, plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
+from .gym_env import ACTION_DIM, SuiteGymEnv
 from .keypoints import (
     SYMMETRY,
     SimulatorPoses,
@@ -31,7 +33,6 @@ from .keypoints import (
     pose_keypoints,
 )
 from .perception import CameraKeypoints
-from .rollout import ACTION_DIM
 from .scene import Scene, sample_scene
 from .specs import task_spec
 
@@ -55,27 +56,69 @@ class SegmentRun:
     failure: str | None
 
 
-class SuiteTask:
+#: the evaluation scenes' stream offset: scene ``i`` of a variant for run seed ``s`` is keyed ``(EVAL_SEED + s, variant,
+#: i)``, which neither the source demonstrations (``SOURCE_SEED``) nor the generated ones (``seed``) use
+EVAL_SEED = 20_000
+
+
+class SuiteTask(GymTask):
     """robosuite's ``lift``, ``stack``, ``can`` or ``square`` (:data:`~.specs.TASKS`) with the Panda; its objects'
     keypoints from the simulator or from cameras (``keypoints``, :class:`~kpflow.vision.keypoint_source.KeypointSource`;
-    None: the simulator's)."""
+    None: the simulator's). Its conditions are the variants (``d0``: robosuite's placement as it ships; ``wide``, ...);
+    an evaluation episode may take 500 control steps and scores robosuite's own success."""
+
+    max_steps = 500
 
     def __init__(self, name: str = "lift", keypoints: KeypointSource | None = None):
         self.spec = task_spec(name)
         self.name = self.spec.name
-        self.variants = self.spec.variants
-        self.policy_layout = policy_layout(self.spec, ACTION_DIM)  #: what its learned policies observe and return
+        self.variants = self.conditions = self.spec.variants
+        self._layout = policy_layout(self.spec, ACTION_DIM)
         self.keypoints = keypoints or KeypointSource()
         #: reads the objects' poses: :class:`~.keypoints.SimulatorPoses` or :class:`~.perception.CameraKeypoints`
         self.perception = CameraKeypoints.from_source(self.keypoints) if self.keypoints.camera else SimulatorPoses()
+        self._sims: dict[bool, SuiteEnv] = {}  # render -> the simulator the Gymnasium envs share
 
-    def make_env(self, render: bool = False) -> SuiteEnv:
+    def __getstate__(self) -> dict:  # a worker builds its own simulators
+        return {**self.__dict__, "_sims": {}}
+
+    @property
+    def policy_layout(self):
+        """What its learned policies observe and return (:func:`~.keypoints.policy_layout`)."""
+        return self._layout
+
+    def make_sim(self, render: bool = False) -> SuiteEnv:
         """A simulator for this task (rendering when asked, or when its keypoints come from cameras, whose names are
         checked against the model's here: an unknown camera is refused before any episode)."""
         env = SuiteEnv(self.spec, render=render or self.keypoints.camera)
         if isinstance(self.perception, CameraKeypoints):
             self.perception.cameras.check_names(env)
         return env
+
+    def make_env(self, condition: str, render: bool = False) -> SuiteGymEnv:
+        """The Gymnasium env of ``condition``'s scenes (:class:`~.gym_env.SuiteGymEnv`), its objects read by
+        :attr:`perception`. Building robosuite's model takes seconds, and a rendering one freed while another renders
+        breaks that one, so the envs of a task share one :meth:`make_sim` (per ``render``), which every reset sets up
+        afresh (:meth:`~.env.SuiteEnv.reset_to`)."""
+        self.check_condition(condition)
+        if render not in self._sims:
+            self._sims[render] = self.make_sim(render)
+        return SuiteGymEnv(self._sims[render], condition, self._layout.n_keypoints, self.perception, "rgb_array" if render else None)
+
+    def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
+        """Scene ``index`` of ``condition`` in the stream ``EVAL_SEED + seed``; the policy and the perception reset
+        with ``index``; the scene recorded is the env's (reset's ``info["scene"]``)."""
+        return EvaluationScene({"seed": int(index), "options": {"stream": EVAL_SEED + int(seed)}}, int(index), {})
+
+    def score(self, episode) -> tuple[bool, str | None, dict]:
+        """robosuite's success; the failure ``"not perceived"`` (the cameras never placed the objects) or ``"time
+        limit"``; the steps, decisions and the reads that could not place an object."""
+        failure = episode.first_info.get("failure") or (None if episode.success else "time limit")
+        scores = {"steps": episode.steps, "decisions": episode.decisions, "unseen_reads": int(episode.info.get("unseen_reads", 0))}
+        return episode.success, failure, scores
+
+    def describe(self) -> dict:
+        return {"keypoints": self.keypoints.kind}
 
     def sample_scene(self, env: SuiteEnv, variant: str, index: int, seed: int = 0) -> Scene:
         return sample_scene(self.spec, env, variant, index, seed)

@@ -1,0 +1,92 @@
+"""A robosuite benchmark task as a Gymnasium env: what the one closed loop (:func:`kpflow.tasks.rollout.rollout`)
+runs a policy in.
+
+``reset(seed=i, options={"stream": s})`` sets up scene ``i`` of the env's variant in scene stream ``s``
+(:func:`~.scene.sample_scene`: the key ``(s, variant, i)``) and restarts the perception's noise at ``i``;
+``info["scene"]`` is the scene as a dict. Observations are ``{"keypoints": [K, 3]}``
+(:func:`~.keypoints.policy_keypoints`): the gripper's from the robot, the objects' from the perception (the
+simulator's at every step; a camera's only where the loop says a decision will read the observation,
+:meth:`SuiteGymEnv.will_read`, held in between; an object the cameras cannot place in a read keeps its last seen pose;
+the object picked, once the jaws close on it, is carried with them from where it was last seen). An action is an
+end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the
+gripper (closed when > 0). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
+that could not place an object. When the first read places nothing, reset's ``info["failure"]`` is ``"not
+perceived"`` and the loop ends the episode before any step.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from kpflow.geometry.rotations import rot6d_to_matrix
+
+from .env import CLOSED, OPEN, SuiteEnv
+from .keypoints import SimulatorPoses, policy_keypoints, policy_objects
+from .scene import sample_scene
+
+ACTION_DIM = 10  #: position [3], 6-D rotation [6], gripper [1]
+
+
+class SuiteGymEnv(gym.Env):
+    """Scenes of ``variant`` of ``sim``'s task (module docstring), the objects' poses read by ``perception``
+    (:class:`~.keypoints.SimulatorPoses` when None); ``n_keypoints`` the policy layout's count."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(self, sim: SuiteEnv, variant: str, n_keypoints: int, perception=None, render_mode: str | None = None):
+        if variant not in sim.spec.variants:
+            raise ValueError(f"{sim.spec.name} has no variant {variant!r}; choose from {', '.join(sim.spec.variants)}")
+        self.sim, self.variant, self.render_mode = sim, variant, render_mode
+        self.perception = SimulatorPoses() if perception is None else perception
+        self.observation_space = gym.spaces.Dict({"keypoints": gym.spaces.Box(-np.inf, np.inf, (n_keypoints, 3), np.float64)})
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (ACTION_DIM,), np.float64)
+        self._names = policy_objects(sim.spec)
+        self._poses, self._read, self._closed, self._unseen, self._obs = None, True, False, 0, None
+
+    def will_read(self, read: bool) -> None:
+        """Whether the observation the next step returns will be read by a decision (the loop says, before each step);
+        a camera is read only then, a simulator's poses at every step."""
+        self._read = bool(read)
+
+    def _observe(self) -> dict:
+        if self._poses is None or self.perception.per_step or self._read:
+            try:
+                self._poses = self.perception.poses(self.sim, self.sim.spec, self._names)
+            except ValueError:  # an object hidden (by the arm, the jaws) in this read: keep what was seen last
+                self._unseen += 1
+        if self._poses is None:
+            self._obs = {"keypoints": np.full(self.observation_space["keypoints"].shape, np.nan)}
+        else:
+            self._obs = {"keypoints": policy_keypoints(self.sim, self.sim.spec, self._poses)}
+        return self._obs
+
+    def _info(self, **extra) -> dict:
+        return {"is_success": self.sim.success(), "unseen_reads": self._unseen, **extra}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        index, stream = int(seed or 0), int((options or {}).get("stream", 0))
+        scene = sample_scene(self.sim.spec, self.sim, self.variant, index, stream)
+        self.sim.reset_to(scene)
+        self.perception.reseed(index)
+        self._poses, self._read, self._closed, self._unseen = None, True, False, 0
+        obs = self._observe()
+        extra = {"failure": "not perceived"} if self._poses is None else {}
+        return obs, self._info(scene=scene.as_dict(), **extra)
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        closing, target = bool(action[9] > 0), (action[:3], rot6d_to_matrix(action[3:9]))
+        if closing and not self._closed:  # the jaws close on the object to pick: a camera carries its pose with them
+            self.perception.grasped(self.sim, self.sim.spec.grasp, target)
+        elif self._closed and not closing:
+            self.perception.released(self.sim.spec.grasp)
+        self._closed = closing
+        self.sim.command(*target, CLOSED if closing else OPEN)
+        info = self._info()
+        obs = self._obs if info["is_success"] else self._observe()  # the episode is over: nothing more to read
+        return obs, float(info["is_success"]), info["is_success"], False, info
+
+    def render(self):
+        return self.sim.render_view() if self.render_mode == "rgb_array" else None
