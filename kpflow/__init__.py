@@ -2,20 +2,24 @@
 
 Fit a smooth map phi from the keypoints of a demonstration's scene to those of a new scene
 (:mod:`kpflow.maps`) and push the demonstration through it (:mod:`kpflow.transport`). Importing kpflow registers
-its Gymnasium ids; :func:`load_policy` loads a trained K-CFM for deployment.
+its Gymnasium ids and the config resolver ``${release:NAME}``; :func:`load_policy` loads a trained K-CFM for
+deployment, from a path or a released checkpoint's name (``release:NAME``, :mod:`kpflow.utils.releases`).
 """
 
 from importlib.metadata import version
 
 from kpflow.tasks.pusht.registration import register_envs
+from kpflow.utils.releases import register_resolver
 
 __version__ = version("kpflow")  # pyproject.toml's, the one place it is written
 
 register_envs()  # gymnasium.make("kpflow/PushT-v0") and the split ids (kpflow/tasks/pusht/registration.py)
+register_resolver()  # ${release:NAME} in any config value (kpflow/utils/releases.py)
 
 
 def load_policy(path, steps: int | None = None, execute: int | None = None):
-    """A ready K-CFM policy (``reset(seed)``, ``act(obs) -> [execute, 2]``) from a Lightning checkpoint, on the CPU,
+    """A ready K-CFM policy (``reset(seed)``, ``act(obs) -> [execute, 2]``) from a Lightning checkpoint (a path, or
+    ``release:NAME`` for a released one: ``kpflow.load_policy("release:pusht_standard_fast")``), on the CPU,
     sampling with ``steps`` network calls and returning ``execute`` actions (None: the checkpoint's own settings,
     :mod:`kpflow.policies.settings`).
 

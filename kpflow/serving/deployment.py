@@ -59,7 +59,8 @@ def load_deployment(
     segments: bool = False,
     map_name: str | None = None,
 ) -> Deployment:
-    """The K-CFM of ``checkpoint``, trained on ``task`` (whose keypoint layout it must fit; None: a policy trained on
+    """The K-CFM of ``checkpoint`` (a path, or ``release:NAME``: :mod:`kpflow.utils.releases`), trained on
+    ``task`` (whose keypoint layout it must fit; None: a policy trained on
     data of no kpflow task, served with the keypoints and actions its checkpoint declares), ready to serve,
     transported online through maps from ``make_map`` (a factory of unfitted maps with an inverse: what ``map=``
     builds in kpflow-evaluate and kpflow-serve, ``map_name`` naming it in the metadata; the source index is read from
@@ -85,8 +86,10 @@ def load_deployment(
     from ..policies.kcfm.model import KCFM
     from ..policies.kcfm.policy import check_steps_and_execute
     from ..utils.checkpoint import load_checkpoint
+    from ..utils.releases import resolve_release
 
     check_batching(max_batch, max_wait_ms)
+    checkpoint = resolve_release(checkpoint)  # its source index and digest are read beside it
     if make_map is not None and not callable(make_map):
         raise ValueError(f"make_map must be a factory of unfitted maps (e.g. kpflow.maps.ILWRMap) or None, got {type(make_map).__name__}")
     model = load_checkpoint(KCFM, checkpoint, map_location="cpu")

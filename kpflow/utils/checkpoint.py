@@ -28,6 +28,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from kpflow.utils.formats import check_zip_expansion
 from kpflow.utils.io import atomic_path
 from kpflow.utils.limits import check_hyper_parameters
+from kpflow.utils.releases import resolve_release
 
 M = TypeVar("M", bound=lightning.LightningModule)
 
@@ -37,16 +38,17 @@ class UnsafeCheckpointError(ValueError):
 
 
 def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
-    """The checkpoint dict at ``path``, loaded with ``torch.load(weights_only=True)``.
+    """The checkpoint dict at ``path``, loaded with ``torch.load(weights_only=True)``; ``release:NAME`` names a
+    released checkpoint (:func:`kpflow.utils.releases.resolve_release`).
 
     Raises:
-        FileNotFoundError: nothing at ``path``.
+        FileNotFoundError: nothing at ``path`` (for ``release:NAME``: in none of the folders looked in, named).
         UnsafeCheckpointError: the file asks the unpickler for anything but tensors and plain containers (it might
             run code); nothing from it was executed.
         ValueError: the file is not a readable checkpoint (truncated, foreign, no ``state_dict``), or a weight holds
             NaN or inf (the message names the tensor).
     """
-    path = Path(path)
+    path = resolve_release(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     check_zip_expansion(path)  # a compressed entry could expand to gigabytes inside torch.load
