@@ -1,9 +1,9 @@
 """The documentation site: it builds with ``mkdocs build --strict``, every tutorial's code runs as written, and every
-file under examples/ is run by some test.
+file under kpflow/examples/ (the examples installed with kpflow) is run by some test.
 
 A tested page (docs/tutorials/*.md, docs/quickstart.md, and README.md's python blocks) runs as one Python script made
 of its fenced ``python`` blocks in page order, each ``bash`` block running at its place with ``bash -euo pipefail -c``,
-in a fresh folder holding links ``examples`` and ``release`` to the repository's. ``--8<-- "path[:section]"`` lines
+in a fresh folder holding a link ``release`` to the repository's. ``--8<-- "path[:section]"`` lines
 (pymdownx.snippets) are replaced by what they include; ``text`` and ``console`` blocks (and any other language) are
 shown, never run. Commands find the venv's ``kpflow-*`` scripts first on PATH.
 """
@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,8 @@ from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
-EXAMPLES = ROOT / "examples"
+EXAMPLES = ROOT / "kpflow" / "examples"
+TEMPLATES = EXAMPLES / "templates"  # project folders that `kpflow-example NAME DIR` copies
 BIN = Path(sys.executable).parent
 
 # pages whose code takes more than ~20 s on 2 cores (marked slow: `make test-fast` leaves them out), and why
@@ -127,12 +129,11 @@ def page_script(page: Path) -> str:
 
 
 def run_in_scratch(args: list[str], folder: Path, timeout: int) -> tuple[int, str]:
-    """Run ``args`` in ``folder`` (given links to examples/ and release/) with the docs' environment; the exit code
+    """Run ``args`` in ``folder`` (given a link to release/) with the docs' environment; the exit code
     and the output. The run is a session of its own, ended as a whole afterwards, so that a server a page started in
     the background and did not stop cannot outlive it (and its output goes to a file, which it cannot hold open)."""
-    for name in ("examples", "release"):
-        if (ROOT / name).exists() and not (folder / name).exists():
-            (folder / name).symlink_to(ROOT / name)
+    if (ROOT / "release").exists() and not (folder / "release").exists():
+        (folder / "release").symlink_to(ROOT / "release")
     env = child_env(**ENV, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
     log = folder / "output.log"
     with log.open("w") as out:
@@ -174,15 +175,31 @@ def exercised_by_pages() -> tuple[set[Path], str]:
 
 
 def example_files() -> list[Path]:
-    if not EXAMPLES.exists():
-        return []
-    return sorted(p for p in EXAMPLES.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+    """The examples' files: scripts and template files (kpflow/examples/__init__.py, the command ``kpflow-example``
+    itself, is tests/test_examples.py's)."""
+    return sorted(p for p in EXAMPLES.rglob("*") if p.is_file() and "__pycache__" not in p.parts and p != EXAMPLES / "__init__.py")
+
+
+def module_of(path: Path) -> str:
+    """The dotted module of a script under kpflow/examples/ (``kpflow.examples.connect``)."""
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts)
+
+
+def console_scripts() -> dict[str, str]:
+    """pyproject.toml's console scripts: module -> command (``kpflow.examples.connect`` -> ``kpflow-connect``)."""
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    return {target.split(":")[0]: name for name, target in scripts.items()}
 
 
 def named_by(path: Path, run_text: str) -> bool:
-    """Whether the pages' code names ``path`` or a folder above it under examples/ (a config dir, a package)."""
-    rel = path.relative_to(ROOT)
-    return any(str(Path(*rel.parts[:n])) in run_text for n in range(2, len(rel.parts) + 1))
+    """Whether the pages' code names ``path``: a template's file by copying its template (``kpflow-example NAME``), a
+    script by its module (``python -m kpflow.examples.NAME``), its console script or its path."""
+    if path.is_relative_to(TEMPLATES):
+        template = path.relative_to(TEMPLATES).parts[0]
+        return re.search(rf"kpflow-example\s+{template}\b", run_text) is not None
+    module = module_of(path)
+    command = console_scripts().get(module)
+    return module in run_text or str(path.relative_to(ROOT)) in run_text or (command is not None and re.search(rf"{command}\b", run_text) is not None)
 
 
 def examples_to_run_directly() -> list[Path]:
@@ -226,13 +243,16 @@ def test_the_long_pages_run_from_their_own_files():
     ],
 )
 def test_example_runs(example: Path, tmp_path):
-    """A script runs as ``python examples/<name>.py``; a module of a package (a folder with ``__init__.py``) is
-    imported, from the folder above its package."""
+    """A script of kpflow/examples/ runs as ``python -m kpflow.examples.<name>``; in a template, a script runs as
+    ``python <file>`` and a module of a package (a folder with ``__init__.py``) is imported, from the folder above
+    its package."""
     top = example.parent
     while (top / "__init__.py").exists():
         top = top.parent
-    if top == example.parent:
-        args = [sys.executable, str(Path("examples") / example.relative_to(EXAMPLES))]
+    if not example.is_relative_to(TEMPLATES):
+        args = [sys.executable, "-m", module_of(example)]
+    elif top == example.parent:
+        args = [sys.executable, str(example)]
     else:
         dotted = ".".join(example.relative_to(top).with_suffix("").parts).removesuffix(".__init__")
         args = [sys.executable, "-c", f"import sys; sys.path.insert(0, {str(top)!r}); import {dotted}"]
@@ -241,23 +261,26 @@ def test_example_runs(example: Path, tmp_path):
 
 
 def test_every_example_is_run():
-    """A .py under examples/ is included in a tested page, named by its code or run directly above; any other file
-    (a config, data) must be named by a tested page's code (or sit in a folder it names)."""
-    _, run_text = exercised_by_pages()
-    unused = [str(p.relative_to(ROOT)) for p in example_files() if p.suffix != ".py" and not named_by(p, run_text)]
-    assert not unused, f"files under examples/ that no tested page uses: {unused}"
+    """A .py under kpflow/examples/ is included in a tested page, named by its code or run directly above; any other
+    file (a template's config) must be included or named by a tested page's code (its template copied)."""
+    included, run_text = exercised_by_pages()
+    unused = [str(p.relative_to(ROOT)) for p in example_files() if p.suffix != ".py" and p.resolve() not in included and not named_by(p, run_text)]
+    assert not unused, f"files under kpflow/examples/ that no tested page uses: {unused}"
+    assert {p.name for p in EXAMPLES.glob("*.py")} >= {"connect.py", "train_on_store.py", "transport_trajectory.py"}
+    assert named_by(EXAMPLES / "connect.py", "kpflow-connect --uri ws://x") and not named_by(EXAMPLES / "connect.py", "kpflow-connected")
+    assert named_by(TEMPLATES / "reach_task" / "drive.py", "kpflow-example reach_task my_project")
 
 
 def test_snippet_parsing(tmp_path):
     """The test's reading of pages: fences (also indented, in admonitions), languages, includes and sections."""
     page = (
         "# t\n\n```python\nx = 1\n```\n\n!!! note\n    ```bash\n    echo hi\n    ```\n\n```text\nnot run\n```\n\n"
-        '```python\n--8<-- "examples/transport_trajectory.py:fit"\n```\n'
+        '```python\n--8<-- "kpflow/examples/transport_trajectory.py:fit"\n```\n'
     )
     blocks = code_blocks(page)
     assert [b[0] for b in blocks] == ["python", "bash", "text", "python"]
     assert blocks[1][1] == "echo hi\n"
     assert "ilwr = ILWRMap().fit(source, target)" in blocks[3][1] and "8<" not in blocks[3][1]
     assert included_files(page) == {(EXAMPLES / "transport_trajectory.py").resolve()}
-    whole = "".join(snippet_lines("examples/transport_trajectory.py"))
+    whole = "".join(snippet_lines("kpflow/examples/transport_trajectory.py"))
     assert "8<" not in whole and "transport_trajectory(" in whole

@@ -1,8 +1,7 @@
-"""A Gymnasium task of the user's own (examples/reach_task, the own-task tutorial's): the closed loop, expert
+"""A Gymnasium task of the user's own (the template reach_task, the own-task tutorial's): the closed loop, expert
 collection into a store, and the closed-loop trial, on the task contract alone (kpflow.tasks.base.GymTask)."""
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,11 +9,12 @@ import pytest
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.success import SuccessReport
+from kpflow.examples import TEMPLATES
 from kpflow.tasks.base import scene_seed
 from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.rollout import StopEpisode, rollout
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "reach_task"))
+sys.path.insert(0, str(TEMPLATES / "reach_task"))  # as a project folder copied by kpflow-example
 from reach import ReachTask  # noqa: E402
 
 

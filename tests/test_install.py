@@ -48,6 +48,10 @@ def test_the_wheel_holds_configs_assets_and_types(wheel):
     scripts = zipfile.ZipFile(wheel).read(entry_points).decode()
     for command in ("train", "evaluate", "collect", "correct", "generate", "merge", "serve", "release", "teleop", "verify"):
         assert f"kpflow-{command} = kpflow.cli.{command}:main" in scripts
+    assert "kpflow-connect = kpflow.examples.connect:main" in scripts and "kpflow-example = kpflow.examples:main" in scripts
+    for name in ("kpflow/examples/connect.py", "kpflow/examples/templates/reach_task/reach/task.py",
+                 "kpflow/examples/templates/reach_task/conf/task/reach.yaml", "kpflow/examples/templates/reach_task/drive.py"):  # fmt: skip
+        assert name in names, name  # what the guides use, without a clone
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ LAYERS = [
     {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it
     {"policies"},
     {"eval", "serving", "generation"},  # generation: segment transport and whole datasets, beside evaluation
-    {"cli", "conf", "__init__"},  # the commands (kpflow/cli/) and the package's front door
+    {"cli", "conf", "examples", "__init__"},  # the commands (kpflow/cli/), the installed examples and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 

@@ -13,15 +13,14 @@ import pytest
 
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import export_lerobot
+from kpflow.examples.train_on_store import walking_store
 from tests.helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "examples"))
-from train_on_store import walking_store  # noqa: E402
 
 
 def walking_dataset(root: Path) -> None:
-    """examples/train_on_store.py's walking episodes, as a LeRobot dataset at ``root``."""
+    """kpflow/examples/train_on_store.py's walking episodes, as a LeRobot dataset at ``root``."""
     with EpisodeStore(walking_store(root.with_suffix(".zarr"), episodes=12)) as store:
         export_lerobot(store, root, fps=10, task="walk to the target")
 
@@ -42,7 +41,6 @@ def test_the_readme_promises_at_most_five_commands():
 @pytest.mark.slow
 def test_newcomer_trains_evaluates_and_serves_a_lerobot_dataset(tmp_path):
     walking_dataset(tmp_path / "my_dataset")
-    (tmp_path / "examples").symlink_to(ROOT / "examples")
     install, *commands = newcomer_commands()  # the install is this test's environment
     script = "\n".join(["set -euo pipefail", "trap 'kill $(jobs -p) 2>/dev/null || true' EXIT", *commands])
     env = child_env(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", OMP_NUM_THREADS="1", WANDB_MODE="offline",

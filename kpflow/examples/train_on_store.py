@@ -1,5 +1,5 @@
 """Train a K-CFM on an episode store from Python (what ``kpflow-train experiment=kcfm`` does from configs):
-``python examples/train_on_store.py [STORE] [--epochs 5]``.
+``python -m kpflow.examples.train_on_store [STORE] [--epochs 5]``.
 
 Without a store it writes a small one first (a point walking to a target: keypoints ``[5, 2]``, actions ``[2]``).
 It builds the datamodule, reads the model's size from the data, trains with Lightning, saves the checkpoint and acts

@@ -1,4 +1,5 @@
-"""Connect to a running policy server and ask it for one action chunk: ``python examples/connect.py [--uri ws://127.0.0.1:8000]``.
+"""Connect to a running policy server and ask it for one action chunk: ``kpflow-connect [--uri ws://127.0.0.1:8000]``
+(or ``python -m kpflow.examples.connect``).
 
 Start a server first (``kpflow-serve checkpoint=... task=null``). The client reads the server's metadata (what it
 observes, the actions it returns), sends keypoints of that shape (``--keypoints FILE.npy``, or random ones in the unit
@@ -10,14 +11,20 @@ import argparse
 import numpy as np
 
 from kpflow.serving.client import PolicyClient
+from kpflow.utils.errors import command
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="kpflow-connect", description=__doc__.splitlines()[0])
     parser.add_argument("--uri", default="ws://127.0.0.1:8000")
     parser.add_argument("--keypoints", help="an .npy file of keypoints [K, D] (or [n_obs, K, D])")
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server")
-    args = parser.parse_args()
+    connect(parser.parse_args(argv))
+
+
+@command
+def connect(args: argparse.Namespace) -> None:
+    """Ask the server at ``args.uri`` for one chunk and print what it serves and returns (a failure: one line)."""
     with PolicyClient(args.uri, wait=args.wait) as policy:
         meta = policy.metadata
         print(f"server: {meta.policy}, observes {meta.observation}, returns {meta.action_shape} actions at {meta.control_hz:g} Hz")

@@ -4,7 +4,7 @@ A 2-D reach from a start box to a goal box is demonstrated once. In a new scene 
 an ILWR map and a GP map fitted on the boxes' corners carry the demonstration there: positions by phi, velocities by
 its Jacobian, orientations by the Jacobian's polar factor, with the GP's uncertainty along the way.
 
-    python examples/transport_trajectory.py     # prints a few numbers, writes transport_trajectory.png here
+    python -m kpflow.examples.transport_trajectory     # prints a few numbers, writes transport_trajectory.png here
 
 This file is also the tutorial docs/tutorials/transport.md (its code blocks are these sections).
 """
