@@ -14,6 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from kpflow.cli.train import fill_from_data
 from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.maps.base import TransportMap
+from kpflow.tasks.pusht.task import PushTTask
 from tests.helpers import CONF, compose_config, keypoint_pair, train_learned_map, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,6 +31,7 @@ ENTRIES = {
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "keypoints": dict.fromkeys(["sim", "camera", "camera_clean"], "generate"),
+    "source_search": dict.fromkeys(["default", "pusht"], "evaluate"),
     "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
     "experiment": {
         **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"], "evaluate"),
@@ -121,7 +123,7 @@ def test_data_options_build_datamodules(name, store, tmp_path):
         path = [f"data.path={store}", "data.action_key=action"]
     if name == "store":
         path = [f"data.path={store}"]
-    cfg = compose_config("train", [f"data={name}", "logger=none", *path], tmp_path)
+    cfg = compose_config("train", ["~experiment", f"data={name}", "logger=none", *path], tmp_path)
     datamodule = instantiate(cfg.data)
     assert isinstance(datamodule, lightning.LightningDataModule)
     datamodule.setup("fit")
@@ -134,7 +136,7 @@ def test_data_options_build_datamodules(name, store, tmp_path):
 def test_model_options_build_lightning_modules(name, tmp_path):
     # K-CFM's horizon and history come from the Push-T data, its keypoints from the task (its experiment sets them)
     data = ["data=pusht_expert", "model.n_keypoints=25"] if name == "kcfm" else []
-    cfg = compose_config("train", [f"model={name}", "logger=none", *data], tmp_path)
+    cfg = compose_config("train", ["~experiment", f"model={name}", "logger=none", *data], tmp_path)  # the group alone
     model = instantiate(cfg.model, _convert_="all")
     assert isinstance(model, lightning.LightningModule) and sum(p.numel() for p in model.parameters()) > 0
 
@@ -151,6 +153,17 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
     policy.reset()
     chunk = policy.act(obs)
     assert chunk.ndim == 2 and chunk.shape[1] == 2 and torch.isfinite(torch.as_tensor(chunk)).all()
+
+
+@pytest.mark.parametrize("name", sorted(ENTRIES["source_search"]))
+def test_source_search_options_reach_the_transporting_policy(name, store, tmp_path):
+    from kpflow.policies.source_search import SourceSearch
+
+    cfg = compose_config("evaluate", [f"source_search={name}", "policy=transport", "data=pusht_store", f"data.path={store}", "logger=none"], tmp_path)
+    search = SourceSearch.of(cfg.source_search)
+    policy = instantiate(cfg.policy)
+    assert policy.source.stuck_decisions == search.stuck_decisions == (5 if name == "pusht" else None)
+    assert search.frame == "objects" and policy.index.reference == list(PushTTask.policy_layout.indices("objects"))
 
 
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "evaluate"))
@@ -221,7 +234,7 @@ def square_kcfm(tmp_path) -> Path:
 @pytest.mark.parametrize(("name", "entry"), sorted(ENTRIES["experiment"].items()))
 def test_experiment_options_compose_and_instantiate(name, entry, store, tmp_path):
     # suite_policy evaluates a trained checkpoint of its task's layout (square's: an untrained K-CFM saved here); the
-    # generic experiments read any store; gym_policy needs a Gymnasium task of the user's (examples/reach_task: test_docs)
+    # generic experiments read any store; gym_policy needs a Gymnasium task of the user's (kpflow-example reach_task: test_docs)
     extra = {
         "suite_policy": [f"policy.checkpoint={square_kcfm(tmp_path)}"],
         "offline": ["checkpoint=model.ckpt", f"data.path={store}"],

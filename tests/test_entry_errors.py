@@ -84,3 +84,18 @@ def test_a_required_key_left_out_is_named_with_how_to_give_it(tmp_path):
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and lines[0] == "error: config key data.path is required and not given: add data.path=<value> to the command", done.stderr
+
+
+def test_a_policy_checkpoint_is_spelled_checkpoint_and_named_when_left_out(tmp_path):
+    """``checkpoint=`` is the one spelling of a policy's checkpoint across commands (evaluate, collect, correct,
+    serve; ``policy.checkpoint=`` still works); left out, one line names it."""
+    from tests.helpers import compose_config
+
+    for entry in ("evaluate", "collect", "correct"):
+        given = compose_config(entry, ["policy=kcfm", "checkpoint=release:pusht_standard_fast"], tmp_path)
+        assert given.policy.checkpoint == "release:pusht_standard_fast", entry
+    cmd = [sys.executable, "evaluate.py", "policy=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and lines[0] == "error: config key checkpoint is required and not given: add checkpoint=<value> to the command", done.stderr
+    assert not (tmp_path / "run").exists()

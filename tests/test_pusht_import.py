@@ -139,7 +139,8 @@ def test_data_node_max_episodes(source, recorded, tmp_path):
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    from kpflow.policies.factory import layout_of, source_index
+    from kpflow.policies.factory import layout_of
+    from kpflow.policies.source_search import SourceSearch
     from kpflow.tasks.pusht.task import PushTTask
 
     dest = import_pusht_replay(source, tmp_path / "human.zarr", progress=False).path
@@ -151,8 +152,8 @@ def test_data_node_max_episodes(source, recorded, tmp_path):
     assert (first2.train_episodes, first2.val_episodes) in (([0], [1]), ([1], [0]))
     layout = layout_of(PushTTask())
     lengths = [len(s) for s in recorded[0]]
-    assert len(source_index(full, layout, 4)) == sum(lengths)
-    assert len(source_index(first2, layout, 4)) == sum(lengths[:2])
+    assert len(SourceSearch().index(full, layout, 4)) == sum(lengths)
+    assert len(SourceSearch().index(first2, layout, 4)) == sum(lengths[:2])
 
 
 def test_refuses_to_overwrite(source, tmp_path):

@@ -327,3 +327,35 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
     moved = policy.act({"keypoints": keypoints[0].astype(np.float64)})  # no "agent_pos": not needed
     np.testing.assert_allclose(moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3)
     assert np.abs(moved[0] - keypoints[0, -1]).max() <= 5.0 + 1e-3
+
+
+def test_one_source_search_reaches_every_transporting_policy(demos):
+    """``source_search.<key>=`` is the one spelling of the search options: composed into nearest neighbour, policy
+    transportation and the server alike, checked as one options object."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from kpflow.policies.source_search import SourceSearch
+
+    conf = str(Path(__file__).resolve().parents[1] / "kpflow" / "conf")
+    overrides = ["data=pusht_store", f"data.path={demos.path}", "logger=none", "source_search.candidates=5",
+                 "source_search.weights.robot=2.0", "source_search.frame=world"]  # fmt: skip
+    with initialize_config_dir(conf, version_base="1.3"):
+        transport = instantiate(compose("evaluate", overrides=[*overrides, "policy=transport"]).policy)
+        nearest = instantiate(compose("evaluate", overrides=[*overrides, "policy=nearest"]).policy)
+        served = compose("serve", overrides=["checkpoint=x", "source_search.candidates=5"]).source_search
+    assert transport.source.candidates == 5 and transport.source.stuck_decisions == 5  # Push-T's: a stuck block after 5
+    assert transport.index.reference is None and nearest.index.reference is None  # frame=world
+    agent = list(PushTTask.policy_layout.indices("robot"))
+    assert transport.index.weights[agent].tolist() == nearest.index.weights[agent].tolist() == [2.0]
+    assert SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None  # serve's default
+    with pytest.raises(ValueError, match="source_search has no option canidates; its options are candidates, frame"):
+        SourceSearch.of({"canidates": 3})
+    with pytest.raises(ValueError, match="temperature must be a positive number"):
+        TransportPolicy(demos_index(demos), layout=PUSHT, **SourceSearch(temperature=0.0).choice())
+
+
+def demos_index(store) -> SourceIndex:
+    return SourceIndex.from_store(store, 20, pusht_weights(), None)

@@ -24,6 +24,7 @@ from kpflow.maps import ILWRMap
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.kcfm.policy import KCFMPolicy
+from kpflow.policies.source_search import SourceSearch
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.serving import PolicyClient, PolicyServer, PolicyServerError, load_deployment
@@ -267,18 +268,20 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         client.reset(1), local.reset(1)
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
-    fit_on, choice = [*range(12), 24], {"candidates": 1, "stuck_decisions": 2}
-    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["objects", "robot"], choice=choice)
-    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
+    # and kpflow-evaluate's source search (conf/source_search/pusht.yaml's weights and frame, a stuck block after 2)
+    fit_on, search = [*range(12), 24], SourceSearch({"objects": 1.0, "goals": 1.0, "robot": 4.0}, "objects", stuck_decisions=2)
+    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["objects", "robot"], search=search)
+    searched, choice = search.reindexed(index, PUSHT), search.choice()
+    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), local.reset(2)
         for _ in range(4):  # the same scene four times: the fourth decision is taken as stuck, on both sides
             np.testing.assert_array_equal(client.act(obs), local.act(obs))
         assert local.source.stuck_count == 1
     # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
-    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["block", "agent"], choice=choice, reach=60, turn_deg=30)
+    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["block", "agent"], search=search, reach=60, turn_deg=30)
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
-    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
+    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     far = {"keypoints": observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:

@@ -68,13 +68,14 @@ def release_source_index(dst: str | Path, layout, store: str | Path, episodes: i
     """Write the source index of a transported K-CFM released at ``dst`` (module docstring); returns its path."""
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
-    from kpflow.policies.factory import frame_indices, source_index_path
+    from kpflow.policies.factory import source_index_path
+    from kpflow.policies.source_search import SourceSearch
 
     with EpisodeStore(store) as s:
         full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
-    index = SourceIndex(full.keypoints[keep], full.chunks[keep], layout.weights({"robot": 4.0}), frame_indices(layout, "objects"), full.episodes[keep])
-    return index.save(source_index_path(dst))
+    kept = SourceIndex(full.keypoints[keep], full.chunks[keep], None, None, full.episodes[keep])
+    return SourceSearch({"robot": 4.0}, "objects").reindexed(kept, layout).save(source_index_path(dst))
 
 
 KEYS = {

@@ -55,10 +55,10 @@ def main(cfg: DictConfig) -> None:
     check_address(cfg.host, cfg.port)  # before the model is loaded
     torch.set_num_threads(cfg.threads)
     fit_on = OmegaConf.to_container(cfg.fit_on) if isinstance(cfg.fit_on, ListConfig) else cfg.fit_on
-    choice = OmegaConf.to_container(cfg.source)
+    search = OmegaConf.to_container(cfg.source_search)
     make_map, map_name = (instantiate(cfg.map), HydraConfig.get().runtime.choices.get("map")) if cfg.transported else (None, None)
     deployment = load_deployment(
-        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, make_map, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, choice,
+        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, make_map, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, search,
         cfg.reach, cfg.turn_deg, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms), cfg.solver,
         cfg.segments, map_name,
     )

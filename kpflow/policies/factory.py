@@ -4,8 +4,8 @@ functions Hydra instantiates) for ``evaluate`` and ``correct``, and from a check
 
 What is task-specific comes from the task's :class:`~.base.PolicyLayout`: the keypoints' dimension, their named
 groups and roles (``objects``, ``goals``, ``robot``) and whether actions carry a rotation. Options that name
-keypoints take group or role names: ``weights`` (per group in the source search), ``frame`` (search relative to these
-keypoints, or ``world``), ``fit_on`` (the keypoints a map is fitted on, or ``all``). Push-T's groups are ``block``,
+keypoints take group or role names: the source search's ``weights`` and ``frame`` (:class:`~.source_search.SourceSearch`,
+one options object for every transporting policy) and ``fit_on`` (the keypoints a map is fitted on, or ``all``). Push-T's groups are ``block``,
 ``goal``, ``agent``; a robosuite task's are its object, its target and ``gripper``.
 """
 
@@ -16,21 +16,22 @@ from pathlib import Path
 from typing import Callable
 
 from ..data.chunks import ChunkDataModule
-from ..data.episode_store import EpisodeStore
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from ..maps.learned import check_map_factory
+from ..utils.releases import resolve_release
 from .base import PolicyLayout
 from .checks import INPUT_MARGIN
 from .chunk_transport import TransportPolicy
 from .nearest import NearestNeighbourPolicy
+from .source_search import SourceSearch
 
 
 def source_index_path(checkpoint: str | Path) -> Path:
     """Where a transporting policy's source index lives (:meth:`SourceIndex.save`): beside its checkpoint, named
     after it (``<name>.ckpt`` -> ``<name>.source_index.npz``)."""
-    checkpoint = Path(checkpoint)
+    checkpoint = resolve_release(checkpoint)
     return checkpoint.with_name(f"{checkpoint.stem}.source_index.npz")
 
 
@@ -75,25 +76,6 @@ def fit_on_indices(layout: PolicyLayout, fit_on: str | Sequence[str]) -> tuple[i
     return layout.indices(*fit_on)
 
 
-def frame_indices(layout: PolicyLayout, frame: str) -> tuple[int, ...] | None:
-    """The keypoints a source search compares configurations relative to (``"world"``: None, in the workspace)."""
-    return None if frame == "world" else layout.indices(frame)
-
-
-def source_index(demos: ChunkDataModule, layout: PolicyLayout, horizon: int, weights: Mapping | None = None,
-                 frame: str = "world") -> SourceIndex:  # fmt: skip
-    """A :class:`SourceIndex` over every step of the episodes the data node ``demos`` trains on (its store, its first
-    ``max_episodes``; goals read as the node says: ``data.goals``), searched with per-group ``weights`` relative to
-    ``frame``."""
-    demos = _built(demos)
-    if not isinstance(demos, ChunkDataModule):
-        raise ValueError(f"demos must be a data node of demonstrations (a ChunkDataModule, kpflow/conf/data/), got {type(demos).__name__}")
-    store = EpisodeStore(demos.path)
-    n = store.n_episodes if demos.max_episodes is None else min(store.n_episodes, int(demos.max_episodes))
-    return SourceIndex.from_store(store, horizon, layout.weights(weights), frame_indices(layout, frame), range(n), demos.obs_key,
-                                  demos.action_key, demos.hindsight)  # fmt: skip
-
-
 def within_reach(policy, layout: PolicyLayout, reach: float | None, turn_deg: float | None = None):
     """``policy`` shown its goal at most ``reach`` from its object and turned at most ``turn_deg`` degrees from it
     (:class:`~.subgoal.SubgoalPolicy`, planar tasks); as it is when both are None."""
@@ -125,34 +107,37 @@ def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: in
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
                           steps: int | None = None, execute: int | None = None, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
-                          solver: str | None = None, segments: bool = False, **choice):  # fmt: skip
+                          solver: str | None = None, segments: bool = False, search: SourceSearch | Mapping | None = None):  # fmt: skip
     """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`), phase
-    by phase with ``segments`` (the layout's phases); ``steps``, ``solver``, ``execute``, ``reach`` and ``turn_deg`` as
-    in :func:`make_kcfm`."""
+    by phase with ``segments`` (the layout's phases), its source chosen as ``search`` says
+    (:class:`~.source_search.SourceSearch`: its choice; the index carries the weights and frame); ``steps``,
+    ``solver``, ``execute``, ``reach`` and ``turn_deg`` as in :func:`make_kcfm`."""
     from .transported_kcfm import TransportedKCFMPolicy
 
+    choice = SourceSearch.of(search).choice()
     policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
     limits = model.settings.given(reach=reach, turn_deg=turn_deg)
     return within_reach(policy, layout, limits.reach, limits.turn_deg)
 
 
-def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, weights: Mapping | None = None,
-            frame: str = "world", relative: bool = False):  # fmt: skip
-    """Nearest neighbour over the demonstrations (:class:`~.nearest.NearestNeighbourPolicy`)."""
-    layout = layout_of(task)
-    return NearestNeighbourPolicy(source_index(demos, layout, horizon, weights, frame), execute, relative)
+def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, search: SourceSearch | Mapping | None = None,
+            relative: bool = False):  # fmt: skip
+    """Nearest neighbour over the demonstrations (:class:`~.nearest.NearestNeighbourPolicy`), compared with
+    ``search``'s weights and frame (its choice unused: the nearest)."""
+    index = SourceSearch.of(search).index(_built(demos), layout_of(task), horizon)
+    return NearestNeighbourPolicy(index, execute, relative)
 
 
 def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap] = ILWRMap, horizon: int = 20,
-              weights: Mapping | None = None, frame: str = "world", execute: int = 8, fit_on: str | Sequence[str] = "all",
-              **options):  # fmt: skip
-    """Policy transportation (:class:`~.chunk_transport.TransportPolicy`) over the demonstrations' index, its map
-    fitted on ``fit_on``; ``options``: ``max_step_px`` and the source choice (:class:`~.source_choice.SourceChoice`).
-    A learned map is read now and checked against the keypoints it is fitted on."""
-    layout = layout_of(task)
+              search: SourceSearch | Mapping | None = None, execute: int = 8, fit_on: str | Sequence[str] = "all",
+              max_step_px: float | None = None):  # fmt: skip
+    """Policy transportation (:class:`~.chunk_transport.TransportPolicy`) over the demonstrations' index, its source
+    found as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on``, each executed
+    step clipped to ``max_step_px``. A learned map is read now and checked against the keypoints it is fitted on."""
+    layout, search = layout_of(task), SourceSearch.of(search)
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"policy transportation (fit_on={fit_on})")
-    return TransportPolicy(source_index(demos, layout, horizon, weights, frame), make_map, execute, fit_on=fit, layout=layout, **options)
+    return TransportPolicy(search.index(_built(demos), layout, horizon), make_map, execute, max_step_px, fit, layout, **search.choice())
 
 
 def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = None, reach: float | None = None, turn_deg: float | None = None,
@@ -168,13 +153,13 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = 
 
 
 def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
-                     steps: int | None = None, execute: int | None = None, weights: Mapping | None = None, frame: str = "world", pull_back: str = "agent",
+                     steps: int | None = None, execute: int | None = None, search: SourceSearch | Mapping | None = None, pull_back: str = "agent",
                      fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
-                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False, **options):  # fmt: skip
+                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False):  # fmt: skip
     """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the
-    index saved beside the checkpoint, :func:`source_index_path`, searched with ``weights`` and ``frame``)
-    (:func:`make_transported_kcfm`), its map fitted on ``fit_on`` (with ``segments``: phase by phase, each phase's
-    map, search frame and weights as the task declares them); ``options``: the source choice. The checkpoint
+    index saved beside the checkpoint, :func:`source_index_path`) (:func:`make_transported_kcfm`), its source found
+    as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on`` (with ``segments``:
+    phase by phase, each phase's map, search frame and weights as the task declares them). The checkpoint
     is checked against the task and a learned map against the keypoints it is fitted on, before the
     demonstrations are built (the config is not instantiated recursively: a refused file collects nothing)."""
     from .kcfm.policy import KCFMPolicy
@@ -185,10 +170,10 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
     check_checkpoint_fits(checkpoint, model.hparams, task)
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"the transported K-CFM (fit_on={fit_on})")
+    search = SourceSearch.of(search)
     if demos is None:
-        saved = SourceIndex.load(source_index_path(checkpoint))
-        index = SourceIndex(saved.keypoints, saved.chunks, layout.weights(weights), frame_indices(layout, frame), saved.episodes)
+        index = search.reindexed(SourceIndex.load(source_index_path(checkpoint)), layout)
     else:
-        index = source_index(demos, layout, int(model.hparams.horizon), weights, frame)
+        index = search.index(_built(demos), layout, int(model.hparams.horizon))
     return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, segments,
-                                 **options)  # fmt: skip
+                                 search)  # fmt: skip

@@ -21,6 +21,7 @@ from ..maps.base import TransportMap
 from ..policies.base import Policy, PolicyLayout
 from ..policies.checks import INPUT_MARGIN
 from ..policies.factory import source_index_path
+from ..policies.source_search import SourceSearch
 from .batching import DEFAULT_MAX_WAIT_MS, BatchedNetwork, BatchedPolicy, check_batching
 from .protocol import PolicyMetadata
 
@@ -49,7 +50,7 @@ def load_deployment(
     pull_back: str = "agent",
     control_hz: float = 10.0,
     fit_on: str | list[str] = "all",
-    choice: dict | None = None,
+    search: SourceSearch | dict | None = None,
     reach: float | None = None,
     turn_deg: float | None = None,
     input_margin: float | None = INPUT_MARGIN,
@@ -67,8 +68,9 @@ def load_deployment(
     beside the checkpoint) or as it is (None). Built by the one policy builder (:mod:`kpflow.policies.factory`):
     a transported one fits its map on ``fit_on`` (group or role names of the task's layout, or ``"all"``; with
     ``segments``, phase by phase as the task declares its phases) and
-    chooses its source with the :class:`~kpflow.policies.source_choice.SourceChoice` options ``choice`` (the
-    nearest, no stuck detection, when None). ``reach`` and ``turn_deg`` (planar tasks) show the policy its goal
+    finds its source as ``search`` says (:class:`~kpflow.policies.source_search.SourceSearch`, the options
+    ``kpflow-evaluate`` takes: the saved index searched with its weights and frame; None: the saved index as it
+    is, the nearest source). ``reach`` and ``turn_deg`` (planar tasks) show the policy its goal
     within that distance and turn of its object (:class:`~kpflow.policies.subgoal.SubgoalPolicy`). ``input_margin``:
     how far outside the K-CFM's training keypoints an observation may lie before it is refused, in extents of their
     box on each side (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`; None: no range check). ``max_batch`` (1: off)
@@ -109,12 +111,15 @@ def load_deployment(
         name = "kcfm"
     else:
         index = SourceIndex.load(source_index_path(checkpoint))
-        fit, options = fit_on_indices(layout, fit_on), dict(choice or {})
+        if search is not None:
+            search = SourceSearch.of(search)
+            index = search.reindexed(index, layout)
+        fit = fit_on_indices(layout, fit_on)
         check_map_factory(make_map, len(fit) if fit else layout.n_keypoints, layout.keypoint_dim, "the served transported K-CFM")
 
         def make_policy() -> Policy:
             return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver,
-                                         segments, **options)  # fmt: skip
+                                         segments, search)  # fmt: skip
         name = f"transported_kcfm/{map_name or getattr(make_map, '__name__', type(make_map).__name__)}"
     network = None
     if max_batch > 1:

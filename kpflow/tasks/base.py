@@ -185,7 +185,7 @@ class GymTask(Task, abc.ABC):
     """A task whose simulator is a Gymnasium env: what a new task implements, in a folder of its own, to be collected
     (``kpflow-collect``), trained on (``kpflow-train``), evaluated in closed loop (``kpflow-evaluate
     experiment=gym_policy``) and served (``kpflow-serve``); its YAML in a ``task/`` config folder names the class
-    (docs/tutorials/own-task.md; ``examples/reach_task`` is one).
+    (docs/tutorials/own-task.md; ``kpflow-example reach_task DIR`` copies one).
 
     * :meth:`make_env` returns a ``gymnasium.Env`` whose ``reset(seed=i)`` draws scene ``i`` of ``condition``, whose
       observations are dicts holding ``keypoints [K, D]`` (:attr:`policy_layout`'s), and whose ``step(action [A])``

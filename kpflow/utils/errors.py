@@ -42,8 +42,11 @@ def describe(error: BaseException) -> str:
         if "full_key: " in text:
             key = text.rsplit("full_key: ", 1)[1].strip() or key
         error = error.__cause__
-    from omegaconf.errors import MissingMandatoryValue
+    from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
+    if isinstance(error, InterpolationToMissingValueError):  # a key pointing at a ??? (policy.checkpoint: ${checkpoint})
+        missing = str(error).splitlines()[0].split(":")[-1].strip()
+        return f"config key {missing} is required and not given: add {missing}=<value> to the command"
     if isinstance(error, MissingMandatoryValue):  # a ??? left in the config: name the key and how to give it
         missing = getattr(error, "full_key", None) or str(error).split(":")[-1].strip()
         return f"config key {missing} is required and not given: add {missing}=<value> to the command"
