@@ -87,7 +87,7 @@ def test_two_evaluations_into_one_folder_the_second_is_refused_and_the_first_pri
     assert yaml.safe_load((folder / "config.yaml").read_text())["n_configs"] == 2
     assert len(json.loads((folder / "results.json").read_text())["trials"]) == 2
     assert not (folder / ".hydra").exists()  # Hydra's own copy is off: nothing a second run could overwrite
-    FileLock(folder / RUN_LOCK).release()  # the lock went with the first run
+    assert not (folder / RUN_LOCK).exists()  # the first run removed its lock when it ended
 
 
 def train_args(store: Path, folder: Path, seed: int, *extra: str) -> list[str]:
@@ -191,3 +191,17 @@ def test_a_killed_runs_forked_workers_do_not_keep_its_folder(tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_failed_run_leaves_neither_its_lock_nor_an_empty_folder(tmp_path):
+    """A training that fails after claiming its folder (here: no data at data.path) says why in one line and leaves
+    nothing behind; one that wrote a result keeps its folder, without the lock."""
+    folder = tmp_path / "run"
+    done = run("train.py", "experiment=kcfm", f"data.path={tmp_path / 'missing.zarr'}", "logger=none", f"hydra.run.dir={folder}")
+    assert done.returncode == 1 and "missing.zarr" in done.stderr.splitlines()[0], done.stderr[-3000:]
+    assert not folder.exists()
+    kept = tmp_path / "kept"
+    code = (f"from pathlib import Path; from kpflow.utils.run import claim_run_folder; claim_run_folder(Path({str(kept)!r})); "
+            f"(Path({str(kept)!r}) / 'results.json').write_text('{{}}'); raise SystemExit(3)")  # fmt: skip
+    assert subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=HANG_GUARD_S).returncode == 3
+    assert sorted(p.name for p in kept.iterdir()) == ["results.json"]

@@ -3,6 +3,7 @@ config, build the loggers."""
 
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 from pathlib import Path
@@ -51,8 +52,8 @@ def start_run(cfg: DictConfig, keys: Mapping[str, Key] | None = None, write: boo
 def claim_run_folder(out: Path) -> None:
     """Make ``out`` (created if missing) this process's run folder: take the exclusive lock ``<out>/.kpflow-run.lock``
     (``flock``, :class:`~kpflow.utils.file_lock.FileLock`) without waiting, and hold it until the process ends or
-    claims another folder (the next job of a sweep run in this process). Claiming the folder this process holds
-    already does nothing.
+    claims another folder (the next job of a sweep run in this process), when :func:`end_run` removes it (and the
+    folder, if the run wrote nothing into it). Claiming the folder this process holds already does nothing.
 
     Raises :class:`RunFolderInUse`, naming the folder and the holder's pid, when another live process holds it; a
     run that died released its lock with its process, so its folder can be claimed again (``resume=true``, a
@@ -61,9 +62,9 @@ def claim_run_folder(out: Path) -> None:
     global _claimed
     if rank_zero_only.rank != 0:
         return
-    out.mkdir(parents=True, exist_ok=True)
     if _claimed is not None and _claimed[0] == out.resolve():
         return
+    out.mkdir(parents=True, exist_ok=True)
     try:
         lock = FileLock(out / RUN_LOCK, wait=0)
     except LockHeld as e:
@@ -72,9 +73,29 @@ def claim_run_folder(out: Path) -> None:
             f"{out} is in use by another run ({who}): wait for it to end, or give this run another folder "
             "(run_name=... or hydra.run.dir=...)"
         ) from None
-    if _claimed is not None:
-        _claimed[1].release()
+    if _claimed is None:
+        atexit.register(end_run)
+    else:
+        end_run()
     _claimed = (out.resolve(), lock)
+
+
+def end_run() -> None:
+    """Let go of this process's run folder (:func:`claim_run_folder`), however the run ended: its lock file is
+    removed while still held, so a finished or failed run leaves none behind, and a run folder holding nothing but
+    bookkeeping (a run that failed before its first result) goes too, unless it is the working folder or above it."""
+    global _claimed
+    if _claimed is None:
+        return
+    out, lock = _claimed
+    _claimed = None
+    try:
+        (out / RUN_LOCK).unlink(missing_ok=True)
+    finally:
+        lock.release()
+    here = Path.cwd().resolve()
+    if out not in (here, *here.parents) and out.is_dir() and not run_folder_contents(out):
+        shutil.rmtree(out, ignore_errors=True)
 
 
 def write_config(cfg: DictConfig) -> Path:
