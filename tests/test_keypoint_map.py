@@ -18,6 +18,7 @@ import kpflow
 from kpflow.data.chunks import DP_REPLAY_IMPORT, ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import KeypointMap, export_lerobot, import_lerobot
+from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.utils.checkpoint import read_checkpoint
 from tests.helpers import child_env
 
@@ -188,9 +189,11 @@ def test_diffusion_policys_raw_zarr_is_refused_naming_its_importer(tmp_path):
     raw = raw_pusht_replay(tmp_path / "pusht_cchi_v7_replay.zarr")
     expected = (rf"{re.escape(str(raw))} is Diffusion Policy's raw Push-T replay buffer \(data/state, data/action, data/keypoint, "
                 rf"meta/episode_ends; .*\), not a kpflow store: it has no field 'keypoints'\. Import it once into a store with kpflow's 25 "
-                rf"keypoints: python -m kpflow.tasks.pusht.replay_import {re.escape(str(raw))} data/pusht_human.zarr, then train on that: data=pusht_human")  # fmt: skip
+                rf"keypoints: python -m kpflow.tasks.pusht.replay_import {re.escape(str(raw))} \(into kpflow's data folder, kpflow/utils/data_dir.py\), then train on that: data=pusht_human")  # fmt: skip
     with pytest.raises(ValueError, match=expected):
         ChunkDataModule(raw).setup()
+    with pytest.raises(ValueError, match=expected):  # data=pusht_human's reader: refused before it reads a store
+        ensure_pusht_demos(raw, None)
     shared = ROOT.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"  # the real one, where this checkout has it
     if shared.is_dir():
         with pytest.raises(ValueError, match="is Diffusion Policy's raw Push-T replay buffer"):

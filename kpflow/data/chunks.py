@@ -153,8 +153,8 @@ def raw_replay_help(path: Path, obs_key: str) -> str | None:
     return (
         f"{path} is Diffusion Policy's raw Push-T replay buffer ({', '.join(DP_REPLAY_ARRAYS)}; its keypoint is the "
         f"block's 9 points, without the agent or the goal), not a kpflow store: it has no field {obs_key!r}. Import it "
-        f"once into a store with kpflow's 25 keypoints: {DP_REPLAY_IMPORT} {path} data/pusht_human.zarr, then train on "
-        f"that: data=pusht_human (or data.path=data/pusht_human.zarr)"
+        f"once into a store with kpflow's 25 keypoints: {DP_REPLAY_IMPORT} {path} (into kpflow's data folder, "
+        f"kpflow/utils/data_dir.py), then train on that: data=pusht_human"
     )
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import sys
 from itertools import count
 from pathlib import Path
 
@@ -134,6 +135,8 @@ def _collect(store, n_episodes, have, start, want, workers, videos, video_dir, p
     kept, attempts, successes, steps, video_paths = have, 0, 0, [], []
     pool = mp.get_context("fork").Pool(workers) if workers > 1 and kept < n_episodes else None
     results = pool.imap(_job, jobs) if pool is not None else map(_job, jobs)
+    if progress and kept < n_episodes:
+        print(f"collecting {n_episodes - kept} Push-T episodes into {store.path}", file=sys.stderr, flush=True)
     bar = tqdm(total=n_episodes, initial=have, desc=f"collect pusht/{split} ({want['source']})", unit="ep", disable=not progress)
     try:
         while kept < n_episodes:

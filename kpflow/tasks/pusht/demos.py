@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from kpflow.data.chunks import ChunkDataModule
+from kpflow.data.chunks import ChunkDataModule, raw_replay_help
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import GOALS, HindsightGoals
 from kpflow.tasks.pusht.collection import check_collection, collect_pusht, collection_attrs
@@ -48,6 +48,8 @@ def ensure_pusht_demos(
                 f"no episode store at {path}: with n_episodes=null the store must exist (collect it with "
                 "kpflow-collect, or import the human dataset with python -m kpflow.tasks.pusht.replay_import SRC DEST)"
             )
+        if raw := raw_replay_help(path, "keypoints"):  # refused before the store is read (and asked to be sealed)
+            raise ValueError(raw)
         return EpisodeStore(path)
     want = collection_attrs(n_episodes, split, goal, seed, max_steps, False)
     if not (path / "meta" / "episode_ends").exists() or len(EpisodeStore(path)) < n_episodes:

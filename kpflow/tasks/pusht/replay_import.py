@@ -317,11 +317,17 @@ def main(argv=None) -> int:
         description="Import a standard Push-T replay buffer (pusht_cchi_v7_replay.zarr) into a kpflow episode store.",
     )
     ap.add_argument("source", type=Path, help="standard replay buffer (zarr v2 folder)")
-    ap.add_argument("dest", type=Path, help="kpflow episode store to create")
+    ap.add_argument("dest", type=Path, nargs="?", default=None,
+                    help="kpflow episode store to create (default: pusht_human.zarr in kpflow's data folder, where data=pusht_human reads)")
     ap.add_argument("--max-episodes", type=int, default=None, help="import only the first N episodes")
     ap.add_argument("--overwrite", action="store_true", help="replace DEST if it already holds episodes")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
+    if args.dest is None:
+        from kpflow.utils.data_dir import data_dir
+
+        args.dest = data_dir() / "pusht_human.zarr"
+        print(f"importing into {args.dest}", file=sys.stderr, flush=True)
     store = import_pusht_replay(args.source, args.dest, args.max_episodes, not args.no_progress, args.overwrite)
     print(f"imported {store.n_episodes} episodes ({store.n_steps} steps) from {args.source} into {args.dest}; "
           f"fields: {', '.join(store.fields)}")
