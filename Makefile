@@ -22,8 +22,7 @@ osmesa:
 
 # torch first, on its own: TORCH=cpu (default) takes the CPU wheel; TORCH=cu128 (or another CUDA tag) takes PyTorch's
 # CUDA wheel of the same version from download.pytorch.org (docs/install.md). Then the package with the exact versions
-# of constraints.txt (pyproject.toml declares ranges); then torchcfm without its declared dependencies (they would
-# replace torch and numpy; see pyproject.toml).
+# of constraints.txt (pyproject.toml declares ranges); pip check must find nothing missing.
 TORCH ?= cpu
 TORCH_VERSION := $(shell sed -n 's/^torch==//p' constraints.txt)
 TORCH_INDEX := $(if $(filter cpu,$(TORCH)),,--index-url https://download.pytorch.org/whl/$(TORCH))
@@ -32,7 +31,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/python -m pip install -q --upgrade pip==24.3.1
 	$(BIN)/python -m pip install -q torch==$(TORCH_VERSION) $(TORCH_INDEX)
 	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
-	$(BIN)/python -m pip install -q --no-deps -c constraints.txt torchcfm
+	$(BIN)/python -m pip check
 	$(BIN)/python -c "import torch, numpy; assert torch.__version__.startswith('$(TORCH_VERSION)+$(TORCH)') and numpy.__version__ == '1.26.4', (torch.__version__, numpy.__version__)"
 	touch $(STAMP)
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from kpflow.policies.kcfm.objectives import DDPM, ICFM, OBJECTIVES, OTCFM, SOLVERS, MeanFlow, Reflow, build_objective
+from kpflow.policies.kcfm.objectives.otcfm import exact_plan
 from kpflow.policies.kcfm.objectives.solvers import integrate, intervals
 
 
@@ -70,7 +71,7 @@ def test_otcfm_pairs_only_within_a_condition():
     cond = torch.cat([torch.zeros(32, 4), torch.full((32, 4), 3.0)])
     x0 = torch.randn(x1.shape, generator=torch.Generator().manual_seed(4))
     objective = OTCFM(condition_weight=10.0)
-    a = objective.plan.get_map(torch.cat([x0.flatten(1), 10**0.5 * cond], 1), torch.cat([x1.flatten(1), 10**0.5 * cond], 1))
+    a = exact_plan(torch.cat([x0.flatten(1), 10**0.5 * cond], 1), torch.cat([x1.flatten(1), 10**0.5 * cond], 1))
     assert a[:32, 32:].sum() == 0 and a[32:, :32].sum() == 0  # no mass across conditions
     paired, j = objective.pair(x0, x1, torch.Generator().manual_seed(0), cond)
     source = torch.cdist(paired.flatten(1), x0.flatten(1)).argmin(1)  # which noise row each pair used
@@ -238,3 +239,17 @@ def test_reflow_needs_its_teacher_and_checks_its_options():
         Reflow(teacher="")
     with pytest.raises(ValueError, match="t_grid must be None or an integer >= 1"):
         Reflow(teacher="t.ckpt", t_grid=0)
+
+
+def test_the_straight_path_and_the_exact_plan_in_closed_form():
+    """x_t = t x1 + (1 - t) x0, u_t = x1 - x0 (paths.straight_path); the exact plan of a permuted set is that
+    permutation with mass 1/B each (otcfm.exact_plan, POT's emd), shapes checked."""
+    from kpflow.policies.kcfm.objectives.paths import straight_path
+
+    x0, x1, t = torch.zeros(3, 2, 2), torch.ones(3, 2, 2), torch.tensor([0.0, 0.25, 1.0])
+    x_t, u_t = straight_path(x0, x1, t)
+    assert torch.equal(x_t[:, 0, 0], t) and torch.equal(u_t, x1)
+    with pytest.raises(ValueError, match="one shape and t"):
+        straight_path(x0, x1[:2], t)
+    a = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    np.testing.assert_array_equal(exact_plan(a, a[[2, 0, 1]]), np.eye(3)[[1, 2, 0]] / 3)

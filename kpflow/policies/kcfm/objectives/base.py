@@ -4,7 +4,7 @@ An objective says two things about a denoising network ``net(x [B, H, A], t [B],
 [0, 1]): what it is trained to predict for a batch of normalised data chunks ``x1`` (:meth:`Objective.training_target`)
 and how a sample is drawn with it from Gaussian noise (:meth:`Objective.sample`). The policy
 (:class:`~kpflow.policies.kcfm.KCFM`) owns the data, the condition, the mask and the network; the objective owns the
-probability path and its samplers. Families: :mod:`.icfm`, :mod:`.otcfm` (flow matching, torchcfm), :mod:`.ddpm`
+probability path and its samplers. Families: :mod:`.icfm`, :mod:`.otcfm` (flow matching on :mod:`.paths`' straight path), :mod:`.ddpm`
 (diffusion, diffusers' schedulers, as Diffusion Policy trains and samples), :mod:`.meanflow` (average velocities:
 one step from noise to data, trained from scratch) and :mod:`.reflow` (a trained flow's own samples as straight
 couplings: distillation into few steps).

@@ -12,8 +12,8 @@ chunks pass near the same ``x_t`` and the I-CFM field averages them, so a few Eu
 teacher's own coupling does not cross (an ODE's trajectories never do), so its straight lines cross far less and a
 few Euler steps, one at the end, follow them. ``t ~ U(0, 1)``, or, with ``t_grid = n``, ``t`` drawn from the grid
 ``{0, 1/n, .., (n-1)/n}`` where an ``n``-step Euler sampler calls the network (``t_grid = 1``: one-step
-distillation, ``v(x0, 0, c) = x1_hat - x0``). The interpolant and its velocity come from torchcfm's
-``ConditionalFlowMatcher(sigma=0)``; sampling is :mod:`.icfm`'s.
+distillation, ``v(x0, 0, c) = x1_hat - x0``). The interpolant and its velocity are :func:`.paths.straight_path`;
+sampling is :mod:`.icfm`'s.
 
 The teacher is a checkpoint path in the options, read by :meth:`kpflow.policies.kcfm.KCFM.attach_teacher` when
 training starts (never when a trained student is loaded): the student takes its normalisation and, with
@@ -28,6 +28,7 @@ import torch
 
 from .base import TrainingTarget, identity_index, rand, randn_like
 from .icfm import ICFM
+from .paths import straight_path
 
 #: ``T(x0, c) -> x1_hat``: the teacher's sampler in the normalised chunk space.
 Teacher = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -70,5 +71,6 @@ class Reflow(ICFM):
         x0 = randn_like(x1, generator)
         with torch.no_grad():
             x1_hat = self._teacher(x0, cond)
-        t, x_t, u_t = self.matcher.sample_location_and_conditional_flow(x0, x1_hat, t=self.times(len(x1), x1, generator))
+        t = self.times(len(x1), x1, generator)
+        x_t, u_t = straight_path(x0, x1_hat, t)
         return TrainingTarget(x_t, t, u_t, identity_index(x1))
