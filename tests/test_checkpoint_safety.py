@@ -95,7 +95,7 @@ def test_planted_payload_is_refused_by_evaluate(kcfm_run, tmp_path, policy):
 def test_planted_payload_is_refused_when_resuming_training(tmp_path):
     marker = tmp_path / "pwned"
     run = tmp_path / "run"
-    base = [sys.executable, "train.py", "logger=none", f"hydra.run.dir={run}", "data.n_points=60", "trainer.enable_progress_bar=false"]
+    base = [sys.executable, "train.py", "experiment=frames_field", "logger=none", f"hydra.run.dir={run}", "data.n_points=60", "trainer.enable_progress_bar=false"]
     done = subprocess.run(base + ["trainer.max_epochs=1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     last = run / "checkpoints" / "last.ckpt"

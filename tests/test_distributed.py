@@ -12,7 +12,7 @@ import torch
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-BASE = ["logger=csv", "data.n_points=60", "trainer.enable_progress_bar=false", "trainer.max_epochs=3", "data.batch_size=4096"]
+BASE = ["experiment=frames_field", "logger=csv", "data.n_points=60", "trainer.enable_progress_bar=false", "trainer.max_epochs=3", "data.batch_size=4096"]
 
 
 def train(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:

@@ -79,7 +79,7 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
         PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
     # The data node says which reading a learned policy trains on: data.relabel_fragments (default: as recorded).
     for relabel, want in ((False, out), (True, everything)):
-        overrides = ["data=pusht_store", f"data.path={store.path}", f"data.relabel_fragments={str(relabel).lower()}"]
+        overrides = ["~experiment", "data=pusht_store", f"data.path={store.path}", f"data.relabel_fragments={str(relabel).lower()}"]
         dm = hydra.utils.instantiate(compose_config("train", overrides, tmp_path).data)
         dm.setup()
         np.testing.assert_array_equal(dm.train_set.obs, want)  # the store's rows, whichever episodes train

@@ -93,7 +93,7 @@ def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
 @pytest.mark.slow
 def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_path):
     out = tmp_path / "run"
-    base = ("train.py", "logger=csv", f"hydra.run.dir={out}", "data.n_points=60", "trainer.enable_progress_bar=false")
+    base = ("train.py", "experiment=frames_field", "logger=csv", f"hydra.run.dir={out}", "data.n_points=60", "trainer.enable_progress_bar=false")
     assert run(*base, "trainer.max_epochs=1").returncode == 0
     config = (out / "config.yaml").read_text()
     checkpoints = sorted(p.name for p in (out / "checkpoints").iterdir())

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def train(tmp: Path, *extra: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "train.py", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
+    cmd = [sys.executable, "train.py", "experiment=frames_field", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     return done
@@ -40,7 +40,7 @@ def test_train_resume_and_reload(tmp_path):
 
 @pytest.mark.slow
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
-    cmd = [sys.executable, "train.py", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"]
+    cmd = [sys.executable, "train.py", "experiment=frames_field", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode != 0 and "does not exist" in done.stderr
 
