@@ -7,6 +7,7 @@ one flag away: ``kpflow-train --cfg job`` (``--hydra-help`` for Hydra's flags).
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 from importlib import import_module
@@ -93,7 +94,10 @@ def entry(command: str):
 
     def main():
         if any(arg in HELP_FLAGS for arg in sys.argv[1:]):
-            print(usage(command))
+            try:
+                print(usage(command), flush=True)
+            except BrokenPipeError:  # kpflow-train --help | head: the reader left, nothing is wrong
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return None
         return import_module(f"kpflow.cli.{command}").main()
 
