@@ -11,6 +11,8 @@ checkpoint's own settings, :mod:`kpflow.policies.settings`) and the step limit.
 The run folder is the run's alone: a second run into a folder another live run holds is refused at once
 (:func:`~kpflow.utils.run.claim_run_folder`)."""
 
+import logging
+
 import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -19,6 +21,7 @@ from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
+log = logging.getLogger(__name__)  # the console and the run's evaluate.log (Hydra's job logging)
 KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str)}
 
 
@@ -59,10 +62,10 @@ def main(cfg: DictConfig) -> dict:
     record_used(cfg, results)
     write_config(cfg)  # again, with the values used
     log_metrics(loggers, results["metrics"])
-    print(results["table"])  # what this run computed (results.md holds the same text)
-    print(f"results: {out / 'results.md'}  plots: {[str(out / f) for f in results.get('figures', [])]}")
+    log.info("what this run computed (results.md holds the same):\n%s", results["table"])
+    log.info("results: %s  plots: %s", out / "results.md", [str(out / f) for f in results.get("figures", [])])
     if results.get("videos"):
-        print(f"videos: {results['videos']}")
+        log.info("videos: %s", results["videos"])
     return results
 
 

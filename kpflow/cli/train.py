@@ -10,6 +10,7 @@ training has started (a resume that fails, e.g. on a size mismatch, leaves the r
 Checkpoints are read with ``torch.load(weights_only=True)`` (:class:`~kpflow.utils.checkpoint.SafeCheckpointIO`),
 so resuming never runs code from a checkpoint file."""
 
+import logging
 from pathlib import Path
 
 import hydra
@@ -23,6 +24,7 @@ from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import make_loggers, run_folder_contents, start_run, write_config
 
+log = logging.getLogger(__name__)  # the console and the run's train.log (Hydra's job logging)
 KEYS = {"seed": SEED, "resume": Key(bool), "run_name": Key(str), **TRAINER_KEYS}
 
 
@@ -91,9 +93,9 @@ def main(cfg: DictConfig) -> dict:
     )
     trainer.fit(model, datamodule=datamodule, ckpt_path=str(last) if cfg.resume else None)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    print(f"checkpoints: {Path(checkpoints.dirpath)}  best: {checkpoints.best_model_path}  metrics: {metrics}")
+    log.info("checkpoints: %s  best: %s  metrics: %s", Path(checkpoints.dirpath), checkpoints.best_model_path, metrics)
     if (Path(cfg.output_dir) / "results.md").is_file():  # the training report (kpflow/conf/callbacks/default.yaml)
-        print(f"results: {Path(cfg.output_dir) / 'results.md'}  plot: {Path(cfg.output_dir) / 'loss.png'}")
+        log.info("results: %s  plot: %s", Path(cfg.output_dir) / "results.md", Path(cfg.output_dir) / "loss.png")
     return metrics
 
 

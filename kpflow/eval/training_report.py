@@ -10,6 +10,7 @@ logs one and validation ran); ``results.md`` adds the best epoch by validation l
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -17,6 +18,8 @@ import lightning
 from lightning.pytorch.callbacks import Callback
 
 from kpflow.utils.io import save_figure, write_json, write_text
+
+log = logging.getLogger(__name__)  # one line per epoch: the console and the run's log file
 
 
 class TrainingReport(Callback):
@@ -54,6 +57,8 @@ class TrainingReport(Callback):
         train = sum(self._losses) / len(self._losses) if self._losses else None
         self.rows.append({"epoch": trainer.current_epoch, "train_loss": train, "val_loss": self._val, "steps": trainer.global_step})
         self.write(type(pl_module).__name__)
+        log.info("epoch %d (%d steps): training loss %s, validation loss %s", trainer.current_epoch, trainer.global_step,
+                 "-" if train is None else f"{train:.4g}", "-" if self._val is None else f"{self._val:.4g}")
 
     def write(self, model: str) -> None:
         """``results.json``, ``results.md`` and ``loss.png`` from the rows so far."""

@@ -43,10 +43,27 @@ def start_run(cfg: DictConfig, keys: Mapping[str, Key] | None = None, write: boo
         remove_unused_run_folder(out)
         raise
     claim_run_folder(out)
+    route_library_logs()
     lightning.seed_everything(cfg.seed, workers=True, verbose=False)
     if write:
         write_config(cfg)
     return out
+
+
+def route_library_logs() -> None:
+    """Let Lightning's messages (the trainer's set-up, why fitting stopped) reach the handlers Hydra gave the run, the
+    console and the run's log file, instead of the console alone: Lightning gives its logger a handler of its own when
+    it is imported before logging is configured, and stops it propagating."""
+    import logging
+
+    if not logging.getLogger().handlers:  # logging is not configured (not a Hydra run): leave Lightning's as it is
+        return
+    names = ["lightning", *(n for n in logging.root.manager.loggerDict if n.startswith("lightning."))]
+    for name in names:
+        logger = logging.getLogger(name)
+        for handler in list(logger.handlers):
+            logger.removeHandler(handler)
+        logger.propagate = True
 
 
 def claim_run_folder(out: Path) -> None:
