@@ -106,7 +106,7 @@ def test_kpflow_comes_from_the_wheel_with_what_the_guides_use(venv, newcomer):
     where = run(["python", "-c", "import kpflow, kpflow.examples; print(kpflow.__file__); print(kpflow.examples.TEMPLATES)"], folder, env).stdout.split()
     assert all(Path(p).is_relative_to(venv) for p in where), where  # the wheel's copy, not the checkout
     assert Path(where[1], "reach_task", "conf", "task", "reach.yaml").is_file()
-    assert "experiment: " in run(["kpflow-train", "--help"], folder, env).stdout
+    assert "experiments (experiment=NAME):" in run(["kpflow-train", "--help"], folder, env).stdout
     assert re.search(r"^  reach_task +A planar reaching task", run(["kpflow-example"], folder, env).stdout, re.M)
     assert "--uri" in run(["python", "-m", "kpflow.examples.connect", "--help"], folder, env).stdout
 
