@@ -517,3 +517,23 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     env = SuiteTask("lift").make_env("far")
     episode = rollout(env, transported, 16, 0, {"seed": 0, "options": {"stream": 20_000}}, action_dim=10)
     assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None and transported.last_phase == "pick"
+
+
+def test_the_gymnasium_env_passes_gymnasiums_checker_and_draws_scenes_by_seed():
+    """SuiteGymEnv (the one closed loop's env for the robosuite tasks) follows Gymnasium's API: its spaces, seeded
+    resets (scene i for seed i, the same keypoints twice) and steps; an unseeded reset draws another scene."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    env = SuiteTask("lift").make_env("d0")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the observation's keypoints are unbounded world coordinates
+        check_env(env, skip_render_check=True)
+    first, info = env.reset(seed=3, options={"stream": 20_000})
+    again, _ = env.reset(seed=3, options={"stream": 20_000})
+    np.testing.assert_array_equal(first["keypoints"], again["keypoints"])
+    assert info["scene"] == SuiteTask("lift").sample_scene(env.sim, "d0", 3, 20_000).as_dict() and not info["is_success"]
+    assert not np.array_equal(env.reset()[0]["keypoints"], first["keypoints"])
+    with pytest.raises(ValueError, match="has no condition 'nope'"):
+        SuiteTask("lift").make_env("nope")

@@ -1,7 +1,8 @@
 """A robosuite benchmark task as a Gymnasium env: what the one closed loop (:func:`kpflow.tasks.rollout.rollout`)
 runs a policy in.
 
-``reset(seed=i, options={"stream": s})`` sets up scene ``i`` of the env's variant in scene stream ``s``
+``reset(seed=i, options={"stream": s})`` sets up scene ``i`` of the env's variant in scene stream ``s`` (without a
+seed, a scene drawn from the env's generator)
 (:func:`~.scene.sample_scene`: the key ``(s, variant, i)``) and restarts the perception's noise at ``i``;
 ``info["scene"]`` is the scene as a dict. Observations are ``{"keypoints": [K, 3]}``
 (:func:`~.keypoints.policy_keypoints`): the gripper's from the robot, the objects' from the perception (the
@@ -26,6 +27,7 @@ from .keypoints import SimulatorPoses, policy_keypoints, policy_objects
 from .scene import sample_scene
 
 ACTION_DIM = 10  #: position [3], 6-D rotation [6], gripper [1]
+WORKSPACE_M = 2.0  #: the action space's bound on a target position's coordinates (m, world frame)
 
 
 class SuiteGymEnv(gym.Env):
@@ -40,7 +42,8 @@ class SuiteGymEnv(gym.Env):
         self.sim, self.variant, self.render_mode = sim, variant, render_mode
         self.perception = SimulatorPoses() if perception is None else perception
         self.observation_space = gym.spaces.Dict({"keypoints": gym.spaces.Box(-np.inf, np.inf, (n_keypoints, 3), np.float64)})
-        self.action_space = gym.spaces.Box(-np.inf, np.inf, (ACTION_DIM,), np.float64)
+        bound = np.array([WORKSPACE_M] * 3 + [1.0] * 7)  # a position in the world (m), a 6-D rotation's columns, the gripper
+        self.action_space = gym.spaces.Box(-bound, bound, (ACTION_DIM,), np.float64)
         self._names = policy_objects(sim.spec)
         self._poses, self._read, self._closed, self._unseen, self._obs = None, True, False, 0, None
 
@@ -66,7 +69,9 @@ class SuiteGymEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        index, stream = int(seed or 0), int((options or {}).get("stream", 0))
+        # seed=i is scene i; without one, the env's generator (seeded by the last seed given) picks the scene
+        index = int(seed) if seed is not None else int(self.np_random.integers(2**31))
+        stream = int((options or {}).get("stream", 0))
         scene = sample_scene(self.sim.spec, self.sim, self.variant, index, stream)
         self.sim.reset_to(scene)
         self.perception.reseed(index)
