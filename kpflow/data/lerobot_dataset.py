@@ -364,8 +364,9 @@ def import_lerobot(
     if not files:
         raise ValueError(f"{root} has no data files (data/*/*.parquet)")
     widths = {feature: _width(features[feature], f"{root}: feature {feature}") for feature in columns}
-    picked = {feature: keypoint_map.indices(features[feature].get("names"), f"{root}: feature {feature}")
-              for feature, name in columns.items() if name == "keypoints" and keypoint_map is not None}  # fmt: skip
+    picked = [feature for feature, name in columns.items() if name == "keypoints" and keypoint_map is not None]
+    for feature in picked:  # the mapped columns are there, before any data file is read
+        keypoint_map.indices(features[feature].get("names"), f"{root}: feature {feature}")
     if int(info["total_frames"]) < 1:
         raise ValueError(f"{root}: info.json declares {info['total_frames']} frames: a dataset to import needs at least one")
     check_parquet_rows(files, int(info["total_frames"]), {**widths, "episode_index": 1, "frame_index": 1}, str(root))
@@ -379,9 +380,7 @@ def import_lerobot(
         if flat.shape[1] != int(np.prod(shape)):
             raise ValueError(f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame")
         if feature in picked:
-            if len(flat_names(features[feature].get("names"))) != flat.shape[1]:
-                raise ValueError(f"{root}: feature {feature} names {len(flat_names(features[feature]['names']))} columns for its {flat.shape[1]} values")
-            values[name] = flat[:, picked[feature]]
+            values[name] = keypoint_map.apply(flat, features[feature].get("names"), f"{root}: feature {feature}")
         else:
             values[name] = _keypoints_shaped(flat, features[feature].get("names"), name, f"{root}: feature {feature}")
     episode = episode[order]

@@ -22,6 +22,10 @@ from kpflow.utils.io import save_figure, write_json, write_text
 log = logging.getLogger(__name__)  # one line per epoch: the console and the run's log file
 
 
+def _loss(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4g}"
+
+
 class TrainingReport(Callback):
     """Write ``results.md``, ``results.json`` and ``loss.png`` into ``output_dir`` after every epoch (module
     docstring)."""
@@ -58,7 +62,7 @@ class TrainingReport(Callback):
         self.rows.append({"epoch": trainer.current_epoch, "train_loss": train, "val_loss": self._val, "steps": trainer.global_step})
         self.write(type(pl_module).__name__)
         log.info("epoch %d (%d steps): training loss %s, validation loss %s", trainer.current_epoch, trainer.global_step,
-                 "-" if train is None else f"{train:.4g}", "-" if self._val is None else f"{self._val:.4g}")
+                 _loss(train), _loss(self._val))
 
     def write(self, model: str) -> None:
         """``results.json``, ``results.md`` and ``loss.png`` from the rows so far."""
@@ -66,12 +70,11 @@ class TrainingReport(Callback):
         vals = [r for r in self.rows if r["val_loss"] is not None]
         best = min(vals, key=lambda r: r["val_loss"]) if vals else None
         write_json(self.out / "results.json", {"model": model, "epochs": self.rows, "best_epoch": None if best is None else best["epoch"]})
-        fmt = lambda v: "-" if v is None else f"{v:.4g}"  # noqa: E731
         lines = [f"# Training of {model}", "", f"{len(self.rows)} epochs, {self.rows[-1]['steps']} steps."]
         if best is not None:
             lines.append(f"Best validation loss {best['val_loss']:.4g} at epoch {best['epoch']} (checkpoints/).")
         lines += ["", "![loss](loss.png)", "", "| epoch | training loss (mean) | validation loss |", "|---|---|---|"]
-        lines += [f"| {r['epoch']} | {fmt(r['train_loss'])} | {fmt(r['val_loss'])} |" for r in self.rows]
+        lines += [f"| {r['epoch']} | {_loss(r['train_loss'])} | {_loss(r['val_loss'])} |" for r in self.rows]
         write_text(self.out / "results.md", "\n".join(lines) + "\n")
         self._plot()
 

@@ -114,7 +114,7 @@ class Generator:
         task, env, transport = self.task, self.env, self.families[family]
         scene = task.sample_scene(env, variant, index, self.seed)
         env.reset_to(scene)
-        task.perception.reseed(task.variants.index(variant), index)
+        task.perception.reseed(task.conditions.index(variant), index)
         source_id = self.choose_source(transport, index)
         segments = self.sources[source_id]
         runs, failure, trajectory = [], None, None
@@ -214,9 +214,9 @@ def generate(
     if n < 1 or workers < 1 or videos < 0:
         raise ValueError(f"n and workers must be >= 1 and videos >= 0; got {n}, {workers}, {videos}")
     indices = shard_indices(n, shards, shard)
-    bad = [v for v in variants if v not in task.variants]
+    bad = [v for v in variants if v not in task.conditions]
     if bad or not variants:
-        raise ValueError(f"unknown variants {bad or variants}; choose from {task.variants}")
+        raise ValueError(f"unknown variants {bad or variants}; choose from {task.conditions}")
     if not families:
         raise ValueError("give at least one family")
     out = Path(output_dir)

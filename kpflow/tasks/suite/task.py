@@ -72,7 +72,7 @@ class SuiteTask(GymTask):
     def __init__(self, name: str = "lift", keypoints: KeypointSource | None = None):
         self.spec = task_spec(name)
         self.name = self.spec.name
-        self.variants = self.conditions = self.spec.variants
+        self.conditions = self.spec.variants
         self._layout = policy_layout(self.spec, ACTION_DIM)
         self.keypoints = keypoints or KeypointSource()
         #: reads the objects' poses: :class:`~.keypoints.SimulatorPoses` or :class:`~.perception.CameraKeypoints`
