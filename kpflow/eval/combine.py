@@ -5,22 +5,30 @@ Every job's rows come first. Jobs that split one evaluation by trial ranges (a s
 size: configs equal but for those,
 and no trial run twice) are then pooled: their trials are summarised again together by the evaluation's own report,
 so the pooled row's success rate and interval are those of one run over all the trials.
+
+Only the jobs of this sweep count: a ``results.md`` that was in the sweep folder before the sweep began (a former
+run's, or one planted there) is left out. And a job's ``config.yaml`` is data, never code: the pooled table's report
+is looked up by name among kpflow's reports and given plain options, so no ``_target_`` in the file, at any depth, is
+ever instantiated (:func:`build_report`).
 """
 
 from __future__ import annotations
 
+import importlib
 import json
+import pkgutil
 from pathlib import Path
+from typing import Any, Mapping
 
 from hydra.experimental.callback import Callback
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+import kpflow.eval.reports as reports
 from kpflow.eval.trials import trial_from_record
 from kpflow.utils.formats import read_yaml
 from kpflow.utils.io import write_text
 
-#: Where the reports a pooled table may instantiate live.
+#: Where the reports a pooled table may build live.
 REPORTS = "kpflow.eval.reports."
 #: The config keys in which the shards of one evaluation differ.
 SHARD_KEYS = ("experiment.first_index", "experiment.n_trials", "n_configs", "first_config", "output_dir")
@@ -37,14 +45,50 @@ def _identity(cfg: DictConfig) -> str:
     return json.dumps(OmegaConf.to_container(cfg), sort_keys=True)
 
 
-def _report_config(cfg: DictConfig, job: Path) -> DictConfig:
-    """The job's report config, if its ``_target_`` is one of kpflow's reports: a config read from disk must not
-    name any other callable, since instantiating it would call it."""
-    report = cfg.experiment.trial.report
-    target = str(report.get("_target_", ""))
-    if not target.startswith(REPORTS):
-        raise ValueError(f"{job / 'config.yaml'}: experiment.trial.report names {target!r}, not one of kpflow's reports ({REPORTS}*)")
-    return report
+def _report_class(target: str, where: str) -> type:
+    """The report class ``target`` names: a class defined in one of the modules of :mod:`kpflow.eval.reports`, looked
+    up by name (no other module is imported, nothing named is called); ``ValueError`` naming ``where`` otherwise."""
+    module_name, _, class_name = target.removeprefix(REPORTS).rpartition(".")
+    known = {m.name for m in pkgutil.iter_modules(reports.__path__)}
+    if not target.startswith(REPORTS) or module_name not in known:
+        raise ValueError(f"{where}: experiment.trial.report names {target!r}, not one of kpflow's reports ({REPORTS}<{'|'.join(sorted(known))}>.<Class>)")
+    module = importlib.import_module(REPORTS + module_name)
+    cls = getattr(module, class_name, None)
+    if not (isinstance(cls, type) and cls.__module__ == module.__name__ and class_name.endswith("Report")):
+        raise ValueError(f"{where}: experiment.trial.report names {target!r}, which is not a report class of {module.__name__}")
+    return cls
+
+
+def _plain_options(node: Any, where: str, key: str) -> Any:
+    """``node`` (a report's options, plain data) checked to name nothing to build: a ``_target_`` (or any key
+    starting with ``_``, Hydra's instructions) at any depth is refused, naming its key."""
+    if isinstance(node, Mapping):
+        for name, value in node.items():
+            if str(name).startswith("_"):
+                raise ValueError(f"{where}: {key}.{name} is refused: a config read from disk may not ask for anything to be built or called")
+            _plain_options(value, where, f"{key}.{name}")
+    elif isinstance(node, list):
+        for i, value in enumerate(node):
+            _plain_options(value, where, f"{key}[{i}]")
+    return node
+
+
+def build_report(cfg: DictConfig, job: Path):
+    """The report a job's config (read from disk) names, built without instantiating anything from the file: its
+    ``_target_`` is looked up among kpflow's reports by name (:func:`_report_class`) and called with the plain
+    options beside it, of which none may name a target (:func:`_plain_options`)."""
+    where = str(job / "config.yaml")
+    try:
+        options = OmegaConf.to_container(cfg.experiment.trial.report, resolve=True)
+    except Exception as e:  # an interpolation that does not resolve outside the run
+        raise ValueError(f"{where}: experiment.trial.report does not read as plain options ({type(e).__name__}: {e})") from None
+    if not isinstance(options, dict):
+        raise ValueError(f"{where}: experiment.trial.report must be a mapping with a _target_, not {type(options).__name__}")
+    cls = _report_class(str(options.pop("_target_", "")), where)
+    try:
+        return cls(**_plain_options(options, where, "experiment.trial.report"))
+    except TypeError as e:
+        raise ValueError(f"{where}: experiment.trial.report's options do not build {cls.__name__} ({e})") from None
 
 
 def pool_shards(jobs: list[Path]) -> str | None:
@@ -66,17 +110,27 @@ def pool_shards(jobs: list[Path]) -> str | None:
         cells: dict[tuple, list] = {}
         for t in trials:
             cells.setdefault((t.condition, *t.variant.values()), []).append(t)
-        report = instantiate(_report_config(shards[0][1], shards[0][0]))
+        report = build_report(shards[0][1], shards[0][0])
         summaries = {cell: report.summarise(members) for cell, members in cells.items()}
         names = ", ".join(job.name for job, _ in shards)
         parts.append(f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n" + report.table(summaries, axes))
     return "\n".join(parts) if parts else None
 
 
-def combine_tables(sweep_dir: str | Path) -> Path | None:
-    """Concatenate the table rows of every ``<sweep_dir>/<job>/results.md`` (header once); None if there are none."""
+def results_files(sweep_dir: str | Path) -> dict[str, tuple[int, int]]:
+    """The ``<sweep_dir>/<job>/results.md`` present now, each with its inode and modification time: what was there
+    before a sweep began, so that :func:`combine_tables` leaves it out."""
+    return {str(p): (p.stat().st_ino, p.stat().st_mtime_ns) for p in Path(sweep_dir).glob("*/results.md") if p.is_file()}
+
+
+def combine_tables(sweep_dir: str | Path, before: Mapping[str, tuple[int, int]] | None = None) -> Path | None:
+    """Concatenate the table rows of every ``<sweep_dir>/<job>/results.md`` (header once) written since ``before``
+    (:func:`results_files` when the sweep began; None: all of them) and pool the shards among them; None if there
+    are none. Tables a former run left in the folder are not this sweep's and are left out."""
     sweep_dir = Path(sweep_dir)
-    jobs = sorted((p for p in sweep_dir.glob("*/results.md")), key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0)
+    before = before or {}
+    written = [p for p, stamp in results_files(sweep_dir).items() if before.get(p) != stamp]
+    jobs = sorted(map(Path, written), key=lambda p: (0, int(p.parent.name), "") if p.parent.name.isdigit() else (1, 0, p.parent.name))
     header, rows = [], []
     for path in jobs:
         lines = [line for line in path.read_text().splitlines() if line.startswith("|")]
@@ -92,7 +146,15 @@ def combine_tables(sweep_dir: str | Path) -> Path | None:
 
 
 class CombineTables(Callback):
+    """Writes ``<sweep dir>/table.md`` at the end of a multirun from the tables its jobs wrote (module docstring)."""
+
+    def __init__(self) -> None:
+        self.before: dict[str, tuple[int, int]] = {}
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        self.before = results_files(config.hydra.sweep.dir)
+
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
-        path = combine_tables(config.hydra.sweep.dir)
+        path = combine_tables(config.hydra.sweep.dir, self.before)
         if path is not None:
             print(f"combined table: {path}\n{path.read_text()}")
