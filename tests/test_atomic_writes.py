@@ -189,3 +189,37 @@ def test_results_figures_and_checkpoints_cut_short_by_a_full_disk_leave_nothing(
     done = write_on_a_full_disk(what, path)
     assert done.returncode == 1 and "File too large" in done.stderr, done.stderr[-2000:]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_second_import_into_one_folder_at_once_is_refused_by_name(tmp_path):
+    """Issue 63.3: two imports into one data folder without --overwrite: the second is refused, naming the folder
+    and the first's pid, while the first runs; after it, the folder holds episodes and is refused as such."""
+    from kpflow.tasks.pusht.replay_import import import_pusht_replay
+    from kpflow.utils.file_lock import LockHeld
+
+    source, dest = tmp_path / "replay.zarr", tmp_path / "demos.zarr"
+    write_replay_buffer(source, 1500)
+    cmd = [sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(dest), "--no-progress"]
+    first = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not any(tmp_path.glob(".demos.zarr.*.tmp.zarr")):
+        assert first.poll() is None and time.monotonic() - t0 < 60, first.stderr.read()
+        time.sleep(0.02)
+    with pytest.raises(LockHeld, match=rf"demos.zarr is being written by process {first.pid} \(.demos.zarr.lock is held\)"):
+        import_pusht_replay(source, dest, progress=False)
+    out, err = first.communicate(timeout=120)
+    assert first.returncode == 0 and out.startswith("imported 1500 episodes"), err
+    with pytest.raises(FileExistsError, match="demos.zarr already holds 1500 episodes; pass overwrite=True"):
+        import_pusht_replay(source, dest, progress=False)
+    assert len(EpisodeStore(dest)) == 1500 and sorted(p.name for p in tmp_path.iterdir()) == ["demos.zarr", "replay.zarr"]
+
+
+def test_a_folder_made_meanwhile_is_never_replaced_without_overwrite(tmp_path):
+    dest = tmp_path / "store"
+    with pytest.raises(FileExistsError, match="store was written by another process while this one wrote it"):
+        with atomic_dir(dest) as tmp:
+            (tmp / "mine").write_text("new")
+            dest.mkdir()  # another writer's folder, published while this one was writing
+            (dest / "theirs").write_text("kept")
+    assert sorted(p.name for p in dest.iterdir()) == ["theirs"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store"]

@@ -72,6 +72,36 @@ def test_a_run_folder_lock_that_is_a_link_is_refused_and_its_target_untouched(tm
         claim_run_folder(run)
 
 
+# issue 63.2: lock files that are hard links (as a tar extracted with filter='data' may carry) are refused by name,
+# and neither the file they share a name with nor anything else is written
+def test_a_store_lock_hard_linked_to_its_own_metadata_is_refused_and_the_store_intact(store):
+    zattrs = store / "meta" / ".zattrs"
+    before = zattrs.read_bytes()
+    (store / LOCK_NAME).unlink(missing_ok=True)
+    os.link(zattrs, store / LOCK_NAME)
+    with pytest.raises(UnsafeLockFile, match=rf"{LOCK_NAME} is a hard link \(2 names for one file\): a lock file is never written through"):
+        EpisodeStore(store, mode="a")  # what kpflow-verify seal=true opens
+    assert zattrs.read_bytes() == before
+    (store / LOCK_NAME).unlink()
+    assert len(EpisodeStore(store)) > 0
+
+
+def test_run_folder_and_data_folder_locks_hard_linked_elsewhere_are_refused(tmp_path):
+    from kpflow.utils.io import atomic_dir
+
+    target = _precious(tmp_path)
+    run = tmp_path / "run"
+    run.mkdir()
+    os.link(target, run / RUN_LOCK)
+    with pytest.raises(UnsafeLockFile, match=rf"{RUN_LOCK} is a hard link"):
+        claim_run_folder(run)
+    os.link(target, tmp_path / ".demos.zarr.lock")  # the lock an import takes beside its store
+    with pytest.raises(UnsafeLockFile, match=r".demos.zarr.lock is a hard link"):
+        with atomic_dir(tmp_path / "demos.zarr"):
+            pass
+    assert target.read_text() == "do not touch" and not (tmp_path / "demos.zarr").exists()
+
+
 # 11: a store's field record damaged; a sealed store that lost its checksums; an unsealed one read
 def _zattrs(store: Path) -> tuple[Path, dict]:
     path = store / "meta" / ".zattrs"

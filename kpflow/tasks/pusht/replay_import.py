@@ -148,18 +148,22 @@ def episode_fields(state: np.ndarray, action: np.ndarray) -> dict[str, np.ndarra
     }
 
 
-def _check_dest(dest: Path, source: Path, overwrite: bool) -> None:
-    """Refuse a ``dest`` that holds episodes (unless ``overwrite``), that is not an episode store, or is the source."""
+def _check_dest(dest: Path, source: Path, overwrite: bool) -> bool:
+    """Refuse a ``dest`` that holds episodes (unless ``overwrite``), that is not an episode store, or is the source;
+    returns whether there is a ``dest`` to replace (an empty folder or store, or one ``overwrite`` lets go)."""
     if dest.resolve() == source.resolve():
         raise ValueError(f"dest {dest} is the source replay buffer; choose another path")
-    if not dest.exists() or (dest.is_dir() and not any(dest.iterdir())):
-        return
+    if not dest.exists():
+        return False
+    if dest.is_dir() and not any(dest.iterdir()):
+        return True
     try:
         n = EpisodeStore(dest, mode="r").n_episodes
     except ValueError as e:
         raise FileExistsError(f"{dest} exists and is not an episode store; refusing to touch it ({e})") from e
     if n and not overwrite:
         raise FileExistsError(f"{dest} already holds {n} episodes; pass overwrite=True (--overwrite) to replace it")
+    return True
 
 
 def import_pusht_replay(
@@ -190,13 +194,16 @@ def import_pusht_replay(
 
     Raises:
         FileNotFoundError, ValueError: see :func:`read_pusht_replay`.
-        FileExistsError: ``dest`` holds episodes and ``overwrite`` is false, or is not an episode store.
+        FileExistsError: ``dest`` holds episodes and ``overwrite`` is false, or is not an episode store, or another
+            import wrote it meanwhile.
+        LockHeld: another import is writing ``dest`` now (a ``TimeoutError`` naming it and its pid).
     """
     source, dest = Path(source), Path(dest)
     state, action, ends = read_pusht_replay(source, max_episodes)
-    _check_dest(dest, source, overwrite)
+    replace = _check_dest(dest, source, overwrite)
 
-    with atomic_dir(dest, overwrite=True) as tmp:  # checked above: missing, empty, or a store that we may replace
+    # one import at a time into dest, and a dest that was missing is never replaced by this one (another import's)
+    with atomic_dir(dest, overwrite=replace) as tmp:
         with EpisodeStore(tmp, mode="a") as store:
             store.attrs.update(
                 task="pusht",
