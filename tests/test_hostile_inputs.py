@@ -120,6 +120,18 @@ def test_a_damaged_field_record_is_named(store):
         EpisodeStore(store)
 
 
+@pytest.mark.parametrize("attrs, refused", [
+    ([1, 2, 3], r"meta/.zattrs is damaged: it holds a JSON list, not an object of attributes"),
+    ("fields", r"meta/.zattrs is damaged: it holds a JSON str, not an object"),
+    ({"episode_attrs": 7}, r"meta/.zattrs is damaged: its episode_attrs must be a list"),
+])  # fmt: skip
+def test_store_metadata_that_is_json_but_not_an_object_is_named(store, attrs, refused):
+    """Issue 63.8: valid JSON of the wrong kind gave an AttributeError."""
+    (store / "meta" / ".zattrs").write_text(json.dumps(attrs))
+    with pytest.raises(ValueError, match=rf"demos.zarr: {refused}"):
+        EpisodeStore(store)
+
+
 def test_a_sealed_store_that_lost_its_checksums_is_refused_saying_how_to_seal_it(store):
     path, attrs = _zattrs(store)
     del attrs["checksums"]
@@ -234,6 +246,38 @@ def test_a_learned_map_checkpoint_of_a_million_layers_is_refused_at_once(tmp_pat
         load_checkpoint(MapModule, path)
 
 
+@pytest.mark.parametrize("hparams, refused", [
+    ({"n_keypoints": 25, "horizon": "TENSOR"}, r"hyper-parameter horizon is a tensor, not a plain number"),
+    ({"n_keypoints": 25, "down_dims": [64, "TENSOR"]}, r"hyper-parameter down_dims\[1\] is a tensor"),
+    ({"n_keypoints": 25, "horizon": 16.0}, r"hyper-parameter horizon = 16.0 is a float, not a whole number \(int\)"),
+    ({"n_keypoints": 25, "horizon": True}, r"hyper-parameter horizon = True is a bool, not a whole number"),
+    ({"n_keypoints": 25, "horizon": -4}, r"hyper-parameter horizon = -4 is negative"),
+])  # fmt: skip
+def test_hyper_parameters_the_limits_bound_must_be_plain_whole_numbers(tmp_path, hparams, refused):
+    """Issue 63.5, 63.8: a tensor (which slips past a comparison and sizes the model all the same: 4.7 GB at the first
+    act for 2^22) or a float where the limits table bounds a whole number is refused, naming the file and key."""
+    import torch
+
+    from kpflow import load_policy
+
+    hparams = {k: [torch.tensor(1 << 20) if i == "TENSOR" else i for i in v] if isinstance(v, list) else torch.tensor(1 << 22) if v == "TENSOR" else v
+               for k, v in hparams.items()}  # fmt: skip
+    path = _checkpoint(hparams, tmp_path / "odd.ckpt")
+    with pytest.raises(ValueError, match=rf"odd.ckpt: {refused}"):
+        load_policy(path)
+
+
+def test_a_learned_map_of_a_tensor_number_of_layers_is_refused_at_once(tmp_path):
+    """Issue 63.5: ``n_layers=torch.tensor(10**6)`` spun over 60 s at 1.7 GB (load_checkpoint, kpflow-serve map=learned)."""
+    import torch
+
+    from kpflow.maps.learned import LearnedMap
+
+    path = _checkpoint({"n_keypoints": 25, "dim": 2, "n_layers": torch.tensor(10**6)}, tmp_path / "map.ckpt")
+    with pytest.raises(ValueError, match=r"map.ckpt: hyper-parameter n_layers is a tensor"):
+        LearnedMap(str(path))  # what map=learned map.checkpoint=... builds
+
+
 def _zip_bomb(path: Path, member: str, declared: int, prefix: bytes = b"") -> Path:
     """A zip whose ``member`` deflates ``declared`` bytes of zeros (after ``prefix``) into a few hundred kB."""
     import zipfile
@@ -301,9 +345,28 @@ def test_a_small_parquet_declaring_millions_of_frames_is_refused(dataset, tmp_pa
         import_lerobot(dataset, tmp_path / "x.zarr")
 
 
+def test_a_parquet_list_column_holding_more_values_per_row_than_declared_is_refused_before_decoding(dataset, tmp_path):
+    """Issue 63.6: rows of the declared count whose state column holds 20,000 values each instead of the 50 the
+    features give (a 7.6 kB file held 2,000,000 per row, 2.7 GB decoded): the footer's value count is refused."""
+    files = sorted(dataset.glob("data/*/*.parquet"))
+    table = pa.concat_tables([pq.read_table(f) for f in files])
+    per_row, n = 20_000, table.num_rows
+    offsets = pa.array(np.arange(n + 1, dtype=np.int32) * per_row)
+    columns = {name: table.column(name).combine_chunks() for name in table.column_names}
+    columns["observation.state"] = pa.ListArray.from_arrays(offsets, pa.array(np.zeros(n * per_row, np.float32)))
+    for f in files:
+        f.unlink()
+    pq.write_table(pa.table(columns), files[0], compression="zstd")
+    assert files[0].stat().st_size < 100_000
+    with pytest.raises(ValueError, match=rf"{files[0].name} declares {n * per_row} values in column observation.state over {n} rows, more than the 50 per row"):
+        import_lerobot(dataset, tmp_path / "x.zarr")
+    assert not (tmp_path / "x.zarr").exists()
+
+
 def test_refusals_keep_memory_bounded(tmp_path, store):
     """In a fresh process, the 1 GiB checkpoint and npz bombs, the 8 GiB sparse chunk and the checkpoints asking for
-    10^8 diffusion steps (issue 57: 1.5 GB at 10^7) and a 2^27-action chunk (34 GB) are refused while its peak
+    10^8 diffusion steps (issue 57: 1.5 GB at 10^7), a 2^27-action chunk (34 GB) and a 2^22-action chunk given as a
+    tensor (issue 63: 4.7 GB) are refused while its peak
     resident memory grows by less than 200 MB: what they declare is never allocated."""
     _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
     _npz_bomb(tmp_path / "bomb.npz")
@@ -311,6 +374,9 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
     os.truncate(chunk, 8 << 30)
     _checkpoint({"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**8}}, tmp_path / "steps.ckpt")
     _checkpoint({"n_keypoints": 25, "horizon": 1 << 27}, tmp_path / "horizon.ckpt")
+    import torch
+
+    _checkpoint({"n_keypoints": 25, "horizon": torch.tensor(1 << 22)}, tmp_path / "tensor.ckpt")  # issue 63.5: 4.7 GB
     script = (
         "import resource, sys\n"
         "import kpflow\n"
@@ -319,13 +385,13 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
         "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
         "for load in (lambda: kpflow.load_policy(sys.argv[1]), lambda: read_npz(sys.argv[2], ['keypoints']),\n"
         "             lambda: EpisodeStore(sys.argv[3]).field('keypoints'), lambda: kpflow.load_policy(sys.argv[4]),\n"
-        "             lambda: kpflow.load_policy(sys.argv[5])):\n"
+        "             lambda: kpflow.load_policy(sys.argv[5]), lambda: kpflow.load_policy(sys.argv[6])):\n"
         "    try:\n        load()\n    except ValueError as e:\n        print('refused', str(e)[:60])\n"
         "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
     )
-    files = [tmp_path / "bomb.ckpt", tmp_path / "bomb.npz", store, tmp_path / "steps.ckpt", tmp_path / "horizon.ckpt"]
+    files = [tmp_path / "bomb.ckpt", tmp_path / "bomb.npz", store, tmp_path / "steps.ckpt", tmp_path / "horizon.ckpt", tmp_path / "tensor.ckpt"]
     done = subprocess.run([sys.executable, "-c", script, *map(str, files)], cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0 and done.stdout.count("refused") == 5, done.stdout + done.stderr[-2000:]
+    assert done.returncode == 0 and done.stdout.count("refused") == 6, done.stdout + done.stderr[-2000:]
     grew = int(done.stdout.rsplit("grew_kb", 1)[1])
     assert grew < 200_000, done.stdout
 

@@ -88,7 +88,7 @@ def test_a_release_with_settings_that_do_not_fit_writes_nothing(trained, tmp_pat
         release(trained, tmp_path / "bad.ckpt", settings={"steps": 0})
     with pytest.raises(ValueError, match="solver must be one of"):  # a flow has no DDIM: refused as it loads back
         release(trained, tmp_path / "bad.ckpt", settings={"solver": "ddim"})
-    with pytest.raises(ValueError, match="execute must be an integer in 1..8"):
+    with pytest.raises(ValueError, match=r"execute = 9 is beyond the model's chunk length \(horizon 8\)"):
         release(trained, tmp_path / "bad.ckpt", settings={"execute": 9})
     assert not list(tmp_path.iterdir())
 
@@ -99,6 +99,22 @@ def test_a_damaged_settings_record_is_refused_naming_the_file(trained, tmp_path)
     torch.save(checkpoint, tmp_path / "damaged.ckpt")
     with pytest.raises(ValueError, match=r"damaged.ckpt is not a readable KCFM checkpoint .*unknown setting\(s\) \['stepz'\]"):
         load_policy(tmp_path / "damaged.ckpt")
+
+
+@pytest.mark.parametrize("record, refused", [
+    ({"execute": 9}, r"execute = 9 is beyond the model's chunk length \(horizon 8\); kpflow-release settings.execute=N with N <= 8"),
+    ({"execute": 0}, r"execute must be an integer >= 1"),
+    ({"solver": "rk99"}, r"solver must be one of \('euler', 'midpoint', 'heun'\)"),
+    ({"steps": 10**6}, r"steps must be an integer in 1..100"),
+])  # fmt: skip
+def test_settings_out_of_range_in_a_checkpoint_are_refused_naming_it(trained, tmp_path, record, refused):
+    """Issue 63.8: a setting the model cannot act with is refused as the checkpoint loads, in one line naming it."""
+    checkpoint = torch.load(trained, weights_only=True)
+    checkpoint[CHECKPOINT_KEY] = record
+    torch.save(checkpoint, tmp_path / "damaged.ckpt")
+    with pytest.raises(ValueError, match=rf"damaged.ckpt is not a readable KCFM checkpoint .*{refused}") as refusal:
+        load_policy(tmp_path / "damaged.ckpt")
+    assert "\n" not in str(refusal.value)
 
 
 def test_the_run_config_records_the_values_used():

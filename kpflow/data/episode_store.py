@@ -258,6 +258,10 @@ class EpisodeStore:
             meta_attrs = self._meta.attrs.asdict()
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
+        if not isinstance(meta_attrs, dict):
+            raise ValueError(f"{where}: meta/.zattrs is damaged: it holds a JSON {type(meta_attrs).__name__}, not an object of attributes; restore the store from a copy")
+        if not isinstance(meta_attrs.get(_EPISODE_ATTRS, []), list):
+            raise ValueError(f"{where}: meta/.zattrs is damaged: its {_EPISODE_ATTRS} must be a list (one record per episode)")
         pending = meta_attrs.get(_PENDING)
         self._schema: dict[str, dict] | None = meta_attrs.get(_FIELDS)
         self._digests = _digests(meta_attrs.get(_CHECKSUMS), where)

@@ -13,7 +13,8 @@ the entry that is refused:
   laughs" document is a few hundred bytes that OmegaConf would expand into gigabytes); parsed by OmegaConf, whose
   loader is PyYAML's safe one (no Python tags).
 - **parquet** (:func:`check_parquet_rows`): the files' footers must declare exactly the rows the dataset says it
-  has, and columns of at most a bounded size per row, before any column is decompressed. pyarrow builds only
+  has, and columns of at most the values per row its features give and a bounded size per row, before any column
+  is decompressed. pyarrow builds only
   arrow arrays from parquet, never Python objects, so nothing in it can run code.
 
 Checkpoints have their own reader (:mod:`kpflow.utils.checkpoint`, ``torch.load(weights_only=True)``), and so do zarr
@@ -147,8 +148,9 @@ def read_parquet(path: Path, columns: list[str], where: str):
 
 def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], where: str) -> None:
     """Raise ``ValueError`` unless the parquet ``files`` declare ``rows`` rows in all and, for each column of
-    ``columns`` (name -> values per row), at most 16 bytes per value and row uncompressed (float32 or int64 values
-    plus list offsets and validity), read from their footers only; and unless each file holds at least
+    ``columns`` (name -> values per row), at most that many values per row (a list column's value count, which
+    run-length encoding lets a few kB declare by the million) and at most 16 bytes per value and row uncompressed
+    (float32 or int64 values plus list offsets and validity), read from their footers only; and unless each file holds at least
     ``1 / MAX_DEFLATE_RATIO`` of the float32 values it declares (beyond :data:`EXPANSION_SLACK`): a few kB cannot
     declare millions of frames that decoding would allocate (dictionary and run-length encodings shrink what a
     footer says is uncompressed, so the file's own size is the bound)."""
@@ -169,6 +171,11 @@ def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], wh
                 column = group.column(c)
                 name = column.path_in_schema.split(".list.")[0]  # a list column's values are "<name>.list.element"
                 width = columns.get(name)
+                if width is not None and column.num_values > (width + 1) * group.num_rows:  # + 1: a null row's one level
+                    raise ValueError(
+                        f"{where}: {f.name} declares {column.num_values} values in column {name} over {group.num_rows} rows, "
+                        f"more than the {width} per row the dataset's features give; refusing to decode it"
+                    )
                 if width is not None and column.total_uncompressed_size > 16 * width * group.num_rows + 65536:
                     raise ValueError(
                         f"{where}: {f.name} declares {column.total_uncompressed_size} bytes for column {name} over "

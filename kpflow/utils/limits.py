@@ -2,7 +2,10 @@
 
 A checkpoint's ``hyper_parameters`` decide how large the model is and what its first call allocates, and a small
 file can declare any number. :func:`check_hyper_parameters` refuses a value outside :data:`LIMITS` with one line
-naming the file, the key, the value and the limit, before the module is built (its skeleton included): every
+naming the file, the key, the value and the limit, before the module is built (its skeleton included). Each value
+the table bounds must be a plain ``int`` (not a bool, a float, or a tensor, which would slip past a comparison as a
+number and size the model all the same), and hyper-parameters hold no tensors at all (they are plain names,
+numbers and lists; weights live in the state dict): every
 checkpoint kpflow loads goes through it (:func:`kpflow.utils.checkpoint.load_checkpoint`). The limits sit far above
 anything kpflow trains (the released K-CFMs: horizon 16, a (64, 128) U-Net; the learned map: 16 layers) and far
 below what exhausts a machine.
@@ -56,15 +59,32 @@ def _lookup(hparams: Mapping, key: str) -> Any:
     return value
 
 
+def _tensor_keys(value: Any, key: str = "") -> list[str]:
+    """The dotted keys under which ``value`` (hyper-parameters) holds a tensor or an array."""
+    if isinstance(value, Mapping):
+        return [k for name, v in value.items() for k in _tensor_keys(v, f"{key}.{name}" if key else str(name))]
+    if isinstance(value, (list, tuple)):
+        return [k for i, v in enumerate(value) for k in _tensor_keys(v, f"{key}[{i}]")]
+    return [key] if hasattr(value, "shape") and hasattr(value, "dtype") else []
+
+
 def check_hyper_parameters(hparams: Mapping, where: str) -> None:
-    """Raise ``ValueError`` naming ``where``, the key, its value and the limit for the first hyper-parameter of
-    :data:`LIMITS` that ``hparams`` sets beyond it (module docstring); keys it does not set are not checked here."""
+    """Raise ``ValueError`` naming ``where`` and the key when ``hparams`` holds a tensor (or array) anywhere, when a
+    hyper-parameter of :data:`LIMITS` is not a plain ``int`` (each item, for a list), or when it is negative or beyond
+    its limit (module docstring); keys it does not set are not checked here."""
+    if not isinstance(hparams, Mapping):
+        raise ValueError(f"{where}: hyper_parameters is a {type(hparams).__name__}, not a mapping of names to values; refusing to build it")
+    tensors = _tensor_keys(hparams)
+    if tensors:
+        raise ValueError(f"{where}: hyper-parameter {tensors[0]} is a tensor, not a plain number or list (hyper-parameters are plain values); refusing to build it")
     for key, most in LIMITS.items():
         value = _lookup(hparams, key)
         if value is None:
             continue
         for item in value if isinstance(value, (list, tuple)) else [value]:
             if isinstance(item, bool) or not isinstance(item, int):
-                continue  # the module's own checks name a value of the wrong type
+                raise ValueError(f"{where}: hyper-parameter {key} = {item!r} is a {type(item).__name__}, not a whole number (int); refusing to build it")
+            if item < 0:
+                raise ValueError(f"{where}: hyper-parameter {key} = {item} is negative; refusing to build it")
             if item > most:
                 raise ValueError(f"{where}: hyper-parameter {key} = {item} is beyond kpflow's limit {most} (kpflow/utils/limits.py); refusing to build it")

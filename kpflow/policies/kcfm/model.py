@@ -502,8 +502,18 @@ class KCFM(lightning.LightningModule):
                 )
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Read the settings a released checkpoint carries (:class:`~kpflow.policies.settings.PolicySettings`)."""
-        self.settings = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY))
+        """Read the settings a released checkpoint carries (:class:`~kpflow.policies.settings.PolicySettings`) and
+        check them against this model: ``steps`` and ``solver`` must suit its objective, ``execute`` its chunk length
+        (``ValueError`` naming the setting; :func:`~kpflow.utils.checkpoint.load_checkpoint` adds the file)."""
+        settings = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY))
+        try:
+            check_sampler(self.objective, settings.steps or 1, settings.solver)
+        except ValueError as e:
+            raise ValueError(f"its {CHECKPOINT_KEY} do not suit the model: {e}") from None
+        if settings.execute is not None and settings.execute > int(self.hparams.horizon):
+            raise ValueError(f"its {CHECKPOINT_KEY} do not suit the model: execute = {settings.execute} is beyond the model's chunk length "
+                             f"(horizon {int(self.hparams.horizon)}); kpflow-release settings.execute=N with N <= {int(self.hparams.horizon)}")  # fmt: skip
+        self.settings = settings
 
     def sampler(self, steps: int | None = None, solver: str | None = None) -> tuple[int, str]:
         """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the released settings' (:attr:`settings`),
