@@ -187,7 +187,9 @@ def test_a_video_cut_short_by_a_full_disk_is_refused_and_nothing_reaches_its_nam
 def test_results_figures_and_checkpoints_cut_short_by_a_full_disk_leave_nothing(tmp_path, what, name):
     path = tmp_path / name
     done = write_on_a_full_disk(what, path)
-    assert done.returncode == 1 and "File too large" in done.stderr, done.stderr[-2000:]
+    assert done.returncode == 1, done.stderr[-2000:]
+    last = done.stderr.strip().splitlines()[-1]  # issue 63.8: one line naming the file and the fix, not a bare [Errno]
+    assert f"{path} was not written: no room left (File too large); nothing reached its name" in last and "Free space" in last, last
     assert list(tmp_path.iterdir()) == []
 
 

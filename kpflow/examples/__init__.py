@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import os
 import shutil
 from pathlib import Path
 
@@ -40,18 +41,32 @@ def copy_template(name: str, dest: str | Path) -> Path:
     """Copy template ``name`` into the folder ``dest`` (created; it may exist if empty) and return ``dest``.
 
     Raises:
-        ValueError: no template ``name`` (the message lists them), or ``dest`` is a file or a folder that is not
-            empty (nothing is overwritten).
+        ValueError: no template ``name`` (the message lists them); ``dest`` is a file, a symbolic link to nothing or
+            a folder that is not empty (nothing is overwritten); or it cannot be written (a read-only folder, a
+            full disk), when what was copied is removed again. Each message names ``dest`` and the fix.
     """
     known = templates()
     if name not in known:
         raise ValueError(f"no template {name!r}: kpflow-example copies one of {', '.join(known)} (kpflow-example lists them)")
     dest = Path(dest)
+    again = f"name a new or empty folder you can write to (kpflow-example {name} DIR)"
+    if dest.is_symlink() and not dest.exists():
+        raise ValueError(f"{dest} is a symbolic link to {os.readlink(dest)}, which does not exist: {again}")
     if dest.exists() and not dest.is_dir():
-        raise ValueError(f"{dest} is a file: name a new folder for the {name} template (kpflow-example {name} DIR)")
+        raise ValueError(f"{dest} is a file: {again}")
     if dest.is_dir() and any(dest.iterdir()):
-        raise ValueError(f"{dest} is not empty, so nothing was copied: name a new or empty folder (kpflow-example {name} DIR)")
-    shutil.copytree(TEMPLATES / name, dest, ignore=_SKIPPED, dirs_exist_ok=True)
+        raise ValueError(f"{dest} is not empty, so nothing was copied: {again}")
+    existed = dest.is_dir()
+    try:
+        shutil.copytree(TEMPLATES / name, dest, ignore=_SKIPPED, dirs_exist_ok=True)
+    except OSError as e:
+        if existed:  # leave the empty folder it was, not part of a template
+            for entry in list(dest.iterdir()) if dest.is_dir() else []:
+                shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(dest, ignore_errors=True)
+        reason = e.strerror or "some of its files could not be written"  # shutil.Error: one (src, dst, why) per file
+        raise ValueError(f"{dest} could not be written ({reason}), so nothing was copied: {again}") from None
     return dest
 
 

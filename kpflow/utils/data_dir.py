@@ -18,9 +18,13 @@ ENV = "KPFLOW_DATA_DIR"
 
 
 def data_dir() -> Path:
-    """The folder collected data goes into (module docstring)."""
+    """The folder collected data goes into (module docstring); ``ValueError`` naming ``$KPFLOW_DATA_DIR``
+    when it names something that is not a folder."""
     if env := os.environ.get(ENV):
-        return Path(env).expanduser()
+        path = Path(env).expanduser()
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"{ENV}={env} is not a folder (it is a file): point {ENV} at a folder, which is created if missing, or unset it")
+        return path
     clone = clone_dir()
     return clone.parent / "data" if clone is not None else cache_dir().parent / "data"
 
