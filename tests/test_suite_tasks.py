@@ -537,3 +537,32 @@ def test_the_gymnasium_env_passes_gymnasiums_checker_and_draws_scenes_by_seed():
     assert not np.array_equal(env.reset()[0]["keypoints"], first["keypoints"])
     with pytest.raises(ValueError, match="has no condition 'nope'"):
         SuiteTask("lift").make_env("nope")
+
+
+def test_the_gymnasium_env_refuses_what_no_robot_should_receive():
+    """Issue 63.7: NaN or inf, the wrong shape and a zero rotation are refused by name before robosuite sees them;
+    a target beyond the action space's 2 m is clipped to it; the simulator's state stays finite."""
+    from kpflow.tasks.suite.gym_env import WORKSPACE_M
+
+    env = SuiteTask("lift").make_env("d0")
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before step\(\)"):
+        env.step(np.zeros(10))
+    env.reset(seed=0)
+    pos, rot = env.sim.ee_pose()
+    good = np.r_[pos, rot[:, 0], rot[:, 1], -1.0]  # hold still, open
+    for bad, refused in [
+        (np.r_[np.nan, good[1:]], r"action must be 10 finite numbers"),
+        (np.r_[good[:9], np.nan], r"action must be 10 finite numbers"),  # a NaN gripper was read as open
+        (np.r_[good[:3], np.inf, good[4:]], r"action must be 10 finite numbers"),
+        (good[:7], r"action must be 10 finite numbers"),
+        ("open", r"action must be 10 finite numbers"),
+        (np.r_[good[:3], np.zeros(6), -1.0], r"6-D rotation \[0.0, 0.0, 0.0, 0.0, 0.0, 0.0\] has a zero column or two parallel ones"),
+        (np.r_[good[:3], 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, -1.0], r"two parallel ones"),
+    ]:
+        with pytest.raises(ValueError, match=refused):
+            env.step(bad)
+    position, _, closing = env.checked_action(np.r_[1e6, -1e6, 0.5, good[3:]])
+    np.testing.assert_array_equal(position, [WORKSPACE_M, -WORKSPACE_M, 0.5])
+    assert not closing and env.action_space.contains(np.r_[position, good[3:]])
+    obs, *_ = env.step(np.r_[1e6, -1e6, 0.5, good[3:]])
+    assert np.isfinite(obs["keypoints"]).all() and np.isfinite(env.sim.sim.data.qpos).all()

@@ -10,7 +10,8 @@ simulator's at every step; a camera's only where the loop says a decision will r
 :meth:`SuiteGymEnv.will_read`, held in between; an object the cameras cannot place in a read keeps its last seen pose;
 the object picked, once the jaws close on it, is carried with them from where it was last seen). An action is an
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the
-gripper (closed when > 0). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
+gripper (closed when > 0); a step refuses an action that is not 10 finite numbers or names no rotation, and clips
+the position to the action space (:meth:`SuiteGymEnv.checked_action`). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
 that could not place an object. When the first read places nothing, reset's ``info["failure"]`` is ``"not
 perceived"`` and the loop ends the episode before any step.
 """
@@ -80,9 +81,28 @@ class SuiteGymEnv(gym.Env):
         extra = {"failure": "not perceived"} if self._poses is None else {}
         return obs, self._info(scene=scene.as_dict(), **extra)
 
+    def checked_action(self, action) -> tuple[np.ndarray, np.ndarray, bool]:
+        """``action`` as ``(position [3], rotation [3, 3], closing)``, or ``ValueError`` saying what is wrong: it must be
+        10 finite numbers, and its 6-D rotation two columns neither zero nor parallel. The position is clipped to
+        the action space's bound (Push-T's env clips its targets to the arena the same way), so no target beyond it,
+        and nothing non-finite, ever reaches robosuite."""
+        try:
+            a = np.asarray(action, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {action!r}") from None
+        if a.shape != (ACTION_DIM,) or not np.isfinite(a).all():
+            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {np.asarray(action).tolist()!r}")
+        first, second = a[3:6], a[6:9]
+        n1 = np.linalg.norm(first)
+        if n1 < 1e-9 or np.linalg.norm(second - (first @ second) / n1**2 * first) < 1e-9 * max(1.0, np.linalg.norm(second)):
+            raise ValueError(f"action's 6-D rotation {a[3:9].tolist()} has a zero column or two parallel ones: it names no rotation")
+        return np.clip(a[:3], -WORKSPACE_M, WORKSPACE_M), rot6d_to_matrix(a[3:9]), bool(a[9] > 0)
+
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64)
-        closing, target = bool(action[9] > 0), (action[:3], rot6d_to_matrix(action[3:9]))
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        position, rotation, closing = self.checked_action(action)
+        target = (position, rotation)
         if closing and not self._closed:  # the jaws close on the object to pick: a camera carries its pose with them
             self.perception.grasped(self.sim, self.sim.spec.grasp, target)
         elif self._closed and not closing:

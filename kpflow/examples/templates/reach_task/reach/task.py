@@ -37,7 +37,10 @@ class ReachEnv(gym.Env):
         return self._obs(), {"is_success": False}
 
     def step(self, action):
-        move = np.clip(np.asarray(action, np.float64), 0.0, 1.0) - self.agent
+        action = np.asarray(action, np.float64)
+        if action.shape != (2,) or not np.isfinite(action).all():  # what kpflow's envs refuse: never move on NaN
+            raise ValueError(f"action must be 2 finite numbers (a target x, y in [0, 1]), got {action.tolist()!r}")
+        move = np.clip(action, 0.0, 1.0) - self.agent  # a target outside the space is clipped to it
         self.agent = self.agent + move * min(1.0, SPEED / max(np.linalg.norm(move), 1e-12))
         success = bool(np.linalg.norm(self.agent - self.target) < TOLERANCE)
         return self._obs(), float(success), success, False, {"is_success": success}
