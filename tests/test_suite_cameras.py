@@ -21,8 +21,6 @@ SPEC = task_spec("lift")
 
 @pytest.fixture(scope="module")
 def env():
-    # one rendering environment for the module: a robosuite environment's GL context, freed while another one's is
-    # current, frees that one's buffers too
     return SuiteEnv(SPEC, render=True)
 
 
@@ -126,8 +124,51 @@ def test_a_nuts_ring_end_and_yaw_come_from_its_footprint(yaw):
     assert abs((yaw_of(rot) - yaw + np.pi) % (2 * np.pi) - np.pi) < np.radians(2) and half is None
 
 
+# ------------------------------------------------------------------------------- GL contexts and broken renders
+def test_another_environment_freed_leaves_this_ones_frames_as_they_were(env):
+    """Issue 63.9: robosuite frees a renderer in whichever GL context is current, and freeing one environment's while
+    another's was current turned the other's frames to noise; kpflow frees each in its own (kpflow/utils/offscreen.py),
+    so the frames of an environment do not depend on what other environments were built and collected before."""
+    import gc
+
+    cameras = SuiteCameras(("frontview",), 120, 160)
+    env.reset_to(sample_scene(SPEC, env, "d0", 0))
+    before = cameras.capture(env)[0]
+    other = SuiteEnv(SPEC, render=True)
+    other.reset_to(sample_scene(SPEC, other, "wide", 3))
+    cameras.capture(other)
+    env.sim._render_context_offscreen.gl_ctx.make_current()  # this one's context current as the other is collected
+    del other
+    gc.collect()
+    after = cameras.capture(env)[0]
+    np.testing.assert_array_equal(after.rgb, before.rgb)
+    np.testing.assert_array_equal(after.depth, before.depth)
+
+
+def test_a_broken_render_is_refused_by_name_not_clipped_into_depths(env):
+    """Issue 63.9: a z-buffer with NaN (or values outside [0, 1]) is refused naming the camera, in the perception
+    path too: a broken sensor is not an object unseen this time (a ValueError there would be read as that)."""
+    from kpflow.tasks.suite.gym_env import SuiteGymEnv
+    from kpflow.tasks.suite.task import SuiteTask
+    from kpflow.utils.offscreen import BrokenRender, metric_depth
+
+    zbuffer = np.full((4, 6), 0.99)
+    assert np.isfinite(metric_depth(env.sim, zbuffer, "frontview")).all()
+    for bad in (np.nan, 1.5e38, -0.2):
+        zbuffer[1, 2] = bad
+        with pytest.raises(BrokenRender, match=r"camera 'frontview' rendered a broken depth image \(1 of 24 pixels not a z-buffer value in \[0, 1\]\)"):
+            metric_depth(env.sim, zbuffer, "frontview")
+    broken, other = SuiteEnv(SPEC, render=True), SuiteEnv(SPEC, render=True)
+    broken.sim._render_context_offscreen.gl_ctx.make_current()
+    other.sim._render_context_offscreen.con.free()  # freed the way robosuite frees it, in the context current: broken's
+    with pytest.raises(BrokenRender, match="rendered a broken depth image"):
+        SuiteCameras(("frontview",), 120, 160).capture(broken)
+    gym = SuiteGymEnv(broken, "d0", SuiteTask("lift").policy_layout.n_keypoints, CameraKeypoints(SuiteCameras(("frontview",), 120, 160)))
+    with pytest.raises(BrokenRender):
+        gym.reset(seed=0)
+
+
 # ---------------------------------------------------------------------------------------- keypoints=camera in use
-_ALIVE: list = []  # rendering environments built by a test stay alive to the module's end (see the env fixture)
 
 
 class CountingCameras(CameraKeypoints):
@@ -181,7 +222,6 @@ def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():
     task = SuiteTask("lift", KeypointSource("camera", cameras=("frontview", "agentview")))
     generator = Generator(task, {"rigid": SegmentTransport(lambda: AffineMap("rigid"))})
     generator.setup()
-    _ALIVE.append(generator)
     first, episode = generator.attempt("wide", 1, "rigid")
     generator.attempt("d0", 0, "rigid")
     again, episode_again = generator.attempt("wide", 1, "rigid")
@@ -190,7 +230,7 @@ def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():
     assert isinstance(task.perception, CameraKeypoints)
 
 
-def test_a_picked_cube_is_carried_by_the_jaws():
+def test_a_picked_cube_is_carried_by_the_jaws(env):
     """The ring around a held cube's mask is fingers and floor, not what it stands on: the support is not trusted.
     The task's run signals the grasp to its camera perception, which then carries the cube from where it stood: the
     in-hand keypoints within a centimetre of the simulator's, with no capture needed."""
@@ -201,7 +241,6 @@ def test_a_picked_cube_is_carried_by_the_jaws():
     from kpflow.vision.keypoint_source import KeypointSource
 
     task = SuiteTask("lift", KeypointSource("camera", noise=CameraNoise.off()))
-    env = _ALIVE[0].env if _ALIVE else SuiteEnv(SPEC, render=True)
     env.reset_to(sample_scene(SPEC, env, "d0", 2))
     perception = task.perception
     standing = perception.poses(env, SPEC, ["cube"])["cube"]

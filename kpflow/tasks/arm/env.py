@@ -22,6 +22,7 @@ installed (``make`` installs it) and Mesa's software ``egl`` otherwise.
 from __future__ import annotations
 
 from kpflow.utils.headless import use_headless_gl
+from kpflow.utils.offscreen import metric_depth, render
 
 use_headless_gl()  # before MuJoCo is imported
 
@@ -303,7 +304,7 @@ class SuctionArmEnv(ManipulationEnv):
     # ------------------------------------------------------------------------------------------ camera
     def render_view(self, camera: str = "sideview", size: tuple[int, int] = (240, 320)) -> np.ndarray:
         """An RGB frame ``[H, W, 3]`` from one of the arena's cameras (for videos)."""
-        rgb = self.sim.render(camera_name=camera, width=size[1], height=size[0])
+        rgb = render(self, self.sim, camera, *size)
         return np.ascontiguousarray(rgb[::-1])
 
     def render_topdown(self) -> dict:
@@ -311,15 +312,15 @@ class SuctionArmEnv(ManipulationEnv):
         geom seen at each pixel, -1: none), ``masks`` (object name -> the object's pixels ``[H, W]`` bool),
         ``intrinsics [3, 3]`` and ``camera_to_world [4, 4]`` (OpenCV axes); row 0 is the image's top."""
         h, w = self.camera_size
-        rgb, depth = self.sim.render(camera_name=CAMERA, width=w, height=h, depth=True)
-        seg = self.sim.render(camera_name=CAMERA, width=w, height=h, segmentation=True)
+        rgb, depth = render(self, self.sim, CAMERA, h, w, depth=True)
+        seg = render(self, self.sim, CAMERA, h, w, segmentation=True)
         rgb, depth, seg = rgb[::-1], depth[::-1], seg[::-1]  # OpenGL rows are bottom-up
         is_geom = seg[..., 0] == int(mujoco.mjtObj.mjOBJ_GEOM)
         masks = {k: is_geom & np.isin(seg[..., 1], g) for k, g in self.object_geoms.items()}
         return {
             "geom_ids": np.ascontiguousarray(np.where(is_geom, seg[..., 1], -1)),
             "rgb": np.ascontiguousarray(rgb),
-            "depth": camera_utils.get_real_depth_map(self.sim, np.ascontiguousarray(depth)),
+            "depth": metric_depth(self.sim, np.ascontiguousarray(depth), CAMERA),
             "masks": masks,
             "intrinsics": camera_utils.get_camera_intrinsic_matrix(self.sim, CAMERA, h, w),
             "camera_to_world": camera_utils.get_camera_extrinsic_matrix(self.sim, CAMERA),

@@ -3,7 +3,8 @@ calibration.
 
 :class:`SuiteCameras` renders, for each named camera of the task's model (``frontview``, ``birdview``,
 ``agentview``, ``sideview``, ...), the colour image, the depth (MuJoCo's normalised z-buffer turned into metres by
-``robosuite.utils.camera_utils.get_real_depth_map``) and the instance segmentation (the geom under each pixel), and
+``robosuite.utils.camera_utils.get_real_depth_map``; a broken one refused, :func:`kpflow.utils.offscreen.metric_depth`)
+and the instance segmentation (the geom under each pixel), and
 returns :class:`~kpflow.vision.cameras.CameraFrame` s with the intrinsics and the camera's world pose from
 ``get_camera_intrinsic_matrix`` / ``get_camera_extrinsic_matrix`` (OpenCV axes). OpenGL reads images bottom row
 first; frames are flipped to a camera's top-row-first order, the order robosuite's intrinsics assume. The
@@ -21,6 +22,7 @@ import mujoco
 import numpy as np
 from robosuite.utils import camera_utils
 
+from kpflow.utils.offscreen import metric_depth, render
 from kpflow.vision.cameras import CameraFrame
 
 #: the cameras used unless a config names others: one in front of the table, looking down at 15 degrees from the
@@ -61,17 +63,16 @@ class SuiteCameras:
         """One :class:`CameraFrame` per camera, of the scene as it is now."""
         self.check(env)
         sim, h, w = env.sim, int(self.height), int(self.width)
-        sim._render_context_offscreen.gl_ctx.make_current()  # its own GL context: another environment's may be current
         frames = []
-        for name in self.names:
-            rgb, depth = sim.render(camera_name=name, width=w, height=h, depth=True)
-            seg = sim.render(camera_name=name, width=w, height=h, segmentation=True)
+        for name in self.names:  # each render in the env's own GL context (kpflow/utils/offscreen.py)
+            rgb, depth = render(env, sim, name, h, w, depth=True)
+            seg = render(env, sim, name, h, w, segmentation=True)
             ids = np.where(seg[..., 0] == mujoco.mjtObj.mjOBJ_GEOM, seg[..., 1], -1)
             frames.append(
                 CameraFrame(
                     name,
                     np.ascontiguousarray(rgb[::-1]),
-                    np.ascontiguousarray(camera_utils.get_real_depth_map(sim, np.clip(depth, 0.0, 1.0))[::-1], dtype=np.float64),
+                    np.ascontiguousarray(metric_depth(sim, depth, name)[::-1]),  # a broken z-buffer refused, not clipped
                     camera_utils.get_camera_intrinsic_matrix(sim, name, h, w),
                     camera_utils.get_camera_extrinsic_matrix(sim, name),
                     np.ascontiguousarray(ids[::-1]),

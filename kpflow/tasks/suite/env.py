@@ -18,6 +18,7 @@ Rendering is headless on the CPU (``MUJOCO_GL=osmesa`` when Debian's libosmesa6 
 from __future__ import annotations
 
 from kpflow.utils.headless import use_headless_gl
+from kpflow.utils.offscreen import own_renderer, render
 
 use_headless_gl()  # before MuJoCo is imported
 
@@ -74,6 +75,7 @@ class SuiteEnv:
         )
         self.env.reset()
         self.sim = self.env.sim
+        own_renderer(self, self.sim)  # freed in its own GL context, never in another environment's
         robot = self.env.robots[0]
         self.grip_site = robot.eef_site_id["right"]
         self._arm_qpos = robot._ref_joint_pos_indexes
@@ -186,5 +188,5 @@ class SuiteEnv:
 
     def render_view(self, camera: str = "frontview", size: tuple[int, int] = (240, 320)) -> np.ndarray:
         """An RGB frame ``[H, W, 3]`` from one of the task's cameras (for videos; needs ``render=True``)."""
-        rgb = self.sim.render(camera_name=camera, width=size[1], height=size[0])
+        rgb = render(self, self.sim, camera, *size)
         return np.ascontiguousarray(rgb[::-1])
