@@ -10,7 +10,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf, open_dict
 
-CONF = Path(__file__).resolve().parents[1] / "kpflow" / "conf"
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "kpflow" / "conf"
 
 
 def rotation(d: int, angle: float, dtype=torch.float64) -> torch.Tensor:
@@ -130,3 +131,43 @@ def cube_corners(centre, yaw: float, half: float = 0.021) -> np.ndarray:
     """The 8 corners ``[8, 3]`` of a cube of half side ``half`` at ``centre``, turned by ``yaw``."""
     signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
     return np.asarray(centre) + (signs * half) @ yaw_matrix(yaw).T
+
+
+def run_command(module: str, *args: str, env: dict[str, str] | None = None):
+    """Run command ``module`` (``kpflow.cli.serve``, what ``python -m module`` runs: its ``main``) in this process with
+    ``args`` as its command line, as a subprocess would run it but without importing everything again: a
+    ``subprocess.CompletedProcess`` of its exit code and what it printed. ``env`` sets variables for the run (the
+    traceback switches are cleared unless given); the run folder it claimed is let go after, as at a process's end.
+
+    For error paths, where a fresh process adds nothing but its imports; true end-to-end runs stay subprocesses."""
+    import contextlib
+    import importlib
+    import io
+    import subprocess
+    import sys
+
+    from kpflow.utils.run import end_run
+
+    main = importlib.import_module(module).main
+    saved_argv, saved_env, saved_cwd = sys.argv, dict(os.environ), os.getcwd()
+    os.chdir(ROOT)  # where a subprocess of these tests runs: relative paths (release/...) read from the clone
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    os.environ.pop("KPFLOW_TRACEBACK", None)
+    os.environ.pop("HYDRA_FULL_ERROR", None)
+    os.environ.update(env or {})
+    sys.argv = [module, *args]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                result = main()
+                code = result if isinstance(result, int) else 0
+            except SystemExit as stop:
+                code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+            finally:
+                end_run()
+    finally:
+        os.chdir(saved_cwd)
+        sys.argv = saved_argv
+        os.environ.clear()
+        os.environ.update(saved_env)
+    return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())

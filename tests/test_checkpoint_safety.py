@@ -19,7 +19,7 @@ from kpflow.data.chunks import ChunkDataModule
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import SafeCheckpointIO, UnsafeCheckpointError, load_checkpoint, read_checkpoint
-from tests.helpers import walk_to_block_store
+from tests.helpers import run_command, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 H = 8
@@ -79,28 +79,25 @@ def test_planted_payload_is_refused_in_process(kcfm_run, tmp_path):
     assert marker.exists()
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("policy", ["kcfm", "transported_kcfm"])
 def test_planted_payload_is_refused_by_evaluate(kcfm_run, tmp_path, policy):
     marker = tmp_path / "pwned"
     evil = plant(kcfm_run / "good.ckpt", tmp_path / "evil.ckpt", marker)
-    cmd = [sys.executable, "evaluate.py", f"policy={policy}", f"policy.checkpoint={evil}", f"data.path={tmp_path / 'demos.zarr'}",
-           "n_configs=1", "workers=1", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.evaluate", f"policy={policy}", f"policy.checkpoint={evil}", f"data.path={tmp_path / 'demos.zarr'}",
+                       "n_configs=1", "workers=1", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}")  # fmt: skip
     assert done.returncode != 0 and "was refused" in done.stderr, done.stderr[-2000:]
     assert not marker.exists()
 
 
-@pytest.mark.slow
 def test_planted_payload_is_refused_when_resuming_training(tmp_path):
     marker = tmp_path / "pwned"
     run = tmp_path / "run"
-    base = [sys.executable, "train.py", "experiment=frames_field", "logger=none", f"hydra.run.dir={run}", "data.n_points=60", "trainer.enable_progress_bar=false"]
-    done = subprocess.run(base + ["trainer.max_epochs=1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    base = ["kpflow.cli.train", "experiment=frames_field", "logger=none", f"hydra.run.dir={run}", "data.n_points=60", "trainer.enable_progress_bar=false"]
+    done = run_command(*base, "trainer.max_epochs=1")
     assert done.returncode == 0, done.stderr[-2000:]
     last = run / "checkpoints" / "last.ckpt"
     plant(last, last, marker)
-    done = subprocess.run(base + ["trainer.max_epochs=2", "resume=true"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command(*base, "trainer.max_epochs=2", "resume=true")  # a payload that ran would run in this process
     assert done.returncode != 0 and "was refused" in done.stderr, done.stderr[-2000:]
     assert not marker.exists()
 

@@ -3,8 +3,6 @@ short message: a policy checkpoint of another task (its keypoints and actions ag
 map that is missing, not a learned map's checkpoint, or trained on other keypoints than it would be fitted on."""
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +11,7 @@ import pytest
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.factory import check_checkpoint_fits
 from kpflow.tasks.pusht.task import PushTTask
-from tests.helpers import train_learned_map
+from tests.helpers import run_command, train_learned_map
 
 ROOT = Path(__file__).resolve().parents[1]
 PUSHT_CKPT = "release/pusht_table1_kcfm_35_corrected.ckpt"
@@ -25,8 +23,7 @@ TRANSPORT = ["policy=transport", "split=in_distribution", "n_configs=1", "worker
 def evaluate(tmp_path, *args: str) -> list[str]:
     """Run evaluate.py, which must fail; its stderr lines but robosuite's notices on import (five on every import,
     whatever happens after)."""
-    cmd = [sys.executable, "evaluate.py", *args, f"hydra.run.dir={tmp_path / 'run'}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.evaluate", *args, f"hydra.run.dir={tmp_path / 'run'}")  # the error path, in this process
     assert done.returncode == 1, done.stderr[-3000:]
     lines = [line for line in done.stderr.strip().splitlines() if not line.startswith("[robosuite WARNING]")]
     assert len(lines) <= 3 and lines[0].startswith("error: "), done.stderr[-3000:]
@@ -80,8 +77,7 @@ def test_a_learned_map_of_other_keypoints_is_refused_naming_both_layouts(tmp_pat
 
 def test_a_required_key_left_out_is_named_with_how_to_give_it(tmp_path):
     """``kpflow-train experiment=kcfm`` without ``data.path`` (a ``???`` in the config): one line naming the key."""
-    cmd = [sys.executable, "train.py", "experiment=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.train", "experiment=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}")
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and lines[0] == "error: config key data.path is required and not given: add data.path=<value> to the command", done.stderr
 
@@ -94,8 +90,7 @@ def test_a_policy_checkpoint_is_spelled_checkpoint_and_named_when_left_out(tmp_p
     for entry in ("evaluate", "collect", "correct"):
         given = compose_config(entry, ["policy=kcfm", "checkpoint=release:pusht_standard_fast"], tmp_path)
         assert given.policy.checkpoint == "release:pusht_standard_fast", entry
-    cmd = [sys.executable, "evaluate.py", "policy=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.evaluate", "policy=kcfm", "logger=none", f"hydra.run.dir={tmp_path / 'run'}")
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and lines[0] == "error: config key checkpoint is required and not given: add checkpoint=<value> to the command", done.stderr
     assert not (tmp_path / "run").exists()

@@ -20,7 +20,7 @@ from kpflow.data.episode_store import LOCK_NAME, EpisodeStore, UnverifiedStoreWa
 from kpflow.data.lerobot_dataset import export_lerobot, import_lerobot
 from kpflow.utils.file_lock import UnsafeLockFile
 from kpflow.utils.run import RUN_LOCK, claim_run_folder
-from tests.helpers import walk_to_block_store
+from tests.helpers import run_command, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,8 +52,7 @@ def test_a_store_lock_that_is_a_link_is_refused_and_its_target_untouched(store, 
     with pytest.raises(UnsafeLockFile, match=rf"{LOCK_NAME} is a symbolic link: a lock file is never followed"):
         EpisodeStore(store, mode="a")  # what kpflow-verify seal=true opens
     assert target.read_text() == "do not touch"
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", f"store={store}", "seal=true"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.verify", f"store={store}", "seal=true")
     assert done.returncode == 1 and "is a symbolic link" in done.stderr and len(done.stderr.strip().splitlines()) == 2, done.stderr
     assert target.read_text() == "do not touch"
 
@@ -199,8 +198,7 @@ def test_a_lerobot_dataset_with_no_frames_is_refused_by_name(dataset, tmp_path):
 def test_a_broken_yaml_under_the_config_dir_is_one_line(tmp_path):
     (tmp_path / "task").mkdir()
     (tmp_path / "task" / "broken.yaml").write_text("a: [1, 2\nb: {\n")
-    done = subprocess.run([sys.executable, "evaluate.py", "--config-dir", str(tmp_path), "task=broken"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.evaluate", "--config-dir", str(tmp_path), "task=broken")
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and len(lines) == 2, done.stderr
     assert lines[0] == f"error: {tmp_path / 'task' / 'broken.yaml'}, line 2 column 2: not valid YAML (expected ',' or ']', but got ':')"

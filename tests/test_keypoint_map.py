@@ -20,7 +20,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.lerobot_dataset import KeypointMap, export_lerobot, import_lerobot
 from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.utils.checkpoint import read_checkpoint
-from tests.helpers import child_env
+from tests.helpers import child_env, run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "concepts" / "data.md"
@@ -198,7 +198,6 @@ def test_diffusion_policys_raw_zarr_is_refused_naming_its_importer(tmp_path):
     if shared.is_dir():
         with pytest.raises(ValueError, match="is Diffusion Policy's raw Push-T replay buffer"):
             ChunkDataModule(shared).setup()
-    cmd = [sys.executable, "-m", "kpflow.cli.train", "experiment=kcfm", f"data.path={raw}", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
-    done = subprocess.run(cmd, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.train", "experiment=kcfm", f"data.path={raw}", "logger=none", f"hydra.run.dir={tmp_path / 'run'}")
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and re.fullmatch(f"error: {expected}.*", lines[0]) and len(lines) == 2, done.stderr[-3000:]

@@ -17,6 +17,7 @@ from kpflow.tasks.pusht.demonstrator import CONTACTS, NORMALS, PushTExpert
 from kpflow.tasks.pusht.geometry import AGENT_RADIUS, N_KEYPOINTS, OUTLINE, to_world
 from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.routing import padded_obstacle, path_length, retime, shortest_path, smooth
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -151,10 +152,8 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
 
 @pytest.mark.slow
 def test_collect_cli_names_an_unknown_task(tmp_path):
-    cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = run_command("kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}")
     assert done.returncode != 0 and "collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not PackingTask" in done.stderr  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()
-    cmd = [sys.executable, "-m", "kpflow.cli.collect", "task=nope", f"hydra.run.dir={tmp_path}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = run_command("kpflow.cli.collect", "task=nope", f"hydra.run.dir={tmp_path}")
     assert done.returncode != 0 and "task/nope" in done.stderr and "pusht" in done.stderr  # Hydra lists the tasks

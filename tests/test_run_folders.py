@@ -20,6 +20,7 @@ import yaml
 from kpflow.data.episode_store import LOCK_NAME
 from kpflow.utils.file_lock import FileLock
 from kpflow.utils.run import RUN_LOCK, RunFolderInUse, claim_run_folder
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 HANG_GUARD_S = 300  # a run that never gets there fails the test instead of hanging it (not a timing assertion)
@@ -45,8 +46,10 @@ def finish(proc: subprocess.Popen, log: Path) -> tuple[int, str, str]:
     return rc, Path(f"{log}.out").read_text(), Path(f"{log}.err").read_text()
 
 
-def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=HANG_GUARD_S)
+def run(script: str, *args: str) -> subprocess.CompletedProcess:
+    """``python script *args`` (``evaluate.py``, ``train.py``) run in this process (tests.helpers.run_command): the
+    runs a test starts beside a live one; the live one is a real process of its own."""
+    return run_command({"evaluate.py": "kpflow.cli.evaluate", "train.py": "kpflow.cli.train"}[script], *args)
 
 
 def gate(store: Path) -> FileLock:

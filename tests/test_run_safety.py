@@ -16,6 +16,7 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.demos import ensure_pusht_demos
 from kpflow.utils.config_checks import TRAINER_KEYS, Key, check_config
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,15 +78,14 @@ def run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("cmd", [
-    ("evaluate.py", "n_configs=abc"),
-    ("-m", "kpflow.cli.collect", "split=bogus"),
-    ("-m", "kpflow.cli.correct", "rounds=0"),
-    ("train.py", "trainer.max_epochs=abc"),
+    ("kpflow.cli.evaluate", "n_configs=abc"),
+    ("kpflow.cli.collect", "split=bogus"),
+    ("kpflow.cli.correct", "rounds=0"),
+    ("kpflow.cli.train", "trainer.max_epochs=abc"),
 ], ids=["evaluate", "collect", "correct", "train"])  # fmt: skip
-@pytest.mark.slow
 def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
     out = tmp_path / "run"
-    done = run(*cmd, f"hydra.run.dir={out}")
+    done = run_command(*cmd, f"hydra.run.dir={out}")  # in this process: the error path needs no fresh interpreter
     assert done.returncode != 0 and "config key" in done.stderr, done.stderr[-2000:]
     assert not out.exists()
 
@@ -98,9 +98,9 @@ def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_
     config = (out / "config.yaml").read_text()
     checkpoints = sorted(p.name for p in (out / "checkpoints").iterdir())
 
-    done = run(*base, "trainer.max_epochs=1")  # the same run_name again, without resume
+    done = run_command("kpflow.cli.train", *base[1:], "trainer.max_epochs=1")  # the same run_name again, without resume
     assert done.returncode != 0 and "already holds a run" in done.stderr and "resume=true" in done.stderr
-    done = run(*base, "trainer.max_epochs=2", "resume=true", "model.hidden=64")  # a resume that cannot work
+    done = run_command("kpflow.cli.train", *base[1:], "trainer.max_epochs=2", "resume=true", "model.hidden=64")  # a resume that cannot work
     assert done.returncode != 0 and "does not fit the configured model" in done.stderr and "net.0.weight" in done.stderr
     assert (out / "config.yaml").read_text() == config  # the run's config, as it was
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == checkpoints  # no last-v1.ckpt beside them

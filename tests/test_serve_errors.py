@@ -1,7 +1,8 @@
 """What ``kpflow-serve`` and ``kpflow-release`` say when they cannot run (issue 40): exit code 1
 and at most 3 lines on stderr naming the problem (the host, the port, the file, the config key), the traceback only
 with KPFLOW_TRACEBACK=1. A host that does not resolve and a port already taken are refused before the model is
-loaded. The real commands in subprocesses, a real socket holding the port."""
+loaded. The real commands, run in this process (their error paths need no fresh interpreter; the traceback switch,
+read at start-up, in a subprocess), a real socket holding the port."""
 
 import os
 import socket
@@ -11,16 +12,24 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import run_command
+
 ROOT = Path(__file__).resolve().parents[1]
 RELEASED = ROOT / "release" / "pusht_standard_kcfm_human.ckpt"
 LOADED = "sha256"  # what serve logs once the model is loaded
 
 
 def run(*args: str, traceback: bool = False) -> subprocess.CompletedProcess:
+    """The command in a fresh process (what a user's shell runs): for the traceback switch, read at start-up."""
     env = {k: v for k, v in os.environ.items() if k not in ("KPFLOW_TRACEBACK", "HYDRA_FULL_ERROR")}
     if traceback:
         env["KPFLOW_TRACEBACK"] = "1"
     return subprocess.run([sys.executable, "-m", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
+
+
+def refused(*args: str) -> subprocess.CompletedProcess:
+    """The command run in this process (tests.helpers.run_command): the error paths need no fresh interpreter."""
+    return run_command(*args)
 
 
 def short_failure(done: subprocess.CompletedProcess, *names: str) -> None:
@@ -31,7 +40,7 @@ def short_failure(done: subprocess.CompletedProcess, *names: str) -> None:
 
 
 def test_a_host_that_does_not_resolve_is_refused_before_loading():
-    done = run("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123")
+    done = refused("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=999.1.1.1", "port=8123")
     short_failure(done, "999.1.1.1", "8123", "does not resolve")
     assert LOADED not in done.stdout  # refused before the model was loaded
 
@@ -47,7 +56,7 @@ def test_a_port_in_use_is_refused_before_loading():
         holder.bind(("127.0.0.1", 0))
         holder.listen()
         port = holder.getsockname()[1]
-        done = run("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=127.0.0.1", f"port={port}")
+        done = refused("kpflow.cli.serve", f"checkpoint={RELEASED}", "host=127.0.0.1", f"port={port}")
     short_failure(done, "127.0.0.1", str(port), "in use")
     assert LOADED not in done.stdout
 
@@ -55,14 +64,14 @@ def test_a_port_in_use_is_refused_before_loading():
 def test_a_corrupt_checkpoint_is_one_line_for_serve(tmp_path):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(b"not a checkpoint at all")
-    short_failure(run("kpflow.cli.serve", f"checkpoint={bad}", "port=0"), str(bad), "is not a readable checkpoint (not a torch file")
+    short_failure(refused("kpflow.cli.serve", f"checkpoint={bad}", "port=0"), str(bad), "is not a readable checkpoint (not a torch file")
 
 
 @pytest.mark.parametrize("content, why", [(b"not a checkpoint at all", "not a torch file"), (b"", "the file is empty")], ids=["garbage", "empty"])
 def test_a_corrupt_checkpoint_is_one_line_for_release(tmp_path, content, why):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(content)
-    short_failure(run("kpflow.cli.release", f"src={bad}", f"dst={tmp_path / 'out.ckpt'}"), str(bad), "is not a readable checkpoint", why)
+    short_failure(refused("kpflow.cli.release", f"src={bad}", f"dst={tmp_path / 'out.ckpt'}"), str(bad), "is not a readable checkpoint", why)
     assert not (tmp_path / "out.ckpt").exists()
 
 
@@ -76,4 +85,4 @@ def test_a_corrupt_checkpoint_is_one_line_for_release(tmp_path, content, why):
     ],
 )
 def test_bad_config_keys_are_named(override, message):
-    short_failure(run("kpflow.cli.serve", f"checkpoint={RELEASED}", override), message)
+    short_failure(refused("kpflow.cli.serve", f"checkpoint={RELEASED}", override), message)

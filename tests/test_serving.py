@@ -36,7 +36,7 @@ from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
 from kpflow.tasks.pusht.task import PushTTask
 from kpflow.tasks.suite.task import SuiteTask
-from tests.helpers import walk_to_block_store
+from tests.helpers import run_command, walk_to_block_store
 
 PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
@@ -369,6 +369,5 @@ def test_serve_cli_answers_then_stops_on_sigterm():
 
 
 def test_serve_cli_refuses_a_bad_config():
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.serve", f"checkpoint={RELEASED}", "transported=maybe"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.serve", f"checkpoint={RELEASED}", "transported=maybe")
     assert done.returncode != 0 and "config key transported must be true or false" in done.stderr

@@ -13,8 +13,6 @@ import json
 import pickle
 import shutil
 import struct
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +26,7 @@ from kpflow.data.source_index import SourceIndex
 from kpflow.data.zarr_checks import MAX_CHUNK_BYTES, UnsafeStoreError
 from kpflow.tasks.pusht.replay_import import import_pusht_replay
 from kpflow.utils.formats import read_npz, read_yaml
-from tests.helpers import walk_to_block_store
+from tests.helpers import run_command, walk_to_block_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -105,24 +103,22 @@ def test_pusht_importer_refuses_a_planted_replay_buffer(tmp_path):
     plant_pickle(source / "data/state", marker, "<f4")
     with pytest.raises(UnsafeStoreError, match="filters"):
         import_pusht_replay(source, tmp_path / "dest", progress=False)
-    done = subprocess.run([sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(tmp_path / "dest2"), "--no-progress"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = run_command("kpflow.tasks.pusht.replay_import", str(source), str(tmp_path / "dest2"), "--no-progress")
     assert done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr and len(done.stderr.splitlines()) == 2, done.stderr
     assert not marker.exists() and not (tmp_path / "dest").exists() and not (tmp_path / "dest2").exists()
     assert_live(source / "data/state", marker)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("entry", ["evaluate", "train"])
 def test_entry_points_refuse_a_planted_store(store, tmp_path, entry):
     marker = tmp_path / "pwned"
     plant_pickle(store / "data/action", marker, "<f4")
     common = ["data=pusht_store", f"data.path={store}", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"]
     if entry == "evaluate":
-        cmd = [sys.executable, "evaluate.py", "policy=transport", "split=in_distribution", "n_configs=1", "workers=1", *common]
+        cmd = ["kpflow.cli.evaluate", "policy=transport", "split=in_distribution", "n_configs=1", "workers=1", *common]
     else:
-        cmd = [sys.executable, "train.py", "experiment=pusht_kcfm", "data.workers=0", "trainer.max_epochs=1", *common]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+        cmd = ["kpflow.cli.train", "experiment=pusht_kcfm", "data.workers=0", "trainer.max_epochs=1", *common]
+    done = run_command(*cmd)  # in this process: a payload that ran would have run here, and made the marker
     assert done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr, done.stderr[-2000:]
     assert len(done.stderr.strip().splitlines()) <= 3, done.stderr  # one line, not a traceback
     assert not marker.exists()
@@ -238,8 +234,7 @@ def test_legacy_stores_read_unverified_refuse_appends_until_sealed(store, tmp_pa
     episode = opened.episode(0)
     with EpisodeStore(legacy, mode="a") as s, pytest.raises(ValueError, match="written without checksums .*kpflow-verify seal=true"):
         s.add_episode(episode)
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "seal=true", "progress=false", f"store={legacy}"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.verify", "seal=true", "progress=false", f"store={legacy}")
     assert done.returncode == 0 and "sealed now" in done.stdout, done.stderr
     with EpisodeStore(legacy, mode="a") as s:
         assert s.sealed and s.add_episode(episode) == 8
@@ -248,16 +243,14 @@ def test_legacy_stores_read_unverified_refuse_appends_until_sealed(store, tmp_pa
 
 
 def test_verify_command_names_the_damaged_field_and_episode(store):
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "progress=false", f"store={store}"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.verify", "progress=false", f"store={store}")
     assert done.returncode == 0 and f"{store}: 8 episodes, 160 steps, fields action, keypoints: verified" in done.stdout
 
     def nudge(values):
         values[159 * 2 + 1] += 1.0  # the last row's y: episode 7 (the chunk's rows past 160 hold no data)
 
     rewrite_chunk(store / "data/action", "0.0", nudge)
-    done = subprocess.run([sys.executable, "-m", "kpflow.cli.verify", "progress=false", f"store={store}"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)  # fmt: skip
+    done = run_command("kpflow.cli.verify", "progress=false", f"store={store}")
     assert done.returncode == 1 and "field 'action' of episode 7 does not match the checksum" in done.stderr, done.stderr
 
 

@@ -9,6 +9,7 @@ import torch
 
 from kpflow.policies.neural_field import NeuralVectorField
 from kpflow.utils.checkpoint import load_checkpoint
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,8 +41,7 @@ def test_train_resume_and_reload(tmp_path):
 
 @pytest.mark.slow
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
-    cmd = [sys.executable, "train.py", "experiment=frames_field", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = run_command("kpflow.cli.train", "experiment=frames_field", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true")
     assert done.returncode != 0 and "does not exist" in done.stderr
 
 
