@@ -193,27 +193,45 @@ def test_results_figures_and_checkpoints_cut_short_by_a_full_disk_leave_nothing(
     assert list(tmp_path.iterdir()) == []
 
 
+GATED_IMPORT = """
+import sys, time
+from pathlib import Path
+import kpflow.tasks.pusht.replay_import as replay_import
+
+gate, fields = Path(sys.argv[1]), replay_import.episode_fields
+def gated(*args):  # the first episode waits while the gate file is there: the import is under way, held
+    while gate.exists():
+        time.sleep(0.02)
+    return fields(*args)
+replay_import.episode_fields = gated
+sys.exit(replay_import.main(sys.argv[2:]))
+"""
+
+
 def test_a_second_import_into_one_folder_at_once_is_refused_by_name(tmp_path):
     """Issue 63.3: two imports into one data folder without --overwrite: the second is refused, naming the folder
-    and the first's pid, while the first runs; after it, the folder holds episodes and is refused as such."""
+    and the first's pid, while the first runs (a real import in another process, held at its first episode); after
+    it, the folder holds episodes and is refused as such."""
     from kpflow.tasks.pusht.replay_import import import_pusht_replay
     from kpflow.utils.file_lock import LockHeld
 
-    source, dest = tmp_path / "replay.zarr", tmp_path / "demos.zarr"
-    write_replay_buffer(source, 1500)
-    cmd = [sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(dest), "--no-progress"]
+    source, dest, gate = tmp_path / "replay.zarr", tmp_path / "demos.zarr", tmp_path / "gate"
+    write_replay_buffer(source, 30)
+    gate.touch()
+    cmd = [sys.executable, "-c", GATED_IMPORT, str(gate), str(source), str(dest), "--no-progress"]
     first = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while not any(tmp_path.glob(".demos.zarr.*.tmp.zarr")):
-        assert first.poll() is None and time.monotonic() - t0 < 60, first.stderr.read()
+        assert first.poll() is None and time.monotonic() - t0 < 120, first.stderr.read()
         time.sleep(0.02)
     with pytest.raises(LockHeld, match=rf"demos.zarr is being written by process {first.pid} \(.demos.zarr.lock is held\)"):
         import_pusht_replay(source, dest, progress=False)
+    gate.unlink()
     out, err = first.communicate(timeout=120)
-    assert first.returncode == 0 and out.startswith("imported 1500 episodes"), err
-    with pytest.raises(FileExistsError, match="demos.zarr already holds 1500 episodes; pass overwrite=True"):
+    assert first.returncode == 0 and out.startswith("imported 30 episodes"), err
+    with pytest.raises(FileExistsError, match="demos.zarr already holds 30 episodes; pass overwrite=True"):
         import_pusht_replay(source, dest, progress=False)
-    assert len(EpisodeStore(dest)) == 1500 and sorted(p.name for p in tmp_path.iterdir()) == ["demos.zarr", "replay.zarr"]
+    assert len(EpisodeStore(dest)) == 30 and sorted(p.name for p in tmp_path.iterdir()) == ["demos.zarr", "replay.zarr"]
 
 
 def test_a_folder_made_meanwhile_is_never_replaced_without_overwrite(tmp_path):
