@@ -1,7 +1,8 @@
-"""train.py trains, checkpoints, resumes the same run, and its checkpoints reload for deployment."""
+"""train.py trains, checkpoints, resumes the same run, and its checkpoints reload for deployment. The commands run in
+this process (tests.helpers.run_command: their main with the command line); the tutorials, the newcomer's test and
+the installed wheel's run them as a user's shell does."""
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,12 +12,10 @@ from kpflow.policies.neural_field import NeuralVectorField
 from kpflow.utils.checkpoint import load_checkpoint
 from tests.helpers import run_command
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def train(tmp: Path, *extra: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "train.py", "experiment=frames_field", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    cmd = ["experiment=frames_field", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
+    done = run_command("kpflow.cli.train", *cmd)
     assert done.returncode == 0, done.stderr[-3000:]
     return done
 
@@ -62,14 +61,14 @@ def test_bad_data_config_is_a_clear_error():
         TransportedDemosDataModule(ILWRMap, n_configs=4, target=7)
 
 
-def train_then_resume(train: list[str], root: Path, run: Path) -> Path:
-    """Run the ``train.py`` command for one epoch, then resume it to two; the resumed run continues the step count.
+def train_then_resume(train: list[str], run: Path) -> Path:
+    """Run ``kpflow-train *train`` for one epoch, then resume it to two; the resumed run continues the step count.
     Returns the run's last.ckpt."""
-    done = subprocess.run(train + ["trainer.max_epochs=1"], cwd=root, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.train", *train, "trainer.max_epochs=1")
     assert done.returncode == 0, done.stderr[-3000:]
     last = run / "checkpoints" / "last.ckpt"
     first_step = torch.load(last, map_location="cpu", weights_only=True)["global_step"]
-    done = subprocess.run(train + ["trainer.max_epochs=2", "resume=true"], cwd=root, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.train", *train, "trainer.max_epochs=2", "resume=true")
     assert done.returncode == 0, done.stderr[-3000:]
     assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 2 * first_step  # continued
     return last
@@ -84,11 +83,10 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     import kpflow
     from kpflow.tasks.pusht import PushTEnv, split_config
 
-    root = Path(__file__).resolve().parents[1]
     demos = f"data.path={tmp_path / 'demos.zarr'}"
-    train = [sys.executable, "train.py", "experiment=pusht_kcfm", "data.n_episodes=2", "data.workers=1", demos,
+    train = ["experiment=pusht_kcfm", "data.n_episodes=2", "data.workers=1", demos,
              "data.batch_size=64", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
-    last = train_then_resume(train, root, tmp_path / "run")
+    last = train_then_resume(train, tmp_path / "run")
 
     policy = kpflow.load_policy(last, steps=4, execute=8)
     obs, _ = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})
@@ -97,9 +95,9 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     policy.reset(0)
     assert a.shape == (8, 2) and np.isfinite(a).all() and np.array_equal(a, policy.act(obs))
 
-    evaluate = [sys.executable, "evaluate.py", "policy=kcfm", f"policy.checkpoint={last}", "policy.steps=2", "split=in_distribution",
+    evaluate = ["policy=kcfm", f"policy.checkpoint={last}", "policy.steps=2", "split=in_distribution",
                 "n_configs=1", "workers=1", "experiment.trial.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
-    done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.evaluate", *evaluate)
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"][0]["episodes"] == 1
 
@@ -110,17 +108,16 @@ def test_learned_map_trains_resumes_and_transports_from_the_cli(tmp_path):
     map=learned with its checkpoint."""
     import json
 
-    root = Path(__file__).resolve().parents[1]
     demos = f"data.sampler.path={tmp_path / 'demos.zarr'}"
-    train = [sys.executable, "train.py", "experiment=pusht_map", "data.sampler.n_episodes=2", "data.sampler.workers=1", demos,
+    train = ["experiment=pusht_map", "data.sampler.n_episodes=2", "data.sampler.workers=1", demos,
              "data.n_pairs=96", "data.batch_size=32", "model.n_layers=4", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
-    last = train_then_resume(train, root, tmp_path / "run")
+    last = train_then_resume(train, tmp_path / "run")
     assert (tmp_path / "run" / "config.yaml").exists()
 
-    evaluate = [sys.executable, "evaluate.py", "policy=transport", "map=learned", f"map.checkpoint={last}", "policy.fit_on=all",
+    evaluate = ["policy=transport", "map=learned", f"map.checkpoint={last}", "policy.fit_on=all",
                 "data.goals=recorded", "data.n_episodes=2",
                 f"data.path={tmp_path / 'demos.zarr'}", "split=in_distribution", "n_configs=1", "workers=1",
                 "experiment.trial.max_steps=16", "experiment.videos=0", "logger=none", f"hydra.run.dir={tmp_path / 'eval'}"]  # fmt: skip
-    done = subprocess.run(evaluate, cwd=root, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.evaluate", *evaluate)
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads((tmp_path / "eval" / "results.json").read_text())["summary"][0]["episodes"] == 1
