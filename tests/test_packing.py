@@ -3,8 +3,6 @@ demonstration, transport and one transported trial end to end."""
 
 import dataclasses
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from kpflow.tasks.packing.perception import box_corners, canonical_box, object_b
 from kpflow.tasks.packing.scene import CONTAINER_SIZE, OBJECT_AREA, SOURCE_SCENE, TABLE_TOP, Scene, sample_scene
 from kpflow.tasks.packing.task import PackingTask
 from kpflow.trajectory import Keypoints
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -194,10 +193,10 @@ def test_execute_reports_why_a_trial_failed(env, source):
 @pytest.mark.slow
 def test_evaluate_packing_cli_writes_table_plot_video_and_config(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "experiment=packing", "experiment.n_trials=1", "workers=1", "logger=none",
+        "experiment=packing", "experiment.n_trials=1", "workers=1", "logger=none",
         "experiment.conditions=[full]", "~experiment.trial.maps.ilwr", f"hydra.run.dir={tmp_path}",
     ]  # fmt: skip
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.evaluate", *cmd)  # in this process: what kpflow-evaluate runs, without re-importing
     assert done.returncode == 0, done.stderr[-3000:]
     cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert cfg["task"]["source"]["object_type"] == SOURCE_SCENE.object_type and cfg["experiment"]["n_trials"] == 1

@@ -3,8 +3,6 @@ lifting against it, the scripted demonstration, transport through exact and imag
 
 import dataclasses
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +24,7 @@ from kpflow.tasks.stacking.scene import AREA_X, SIDE_Y, SOURCE_SCENE, YAW_RANGE,
 from kpflow.tasks.stacking.task import StackingTask, StackingView
 from kpflow.trajectory import Trajectory
 from kpflow.vision import SiftBackbone, project_points
+from tests.helpers import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -170,11 +169,11 @@ def test_execute_reports_why_a_trial_failed(env, source):
 @pytest.mark.slow
 def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "experiment=stacking", "experiment.n_trials=1", "workers=1", "logger=none",
+        "experiment=stacking", "experiment.n_trials=1", "workers=1", "logger=none",
         "experiment.conditions=[moved]", "~experiment.trial.backbones.sift", "~experiment.trial.maps.gp_translation",
         "experiment.trial.report.examples=1", "experiment.videos=0", f"hydra.run.dir={tmp_path}",
     ]  # fmt: skip
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = run_command("kpflow.cli.evaluate", *cmd)  # in this process: what kpflow-evaluate runs, without re-importing
     assert done.returncode == 0, done.stderr[-3000:]
     cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert cfg["experiment"]["n_trials"] == 1 and cfg["task"]["source"]["cheese_pose"] == list(SOURCE_SCENE.cheese_pose)
