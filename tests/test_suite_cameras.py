@@ -158,9 +158,19 @@ def test_a_broken_render_is_refused_by_name_not_clipped_into_depths(env):
         zbuffer[1, 2] = bad
         with pytest.raises(BrokenRender, match=r"camera 'frontview' rendered a broken depth image \(1 of 24 pixels not a z-buffer value in \[0, 1\]\)"):
             metric_depth(env.sim, zbuffer, "frontview")
-    broken, other = SuiteEnv(SPEC, render=True), SuiteEnv(SPEC, render=True)
-    broken.sim._render_context_offscreen.gl_ctx.make_current()
-    other.sim._render_context_offscreen.con.free()  # freed the way robosuite frees it, in the context current: broken's
+    broken = SuiteEnv(SPEC, render=True)
+    real_render = broken.sim.render
+
+    def noisy(*args, **kwargs):  # what the damaged context gave on one worker: its real frame with NaN depth pixels
+        out = real_render(*args, **kwargs)
+        if kwargs.get("depth"):
+            rgb, depth = out
+            depth = depth.copy()
+            depth[::7, ::5] = np.nan
+            out = rgb, depth
+        return out
+
+    broken.sim.render = noisy  # a context damaged for real does not break every frame the same way: planted here
     with pytest.raises(BrokenRender, match="rendered a broken depth image"):
         SuiteCameras(("frontview",), 120, 160).capture(broken)
     gym = SuiteGymEnv(broken, "d0", SuiteTask("lift").policy_layout.n_keypoints, CameraKeypoints(SuiteCameras(("frontview",), 120, 160)))

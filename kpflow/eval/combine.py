@@ -120,7 +120,8 @@ def pool_shards(jobs: list[Path]) -> str | None:
 def results_files(sweep_dir: str | Path) -> dict[str, tuple[int, int]]:
     """The ``<sweep_dir>/<job>/results.md`` present now, each with its inode and modification time: what was there
     before a sweep began, so that :func:`combine_tables` leaves it out."""
-    return {str(p): (p.stat().st_ino, p.stat().st_mtime_ns) for p in Path(sweep_dir).glob("*/results.md") if p.is_file()}
+    stats = {str(p): p.stat() for p in Path(sweep_dir).glob("*/results.md") if p.is_file()}
+    return {p: (st.st_ino, st.st_mtime_ns) for p, st in stats.items()}
 
 
 def combine_tables(sweep_dir: str | Path, before: Mapping[str, tuple[int, int]] | None = None) -> Path | None:

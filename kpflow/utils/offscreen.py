@@ -38,24 +38,24 @@ def _free_in_own_context(context) -> None:
         pass
 
 
-def own_renderer(owner, sim) -> None:
-    """Make sure ``sim``'s offscreen renderer is freed in its own GL context when ``owner`` (the environment holding
-    ``sim``) is collected; once per renderer."""
-    context = sim._render_context_offscreen
+def own_renderer(env) -> None:
+    """Make sure the offscreen renderer of ``env.sim`` is freed in its own GL context when ``env`` (the environment
+    holding it) is collected; once per renderer."""
+    context = env.sim._render_context_offscreen
     if context is not None and not getattr(context, "_kpflow_owned", False):
         context._kpflow_owned = True
-        weakref.finalize(owner, _free_in_own_context, context)
+        weakref.finalize(env, _free_in_own_context, context)
 
 
-def render(owner, sim, camera: str, height: int, width: int, depth: bool = False, segmentation: bool = False):
-    """``sim.render`` of ``camera`` at ``height x width`` in ``sim``'s own GL context (rows bottom-up, as OpenGL reads
-    them); ``ValueError`` when ``sim`` has no offscreen renderer."""
-    context = sim._render_context_offscreen
+def render(env, camera: str, height: int, width: int, depth: bool = False, segmentation: bool = False):
+    """``env.sim.render`` of ``camera`` at ``height x width`` in the renderer's own GL context (rows bottom-up, as
+    OpenGL reads them); ``ValueError`` when ``env`` has no offscreen renderer."""
+    context = env.sim._render_context_offscreen
     if context is None:
         raise ValueError("this environment has no offscreen renderer: build it with render=True to take camera frames")
-    own_renderer(owner, sim)
+    own_renderer(env)  # a renderer made after the env was built (robosuite's hard reset) is owned too
     context.gl_ctx.make_current()
-    return sim.render(camera_name=camera, width=int(width), height=int(height), depth=depth, segmentation=segmentation)
+    return env.sim.render(camera_name=camera, width=int(width), height=int(height), depth=depth, segmentation=segmentation)
 
 
 def metric_depth(sim, zbuffer: np.ndarray, camera: str) -> np.ndarray:

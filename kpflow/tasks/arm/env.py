@@ -304,7 +304,7 @@ class SuctionArmEnv(ManipulationEnv):
     # ------------------------------------------------------------------------------------------ camera
     def render_view(self, camera: str = "sideview", size: tuple[int, int] = (240, 320)) -> np.ndarray:
         """An RGB frame ``[H, W, 3]`` from one of the arena's cameras (for videos)."""
-        rgb = render(self, self.sim, camera, *size)
+        rgb = render(self, camera, *size)
         return np.ascontiguousarray(rgb[::-1])
 
     def render_topdown(self) -> dict:
@@ -312,8 +312,8 @@ class SuctionArmEnv(ManipulationEnv):
         geom seen at each pixel, -1: none), ``masks`` (object name -> the object's pixels ``[H, W]`` bool),
         ``intrinsics [3, 3]`` and ``camera_to_world [4, 4]`` (OpenCV axes); row 0 is the image's top."""
         h, w = self.camera_size
-        rgb, depth = render(self, self.sim, CAMERA, h, w, depth=True)
-        seg = render(self, self.sim, CAMERA, h, w, segmentation=True)
+        rgb, depth = render(self, CAMERA, h, w, depth=True)
+        seg = render(self, CAMERA, h, w, segmentation=True)
         rgb, depth, seg = rgb[::-1], depth[::-1], seg[::-1]  # OpenGL rows are bottom-up
         is_geom = seg[..., 0] == int(mujoco.mjtObj.mjOBJ_GEOM)
         masks = {k: is_geom & np.isin(seg[..., 1], g) for k, g in self.object_geoms.items()}

@@ -65,8 +65,8 @@ class SuiteCameras:
         sim, h, w = env.sim, int(self.height), int(self.width)
         frames = []
         for name in self.names:  # each render in the env's own GL context (kpflow/utils/offscreen.py)
-            rgb, depth = render(env, sim, name, h, w, depth=True)
-            seg = render(env, sim, name, h, w, segmentation=True)
+            rgb, depth = render(env, name, h, w, depth=True)
+            seg = render(env, name, h, w, segmentation=True)
             ids = np.where(seg[..., 0] == mujoco.mjtObj.mjOBJ_GEOM, seg[..., 1], -1)
             frames.append(
                 CameraFrame(

@@ -75,7 +75,7 @@ class SuiteEnv:
         )
         self.env.reset()
         self.sim = self.env.sim
-        own_renderer(self, self.sim)  # freed in its own GL context, never in another environment's
+        own_renderer(self)  # freed in its own GL context, never in another environment's
         robot = self.env.robots[0]
         self.grip_site = robot.eef_site_id["right"]
         self._arm_qpos = robot._ref_joint_pos_indexes
@@ -188,5 +188,5 @@ class SuiteEnv:
 
     def render_view(self, camera: str = "frontview", size: tuple[int, int] = (240, 320)) -> np.ndarray:
         """An RGB frame ``[H, W, 3]`` from one of the task's cameras (for videos; needs ``render=True``)."""
-        rgb = render(self, self.sim, camera, *size)
+        rgb = render(self, camera, *size)
         return np.ascontiguousarray(rgb[::-1])

@@ -89,9 +89,9 @@ class SuiteGymEnv(gym.Env):
         try:
             a = np.asarray(action, dtype=np.float64).reshape(-1)
         except (TypeError, ValueError):
-            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {action!r}") from None
-        if a.shape != (ACTION_DIM,) or not np.isfinite(a).all():
-            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {np.asarray(action).tolist()!r}")
+            a = None
+        if a is None or a.shape != (ACTION_DIM,) or not np.isfinite(a).all():
+            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {action!r}")
         first, second = a[3:6], a[6:9]
         n1 = np.linalg.norm(first)
         if n1 < 1e-9 or np.linalg.norm(second - (first @ second) / n1**2 * first) < 1e-9 * max(1.0, np.linalg.norm(second)):
