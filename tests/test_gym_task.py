@@ -9,6 +9,7 @@ import pytest
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.success import SuccessReport
+from kpflow.eval.trials import run_trials
 from kpflow.examples import TEMPLATES
 from kpflow.tasks.base import scene_seed
 from kpflow.tasks.collection import collect_gym_episodes
@@ -90,3 +91,23 @@ def test_the_trial_scores_a_policy_on_evaluation_seeds():
         task.make_env("far")
     with pytest.raises(ValueError, match="runs Gymnasium tasks"):
         PolicyTrial(object(), task.expert(), SuccessReport())
+
+
+def test_success_within_a_shorter_horizon_counts_the_episodes_that_succeeded_by_then(tmp_path):
+    """One run reports success at another protocol's shorter horizon beside its own (MimicGen's 400 steps beside
+    kpflow's 500): an episode ends at its success, so success within h is success in at most h steps."""
+    task = ReachTask()
+    first = run_trials(tmp_path / "all", PolicyTrial(task, task.expert(), SuccessReport(), name="expert"), "default", n_trials=6,
+                       workers=1, videos=0, progress=False)  # fmt: skip
+    steps = sorted(t["steps"] for t in first["trials"])
+    h = steps[2]  # the third fastest: at least 3 of 6 succeeded by then
+    report = SuccessReport(within=[h, steps[-1]])
+    out = run_trials(tmp_path / "within", PolicyTrial(task, task.expert(), report, name="expert"), "default", n_trials=6, workers=1,
+                     videos=0, progress=False)  # fmt: skip
+    (row,) = out["summary"]
+    assert row["successes"] == 6 and row[f"successes_within_{steps[-1]}"] == 6
+    assert row[f"successes_within_{h}"] == sum(s <= h for s in steps) < 6 and row[f"success_within_{h}"] == row[f"successes_within_{h}"] / 6
+    assert out["metrics"][f"default/expert/success_within_{h}"] == row[f"success_within_{h}"]
+    assert f"within {h} steps [95% CI]" in out["table"] and f"| {sum(s <= h for s in steps)}/6 = " in out["table"]
+    with pytest.raises(ValueError, match="at least 1 control step"):
+        SuccessReport(within=[0])

@@ -122,8 +122,17 @@ def test_far_scenes_leave_every_generated_range_and_resized_ones_scale_the_objec
 def test_mimicgens_d1_and_d2_draw_within_its_ranges_the_nut_clear_of_the_peg(worlds):
     """MimicGen's Square_D1 / D2 and Stack_D1 (kpflow/tasks/suite/specs.py cites its task definitions): the nut within
     +-0.115 x +-0.255 / +-0.25 m, the peg within its world ranges (as built in D1, turned 0-90 degrees in D2), their
-    centres more than 0.1326 m apart; Stack's cubes within +-0.2 m."""
+    centres farther apart than MimicGen's test reads from the models (the peg geom's half sides' norm plus the nut's
+    ``horizontal_radius``), the round peg at x = -10 m as its ``_load_model`` puts it (and back where robosuite builds
+    it in the other variants); Stack's cubes within +-0.2 m."""
     square, senv, *_ = worlds["square"]
+    model = senv.sim.model
+    peg_geom = np.flatnonzero(model.geom_bodyid == model.body_name2id("peg1"))[0]
+    clearance = np.linalg.norm(model.geom_size[peg_geom][:2]) + senv.env.nuts[0].horizontal_radius
+    assert square.spec.mimicgen["d1"].clearance == pytest.approx(clearance, abs=1e-9)
+    round_peg = model.body_name2id("peg2")
+    senv.reset_to(square.sample_scene(senv, "wide", 0))
+    built = senv.sim.data.xpos[round_peg].copy()
     turns = []
     for variant, (nut_x, nut_y), (peg_x, peg_y) in (("d1", (0.115, 0.255), ((-0.1, 0.3), (-0.2, 0.2))),
                                                      ("d2", (0.25, 0.25), ((-0.25, 0.25), (-0.25, 0.25)))):  # fmt: skip
@@ -133,8 +142,14 @@ def test_mimicgens_d1_and_d2_draw_within_its_ranges_the_nut_clear_of_the_peg(wor
             nut, peg = senv.object_pose("nut")[0], senv.object_pose("peg")[0]
             assert abs(nut[0]) <= nut_x + 1e-9 and abs(nut[1]) <= nut_y + 1e-9
             assert peg_x[0] - 1e-9 <= peg[0] <= peg_x[1] + 1e-9 and peg_y[0] - 1e-9 <= peg[1] <= peg_y[1] + 1e-9
-            assert np.linalg.norm((peg - nut)[:2]) > 0.0226 + 0.11
+            assert np.linalg.norm((peg - nut)[:2]) > clearance
+            np.testing.assert_allclose(senv.sim.data.xpos[round_peg][:2], (-10.0, 0.0))
+            assert Scene.from_dict(scene.as_dict()) == scene
             turns.append((variant, scene.fixture_yaws.get("peg", 0.0)))
+    senv.reset_to(square.sample_scene(senv, "wide", 0))
+    np.testing.assert_allclose(senv.sim.data.xpos[round_peg], built)  # wide keeps the round peg where robosuite builds it
+    with pytest.raises(ValueError, match=r"removes \['bin2'\], which no variant of square removes"):
+        senv.reset_to(Scene.from_dict({**scene.as_dict(), "removed": ["bin2"]}))
     assert all(t == 0.0 for v, t in turns if v == "d1") and all(0.0 <= t <= np.pi / 2 for v, t in turns if v == "d2")
     assert len({t for v, t in turns if v == "d2"}) == 8
     stack, kenv, *_ = worlds["stack"]

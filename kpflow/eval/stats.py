@@ -29,11 +29,13 @@ def success_summary(trials: list[dict]) -> dict:
     }
 
 
+def rate_cell(successes: int, trials: int, ci: tuple[float, float]) -> str:
+    """``k/n = p% [lo, hi]``: a success rate and its interval in one table cell."""
+    rate = 100 * successes / trials if trials else float("nan")
+    return f"{successes}/{trials} = {rate:.0f}% [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]"
+
+
 def success_cells(summary: dict) -> str:
     """``k/n = p% [lo, hi] | reasons`` of a :func:`success_summary`: two cells of a markdown table row."""
-    lo, hi = summary["ci"]
     reasons = ", ".join(f"{r}: {c}" for r, c in sorted(summary["failures"].items())) or "-"
-    return (
-        f"{summary['successes']}/{summary['trials']} = {100 * summary['success']:.0f}% "
-        f"[{100 * lo:.0f}, {100 * hi:.0f}] | {reasons}"
-    )
+    return f"{rate_cell(summary['successes'], summary['trials'], summary['ci'])} | {reasons}"

@@ -8,7 +8,8 @@ controller (``OSC_POSE``) on **absolute** poses of the grip site in the world fr
 Scenes are set, not sampled here: :meth:`SuiteEnv.reset_to` puts every object at the pose the scene gives (the
 draw of robosuite's placement initializer, :mod:`.scene`) and moves the fixtures the wide variants move (the peg of
 ``NutAssemblySquare``, the target bin of ``PickPlaceCan``) by changing the static body's position in the compiled
-model, so nothing is rebuilt between scenes. The arm starts from robosuite's home configuration every time
+model, so nothing is rebuilt between scenes; a body the scene removes (MimicGen's d1 and d2 of Square take the
+round peg away) is moved the same way, to where MimicGen puts it. The arm starts from robosuite's home configuration every time
 (``initialization_noise=None``). robosuite draws parts of some models when it builds them (Lift's cube side) from
 its own generator, seeded here (:data:`MODEL_SEED`), so every environment of a task is the same model.
 
@@ -27,7 +28,7 @@ import robosuite  # noqa: E402
 from robosuite.controllers import load_composite_controller_config  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from .specs import TaskSpec  # noqa: E402
+from .specs import REMOVED_AT, TaskSpec  # noqa: E402
 
 OPEN, CLOSED = -1.0, 1.0  # the gripper's action
 SETTLE_STEPS = 5  # control steps after a reset, holding the home pose, for the objects to come to rest
@@ -87,6 +88,8 @@ class SuiteEnv:
         #: where robosuite puts each fixture (a scene's offsets are from here; the model's copy moves with the scene)
         self.fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
         self._fixture_home_quat = {name: model.body_quat[b].copy() for name, b in self.fixture_body.items()}
+        #: the bodies a scene may remove (Square's round peg in MimicGen's d1, d2): their ids and where robosuite puts them
+        self._removable = {b: (model.body_name2id(b), model.body_pos[model.body_name2id(b)].copy()) for b in spec.removable_bodies}
         self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
@@ -105,7 +108,12 @@ class SuiteEnv:
         controller afresh and clears the gripper's command state, and the model is the same in every environment of a task
         (:data:`MODEL_SEED`)."""
         env, data, model = self.env, self.sim.data, self.sim.model
+        removed = tuple(getattr(scene, "removed", ()))
+        if unknown := sorted(set(removed) - set(self._removable)):
+            raise ValueError(f"the scene removes {unknown}, which no variant of {self.spec.name} removes (removable: {sorted(self._removable)})")
         env.reset()
+        for name, (body, home) in self._removable.items():  # out of the scene (MimicGen's x = -10 m), or where built
+            model.body_pos[body] = (*REMOVED_AT, home[2]) if name in removed else home
         for name, body in self.fixture_body.items():
             model.body_pos[body] = self.fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
             yaw = getattr(scene, "fixture_yaws", {}).get(name, 0.0)

@@ -2,7 +2,8 @@
 by robosuite's own placement initializers.
 
 ``d0`` draws with the initializer the environment ships with; ``d1``, ``d2`` (MimicGen's,
-:class:`~.specs.MimicGenVariant`) place the fixtures first, then the objects until they are clear of them; ``wide`` with robosuite ``UniformRandomSampler``s
+:class:`~.specs.MimicGenVariant`) place the fixtures first, then the objects until they are clear of them, and
+remove what MimicGen removes (Square's round peg); ``wide`` with robosuite ``UniformRandomSampler``s
 over the wider ranges of :mod:`.specs` (and uniform fixture offsets, redrawn until every object is
 ``fixture_clearance`` from them); ``far`` likewise over the far ranges, mirrored across the table's long axis
 (``y -> -y``) with probability 1/2 where the task allows, its fixtures at drawn world positions and yaws; ``resized`` as ``d0``, with each resized object scaled by a factor drawn
@@ -28,13 +29,15 @@ _MAX_DRAWS = 1000
 class Scene:
     """One scene: ``objects`` (name -> (position [3], quaternion (w, x, y, z) [4]) of its free joint),
     ``fixture_offsets`` (fixture name -> its displacement [3] from where robosuite puts it), ``fixture_yaws``
-    (fixture name -> its turn about the vertical (rad) from how robosuite builds it; 0 when absent) and ``scales``
-    (object name -> the factor its geometry is scaled by; 1 when absent)."""
+    (fixture name -> its turn about the vertical (rad) from how robosuite builds it; 0 when absent), ``scales``
+    (object name -> the factor its geometry is scaled by; 1 when absent) and ``removed`` (the MuJoCo bodies moved out
+    of the scene, :attr:`~.specs.MimicGenVariant.removed`)."""
 
     objects: dict[str, tuple[tuple[float, ...], tuple[float, ...]]]
     fixture_offsets: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     scales: dict[str, float] = field(default_factory=dict)
     fixture_yaws: dict[str, float] = field(default_factory=dict)
+    removed: tuple[str, ...] = ()
 
     def __post_init__(self):
         for name, (pos, quat) in self.objects.items():
@@ -55,13 +58,14 @@ class Scene:
             "fixture_offsets": {k: list(v) for k, v in self.fixture_offsets.items()},
             **({"scales": dict(self.scales)} if self.scales else {}),
             **({"fixture_yaws": dict(self.fixture_yaws)} if self.fixture_yaws else {}),
+            **({"removed": list(self.removed)} if self.removed else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
         objects = {k: (tuple(v["pos"]), tuple(v["quat"])) for k, v in d["objects"].items()}
         offsets = {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()}
-        return cls(objects, offsets, dict(d.get("scales", {})), dict(d.get("fixture_yaws", {})))
+        return cls(objects, offsets, dict(d.get("scales", {})), dict(d.get("fixture_yaws", {})), tuple(d.get("removed", ())))
 
 
 def _seed_samplers(sampler, rng) -> None:
@@ -172,4 +176,5 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
         pos = placed[spec.object_joints[name]][0]
         pos[2] += (scale - 1.0) * env.home_half_height(name)
     objects = {name: (tuple(map(float, placed[j][0])), tuple(map(float, placed[j][1]))) for name, j in spec.object_joints.items()}
-    return Scene(objects, offsets, scales, yaws)
+    removed = spec.mimicgen[variant].removed if variant in spec.mimicgen else ()
+    return Scene(objects, offsets, scales, yaws, removed)

@@ -38,7 +38,11 @@ definitions (NVlabs/mimicgen, ``mimicgen/envs/robosuite/stack.py`` and ``nut_ass
 | stack | ``Stack_D1``: both cubes x, y in +-0.2 m, any yaw (the ranges of ``wide``, other scenes) | - (MimicGen has none) |
 | square | ``Square_D1``: nut x in +-0.115, y in +-0.255, any yaw; the peg at x in [-0.1, 0.3], y in +-0.2 as built | ``Square_D2``: nut x, y in +-0.25, any yaw; the peg at x, y in +-0.25, turned by 0-90 degrees |
 
-The peg is drawn first, then the nut until it is clear of it, as MimicGen does. MimicGen's Threading and Coffee are
+The peg is drawn first, then the nut until it is clear of it, as MimicGen does (clear: the centres farther apart in
+the plane than the peg's horizontal radius, the norm of its geom's half sides, plus the nut's robosuite
+``horizontal_radius``). In both, the round peg (``peg2``) stands at world x = -10 m, out of the scene, as
+MimicGen's ``Square_D1._load_model`` puts it (:attr:`MimicGenVariant.removed`); ``d0``, ``wide`` and ``far`` keep it
+where robosuite builds it, where it is in the way of 4-13 % of wide scenes. MimicGen's Threading and Coffee are
 not built: their objects are MimicGen's own models (a needle, a tripod, a coffee machine with a hinged lid), written
 for robosuite 1.4 and under NVIDIA's non-commercial licence.
 """
@@ -65,12 +69,18 @@ class WideRange:
 class MimicGenVariant:
     """One of MimicGen's scene distributions (module docstring): ``objects`` drawn by robosuite's uniform sampler over
     these ranges (about the table's centre, ``z_offset`` above it), after ``fixtures`` at world x, y and yaw drawn
-    uniformly, the objects redrawn until their centres are ``clearance`` (m, in the plane) from every fixture."""
+    uniformly, the objects redrawn until their centres are ``clearance`` (m, in the plane) from every fixture;
+    ``removed`` names the MuJoCo bodies moved out of the scene, to world ``(x, y) =`` :data:`REMOVED_AT`."""
 
     objects: dict[str, WideRange]
     fixtures: dict[str, WideRange] = field(default_factory=dict)
     clearance: float = 0.0
     z_offset: float = 0.01
+    removed: tuple[str, ...] = ()
+
+
+#: where MimicGen moves a body it removes from the scene (world x, y in m; ``Square_D1._load_model``: the round peg)
+REMOVED_AT = (-10.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -123,6 +133,11 @@ class TaskSpec:
         return ("d0", "wide") + (("far",) if far else ()) + (("resized",) if self.resize_objects else ()) + tuple(self.mimicgen)
 
     @property
+    def removable_bodies(self) -> tuple[str, ...]:
+        """The MuJoCo bodies some variant removes from the scene (:attr:`MimicGenVariant.removed`)."""
+        return tuple(dict.fromkeys(b for v in self.mimicgen.values() for b in v.removed))
+
+    @property
     def segments(self) -> tuple[str, ...]:
         return ("pick",) if self.target is None else ("pick", "place")
 
@@ -161,9 +176,9 @@ TASKS: dict[str, TaskSpec] = {
         far_fixtures={"peg": WideRange((0.0, 0.15), (-0.28, -0.2), (np.pi / 9, np.pi / 4))},
         mimicgen={
             "d1": MimicGenVariant({"nut": WideRange((-0.115, 0.115), (-0.255, 0.255))}, {"peg": WideRange((-0.1, 0.3), (-0.2, 0.2))},
-                                  clearance=0.0226 + 0.11, z_offset=0.02),
+                                  clearance=float(np.hypot(0.016, 0.016)) + 0.11, z_offset=0.02, removed=("peg2",)),
             "d2": MimicGenVariant({"nut": WideRange((-0.25, 0.25), (-0.25, 0.25))}, {"peg": WideRange((-0.25, 0.25), (-0.25, 0.25), (0.0, np.pi / 2))},
-                                  clearance=0.0226 + 0.11, z_offset=0.02),
+                                  clearance=float(np.hypot(0.016, 0.016)) + 0.11, z_offset=0.02, removed=("peg2",)),
         },
     ),
 }  # fmt: skip
