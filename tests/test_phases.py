@@ -14,12 +14,15 @@ import pytest
 import torch
 
 from kpflow.data.source_index import SourceIndex
-from kpflow.geometry.rotations import matrix_to_rot6d
+from kpflow.geometry.angles import wrap_angle, yaw_of
+from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from kpflow.maps import ILWRMap
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.phases import Grip, Phase, Phases
+from kpflow.policies.symmetry import Symmetry, phase_correspondences, turn_permutation
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
+from kpflow.tasks.suite.arm_limits import SuiteArmLimits
 from tests.helpers import cube_corners as _cube
 from tests.helpers import yaw_matrix as _yaw
 
@@ -211,6 +214,91 @@ def test_without_segments_one_map_is_fitted_on_every_object(model, index):
     policy.act({"keypoints": scene})
     assert policy.last_phase is None  # ILWR's fit on both cubes, near each (it interpolates only approximately)
     assert _residual(policy.last_map, policy.index.keypoints[policy.last_source], scene, CUBE_A + CUBE_B) < 0.01
+
+
+def _symmetric_layout() -> PolicyLayout:
+    """:data:`LAYOUT` with cube B's quarter turns and the jaws' half turn (pads swapped, tool turned by pi)."""
+    sym = []
+    for turn in (1, 2, 3):
+        local = turn_permutation(_cube(np.zeros(3), 0.0), np.zeros(3), turn * np.pi / 2)
+        perm = list(range(K))
+        for i, j in enumerate(local):
+            perm[CUBE_B[i]] = CUBE_B[j]
+        sym.append(Symmetry(f"cubeB turned {turn}/4", tuple(perm)))
+    perm = list(range(K))
+    perm[17], perm[18] = 18, 17
+    sym.append(Symmetry("jaws turned 1/2", tuple(perm), tool_turn=np.pi, holding=False))
+    return PolicyLayout(K, 3, 10, GROUPS, ROLES, rotation=True, phases=PHASES, symmetries=tuple(sym))
+
+
+def test_a_turn_relabels_a_squares_corners_and_each_phase_admits_the_symmetries_of_what_it_is_fitted_on():
+    square = np.array([[1.0, 1.0, 0.0], [-1.0, 1.0, 0.0], [-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 0.0, 2.0]])
+    assert turn_permutation(square, np.zeros(3), np.pi / 2) == (1, 2, 3, 0, 4)  # corner i turns onto corner i + 1; the axis stays
+    assert turn_permutation(square + 5.0, np.full(3, 5.0), np.pi) == (2, 3, 0, 1, 4)
+    with pytest.raises(ValueError, match="does not map these 5 keypoints onto themselves"):
+        turn_permutation(square, np.zeros(3), 0.3)
+    with pytest.raises(ValueError, match="must be a permutation"):
+        Symmetry("bad", (0, 0, 1))
+    layout = _symmetric_layout()
+    pick = [s.name for s in phase_correspondences(layout.symmetries, K, CUBE_A, holding=False)]
+    place = [s.name for s in phase_correspondences(layout.symmetries, K, CUBE_B, holding=True)]
+    assert pick == ["identity", "jaws turned 1/2"]  # cube B's turns do not touch the pick's map; the jaws turn while empty
+    assert place == ["identity", "cubeB turned 1/4", "cubeB turned 2/4", "cubeB turned 3/4"]  # not the jaws: they hold cube A
+    with pytest.raises(ValueError, match="relabels 19 keypoints; the layout has 20"):
+        PolicyLayout(20, 3, 10, symmetries=layout.symmetries)
+
+
+def test_a_chunk_the_arm_cannot_follow_is_replaced_by_the_symmetric_correspondence_it_can(model, index):
+    """The Panda's wrist near its stop: the identity's chunk would take it past (the arm's cost is inf) and is never
+    sent; the jaws' half turn gives a chunk it can follow, which is sent and kept at the next decision. With no
+    candidate in reach, the first is sent and the decision counted."""
+    layout = _symmetric_layout()
+    arm = SuiteArmLimits(pads=(17, 18), base_xy=(-0.3, 0.0))  # every chunk in reach: the wrist decides
+    policy = TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=arm)
+    scene = index.keypoints[4].astype(np.float64) @ _yaw(0.8).T + [0.1, -0.15, 0.0]  # a pick configuration, turned
+    pick = policy.transports[0]
+    policy.reset(3)
+    chunks = [policy._transported(pick, 4, c, [scene])[0] for c in pick.correspondences]  # the draws act() makes, in order
+    pads = scene[17] - scene[18]
+    now = np.arctan2(pads[1], pads[0]) + np.pi  # the jaws' yaw
+    turns = [np.sum(wrap_angle(np.diff([now, *(yaw_of(r) for r in rot6d_to_matrix(c[:, 3:9]))]))) for c in chunks]
+    assert 2.0 < abs(turns[1] - turns[0]) < 4.3  # the half turn's chunk turns the jaws about the other way round
+    wrist = turns[0] + 2.8 * np.sign(turns[1] - turns[0])  # the identity's turn takes the last joint 2.8 rad away: past its stop
+    obs = {"keypoints": scene, "joints": np.r_[np.zeros(6), wrist]}
+    assert arm.cost(obs, chunks[0]) == np.inf and np.isfinite(arm.cost(obs, chunks[1]))
+    policy.reset(3)
+    sent = policy.act(obs)
+    assert policy.last_correspondence.name == "jaws turned 1/2" and policy.last_source == 4 and policy.unfollowable == 0
+    np.testing.assert_allclose(sent, chunks[1], atol=1e-12)
+    np.testing.assert_allclose(policy.last_pullback[[17, 18]], index.keypoints[4][[18, 17]], atol=1e-6)  # the pads, relabelled
+    policy.act(obs)
+    assert policy.last_correspondence.name == "jaws turned 1/2" and policy.kept == {0: 1}  # kept while it can be followed
+    far = TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=SuiteArmLimits((17, 18), reach=0.01))
+    far.reset(3)
+    np.testing.assert_allclose(far.act(obs), chunks[0], atol=1e-12)  # nothing within 1 cm of the base: the first, counted
+    assert far.unfollowable == 1 and far.last_correspondence.name == "identity"
+
+
+class _RefusesFirst:
+    """An arm that cannot follow the first ``n`` chunks it is shown (one source's every correspondence)."""
+
+    def __init__(self, n: int):
+        self.n, self.seen = n, 0
+
+    def cost(self, obs, chunk):
+        self.seen += 1
+        return np.inf if self.seen <= self.n else 0.0
+
+
+def test_when_no_correspondence_of_the_chosen_source_can_be_followed_the_next_nearest_source_is_tried(model, index):
+    layout = _symmetric_layout()
+    policy = TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=_RefusesFirst(2))
+    scene = index.keypoints[4].astype(np.float64)
+    policy.act({"keypoints": scene})
+    near, _ = policy.transports[0].choice.index.query_k(scene, 2)
+    assert policy.last_source == int(policy.transports[0].members[near[1]]) != 4 and policy.unfollowable == 0
+    with pytest.raises(ValueError, match="arm must have cost"):
+        TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=object())
 
 
 @pytest.mark.slow

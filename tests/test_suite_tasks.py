@@ -438,7 +438,8 @@ def test_a_symmetric_held_object_turns_into_its_chosen_order_on_the_way_about_it
 
 def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
     from kpflow.geometry.angles import yaw_of
-    from kpflow.tasks.suite.demonstrator import MAX_PLACE_TURN, jaws_down, path_cost
+    from kpflow.tasks.suite.arm_limits import MAX_PLACE_TURN, path_cost
+    from kpflow.tasks.suite.demonstrator import jaws_down
 
     task, env = worlds["square"][:2]
     env.reset_to(task.sample_scene(env, "d0", 0))
@@ -454,6 +455,17 @@ def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
     # one pose: its turn from the jaws now is counted the short way, whichever way a longer path took to it
     np.testing.assert_allclose(long[-1], short[-1], atol=1e-9)
     assert cost(pos[None], long[-1][None]) == cost(np.tile(pos, (6, 1)), np.stack(short))
+    # a policy's chunk is rated the same from what it observes (the joints, the jaws' yaw from the finger pads)
+    from kpflow.geometry.rotations import matrix_to_rot6d
+    from kpflow.tasks.suite.keypoints import policy_keypoints
+
+    obs = {"keypoints": policy_keypoints(env, task.spec), "joints": env.arm_joints()}
+    chunk = np.concatenate([np.tile(pos, (6, 1)), matrix_to_rot6d(np.stack(short)), np.ones((6, 1))], 1)
+    assert task.arm_limits.cost(obs, chunk) == pytest.approx(cost(np.tile(pos, (6, 1)), np.stack(short)), abs=1e-6)
+    chunk[-1, 0] = env.base_position()[0] + 0.95  # one target beyond the arm's reach
+    assert task.arm_limits.cost(obs, chunk) == np.inf
+    with pytest.raises(ValueError, match=r"needs the arm's joints in the observation"):
+        task.arm_limits.cost({"keypoints": obs["keypoints"]}, chunk)
 
 
 def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_centre_on_the_source_path():

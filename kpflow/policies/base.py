@@ -8,14 +8,15 @@
   rotation (:mod:`kpflow.geometry.rotations`) when ``rotation`` is set; the rest (a gripper) is not spatial. A task declares
   it (``task.policy_layout``); transporting policies read from it what a map moves and what it leaves alone, and,
   where the task declares them, its ``phases`` (:mod:`.phases`: which object the transport follows before and after
-  a grasp).
+  a grasp) and its ``symmetries`` (:mod:`.symmetry`: the relabellings of its keypoints that leave the task as it
+  was, a square peg's quarter turns, the jaws' half turn).
 * :class:`ClosedLoop`: a policy at 1 action per control step. It owns the observation history (the last ``n_obs``
   keypoint sets, oldest first, the episode's first repeated before its start, as training pads) and the action
   queue (a chunk is executed open loop; the policy is asked again when it runs out). Every task's episode loop
   (Push-T's and the robosuite tasks') runs its policy through it.
 
-This module imports nothing else of kpflow but :mod:`.phases` (which imports none): tasks import it to declare their
-layout.
+This module imports nothing else of kpflow but :mod:`.phases` and :mod:`.symmetry` (which import none): tasks import
+it to declare their layout.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from typing import Mapping, Protocol, runtime_checkable
 import numpy as np
 
 from .phases import Phases
+from .symmetry import Symmetry
 
 ROLES = ("objects", "goals", "robot")
 
@@ -60,6 +62,7 @@ class PolicyLayout:
     roles: Mapping[str, tuple[str, ...]] = field(default_factory=dict, compare=False)
     rotation: bool = field(default=False, compare=False)
     phases: Phases | None = field(default=None, compare=False)
+    symmetries: tuple[Symmetry, ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
         seen = sorted(i for idx in self.groups.values() for i in idx)
@@ -79,6 +82,9 @@ class PolicyLayout:
             for phase in self.phases.phases:
                 for name in phase.names():
                     self.indices(name)  # raises naming an unknown group
+        for symmetry in self.symmetries:
+            if len(symmetry.perm) != self.n_keypoints:
+                raise ValueError(f"symmetry {symmetry.name!r} relabels {len(symmetry.perm)} keypoints; the layout has {self.n_keypoints}")
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -26,6 +26,7 @@ from .checks import INPUT_MARGIN
 from .chunk_transport import TransportPolicy
 from .nearest import NearestNeighbourPolicy
 from .source_search import SourceSearch
+from .symmetry import ArmLimits
 
 
 def source_index_path(checkpoint: str | Path) -> Path:
@@ -107,15 +108,18 @@ def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: in
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
                           steps: int | None = None, execute: int | None = None, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
-                          solver: str | None = None, segments: bool = False, search: SourceSearch | Mapping | None = None):  # fmt: skip
+                          solver: str | None = None, segments: bool = False, search: SourceSearch | Mapping | None = None,
+                          arm: ArmLimits | None = None, alternatives: int = 3):  # fmt: skip
     """A loaded K-CFM transported online over ``index`` (:class:`~.transported_kcfm.TransportedKCFMPolicy`), phase
     by phase with ``segments`` (the layout's phases), its source chosen as ``search`` says
-    (:class:`~.source_search.SourceSearch`: its choice; the index carries the weights and frame); ``steps``,
-    ``solver``, ``execute``, ``reach`` and ``turn_deg`` as in :func:`make_kcfm`."""
+    (:class:`~.source_search.SourceSearch`: its choice; the index carries the weights and frame), each chunk checked
+    against ``arm`` (the layout's symmetric correspondences chosen by its cost, up to ``alternatives`` sources
+    tried); ``steps``, ``solver``, ``execute``, ``reach`` and ``turn_deg`` as in :func:`make_kcfm`."""
     from .transported_kcfm import TransportedKCFMPolicy
 
     choice = SourceSearch.of(search).choice()
-    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
+    policy = TransportedKCFMPolicy(model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, arm,
+                                   alternatives, **choice)  # fmt: skip
     limits = model.settings.given(reach=reach, turn_deg=turn_deg)
     return within_reach(policy, layout, limits.reach, limits.turn_deg)
 
@@ -155,17 +159,22 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = 
 def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
                      steps: int | None = None, execute: int | None = None, search: SourceSearch | Mapping | None = None, pull_back: str = "agent",
                      fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
-                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False):  # fmt: skip
+                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False, arm: bool = False,
+                     alternatives: int = 3):  # fmt: skip
     """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the
     index saved beside the checkpoint, :func:`source_index_path`) (:func:`make_transported_kcfm`), its source found
     as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on`` (with ``segments``:
-    phase by phase, each phase's map, search frame and weights as the task declares them). The checkpoint
+    phase by phase, each phase's map, search frame and weights as the task declares them); with ``arm``, each chunk
+    checked against the task's ``arm_limits`` and the symmetric correspondence chosen by their cost. The checkpoint
     is checked against the task and a learned map against the keypoints it is fitted on, before the
     demonstrations are built (the config is not instantiated recursively: a refused file collects nothing)."""
     from .kcfm.policy import KCFMPolicy
 
     task = _built(task)
     layout = layout_of(task)
+    limits = getattr(task, "arm_limits", None) if arm else None
+    if arm and limits is None:
+        raise ValueError(f"arm=true checks chunks against the task's arm_limits; {type(task).__name__} declares none")
     model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
     check_checkpoint_fits(checkpoint, model.hparams, task)
     fit = fit_on_indices(layout, fit_on)
@@ -176,4 +185,4 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
     else:
         index = search.index(_built(demos), layout, int(model.hparams.horizon))
     return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, segments,
-                                 search)  # fmt: skip
+                                 search, limits, alternatives)  # fmt: skip

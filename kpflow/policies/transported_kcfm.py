@@ -41,6 +41,16 @@ pick, after it the target); the robot and the phase's ``carried`` keypoints (the
 Each phase is then carried in the frame of the object that matters in it, as a demonstration generator carries
 each segment, and the map never has to stretch the space between two objects that moved independently.
 
+Symmetric correspondences and the arm's limits (``arm``, an :class:`~.symmetry.ArmLimits`; the layout's
+``symmetries``, :mod:`.symmetry`): where a task's keypoints can be relabelled without changing the task (a square
+peg's quarter turns, the jaws' half turn), each relabelling ``c`` the phase admits gives its own map ``phi_c`` and
+its own transported chunk, and the arm's cost rates them. At a phase's first decision the cheapest the arm can
+follow is taken; it is kept while the arm can follow its chunks, and when one cannot be followed (a joint past its
+range, a target out of reach) the other correspondences are tried, cheapest first, then the ``alternatives - 1``
+next nearest sources. Every chunk sent has passed the check, unless none of them did: then the first is sent
+and the decision counted in ``unfollowable`` (the arm's controller stops at its limits). Without ``arm`` the
+identity is the only correspondence and nothing is checked: the policy is as it was.
+
 The observation is held to the K-CFM's training range before anything is fitted, and the K-CFM's input after the
 pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that come out NaN or inf are refused
 (:func:`~kpflow.policies.checks.check_actions`), as :class:`~kpflow.policies.kcfm.policy.KCFMPolicy` does.
@@ -56,6 +66,8 @@ import numpy as np
 import torch
 
 from ..data.source_index import SourceIndex
+from ..geometry.angles import yaw_rotation
+from ..geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from .base import PolicyLayout
@@ -65,6 +77,7 @@ from .kcfm.model import KCFM
 from .kcfm.policy import KCFMPolicy
 from .phases import Phase, Phases
 from .source_choice import SourceChoice
+from .symmetry import ArmLimits, Symmetry, identity, phase_correspondences
 
 PULL_BACK = ("agent", "all")
 
@@ -73,13 +86,15 @@ PULL_BACK = ("agent", "all")
 class PhaseTransport:
     """What a decision in one phase uses: the ``phase`` (None: one phase for the whole task), the source ``choice``
     over its training configurations (``members``: their rows in the full index), the keypoints the map is
-    ``fit_on`` and those ``pulled`` back (the robot and what it carries)."""
+    ``fit_on``, those ``pulled`` back (the robot and what it carries) and the ``correspondences`` it may choose
+    among (:func:`~.symmetry.phase_correspondences`; the identity alone without them)."""
 
     phase: Phase | None
     choice: SourceChoice
     members: np.ndarray
     fit_on: slice | np.ndarray
     pulled: np.ndarray
+    correspondences: tuple[Symmetry, ...] = ()
 
 
 def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
@@ -101,9 +116,10 @@ def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
     return which
 
 
-def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict) -> list[PhaseTransport]:
+def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict, symmetric: bool = False) -> list[PhaseTransport]:
     """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase
-    (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``."""
+    (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``; with ``symmetric``, the
+    correspondences the layout's symmetries admit in it."""
     which = source_phases(index, phases)
     out = []
     for i, phase in enumerate(phases.phases):
@@ -112,7 +128,10 @@ def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, c
             raise ValueError(f"no training configuration of the source index is in phase {phase.name!r}: it cannot be transported segment by segment")
         sub = SourceIndex(index.keypoints[members], index.chunks[members], layout.weights(phase.weights), layout.indices(*phase.frame))
         pulled = np.asarray(sorted({*layout.indices("robot"), *(layout.indices(*phase.carried) if phase.carried else ())}))
-        out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, np.asarray(layout.indices(*phase.fit_on)), pulled))
+        fit_on = np.asarray(layout.indices(*phase.fit_on))
+        k = layout.n_keypoints
+        correspondences = phase_correspondences(layout.symmetries, k, fit_on, phase.holding) if symmetric else [identity(k)]
+        out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, fit_on, pulled, tuple(correspondences)))
     return out
 
 
@@ -136,10 +155,15 @@ class TransportedKCFMPolicy:
             required (None is refused, naming it).
         segments: follow the layout's phases (module docstring; ``fit_on`` and the index's weights and frame are then
             each phase's own); the layout must declare them.
+        arm: the task's :class:`~.symmetry.ArmLimits`: each chunk is checked against the arm and the layout's
+            symmetric correspondences are chosen by its cost (module docstring); None: no check, the identity.
+        alternatives: with ``arm``, how many sources (the choice's, then the nearest others) a decision may try.
         choice: :class:`~.source_choice.SourceChoice`'s options (``candidates``, ``stuck_decisions``, ...).
 
     After :meth:`act`, ``last_source`` (index of ``S`` in ``index``), ``last_map`` (``phi``), ``last_phase`` (the
-    phase's name, None without phases) and ``last_pullback`` (the K-CFM's input) describe the decision.
+    phase's name, None without phases), ``last_pullback`` (the K-CFM's input) and ``last_correspondence`` (the
+    :class:`~.symmetry.Symmetry` taken) describe the decision; ``unfollowable`` counts the episode's decisions whose
+    every candidate failed the arm's check.
     """
 
     def __init__(
@@ -155,8 +179,15 @@ class TransportedKCFMPolicy:
         layout: PolicyLayout | None = None,
         solver: str | None = None,
         segments: bool = False,
+        arm: ArmLimits | None = None,
+        alternatives: int = 3,
         **choice,
     ) -> None:
+        if arm is not None and not isinstance(arm, ArmLimits):
+            raise ValueError(f"arm must have cost(obs, chunk) (kpflow.policies.symmetry.ArmLimits), got {type(arm).__name__}")
+        if not (isinstance(alternatives, int) and alternatives >= 1):
+            raise ValueError(f"alternatives must be an integer >= 1, got {alternatives!r}")
+        self.arm, self.alternatives = arm, alternatives
         self.policy = KCFMPolicy(model, steps, execute, input_margin, solver)  # validates steps, solver, execute and input_margin
         self.n_obs = self.policy.n_obs
         k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
@@ -171,15 +202,22 @@ class TransportedKCFMPolicy:
             if layout is None or layout.phases is None:
                 raise ValueError("segments=true follows the phases a task declares (PolicyLayout.phases); this task declares none")
             self.phases = layout.phases
-            self.transports = phase_transports(index, layout, layout.phases, choice)
+            self.transports = phase_transports(index, layout, layout.phases, choice, symmetric=arm is not None)
         else:
-            whole = PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fitted_keypoints(fit_on, k), robot)
+            fit = fitted_keypoints(fit_on, k)
+            correspondences = [identity(k)]
+            if arm is not None and layout is not None:
+                correspondences = phase_correspondences(layout.symmetries, k, np.arange(k)[fit], None)
+            whole = PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fit, robot, tuple(correspondences))
             self.transports = [whole]
         self.last_transport = self.transports[0]
         self.last_source: int | None = None
         self.last_phase: str | None = None
         self.last_map: TransportMap | None = None
         self.last_pullback: np.ndarray | None = None
+        self.last_correspondence: Symmetry | None = None
+        self.kept: dict[int, int] = {}  # phase (its transport's position) -> the correspondence kept in it
+        self.unfollowable = 0
 
     @classmethod
     def from_checkpoint(
@@ -195,11 +233,14 @@ class TransportedKCFMPolicy:
         layout: PolicyLayout | None = None,
         solver: str | None = None,
         segments: bool = False,
+        arm: ArmLimits | None = None,
+        alternatives: int = 3,
         **choice,
     ) -> "TransportedKCFMPolicy":
         """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
         base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin, solver)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, **choice)
+        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, arm, alternatives,
+                   **choice)  # fmt: skip
 
     @property
     def model(self) -> KCFM:
@@ -224,7 +265,8 @@ class TransportedKCFMPolicy:
         for transport in self.transports:
             transport.choice.reset(seed)
         self.last_source, self.last_phase, self.last_map, self.last_pullback = None, None, None, None
-        self.last_transport = self.transports[0]
+        self.last_transport, self.last_correspondence = self.transports[0], None
+        self.kept, self.unfollowable = {}, 0
 
     def act(self, obs: dict) -> np.ndarray:
         """The first ``execute`` actions ``[execute, A]`` (float64) of ``phi(f(phi^-1(x)))`` for ``T = obs["keypoints"]``
@@ -243,13 +285,28 @@ class TransportedKCFMPolicy:
             self.model.check_in_range(obs["keypoints_history"], self.policy.input_margin)
             frames = list(np.asarray(obs["keypoints_history"], dtype=np.float64))
         target = frames[-1]
-        transport = self.transports[0] if self.phases is None else self.transports[int(self.phases.index(target[None])[0])]
-        i = int(transport.members[transport.choice.choose(target)])
-        target_t = torch.from_numpy(target)
+        which = 0 if self.phases is None else int(self.phases.index(target[None])[0])
+        transport = self.transports[which]
+        first = int(transport.members[transport.choice.choose(target)])
+        if self.arm is None:
+            source, c, chosen = first, 0, self._transported(transport, first, transport.correspondences[0], frames)
+        else:
+            source, c, chosen = self._followable(obs, transport, which, first, target, frames)
+        out, phi, pullback = chosen
+        self.last_source, self.last_map, self.last_pullback = source, phi, pullback
+        self.last_transport, self.last_phase = transport, transport.phase.name if transport.phase else None
+        self.last_correspondence = transport.correspondences[c]
+        return check_actions(out, "the transported K-CFM")
+
+    def _transported(self, transport: PhaseTransport, i: int, correspondence: Symmetry, frames: list[np.ndarray]):
+        """The chunk ``[execute, A]`` of source ``i`` under ``correspondence``, with its map and the K-CFM's input."""
+        perm = np.asarray(correspondence.perm)
+        seen = np.stack(frames)[:, perm]  # the observation relabelled: T_c = T[perm]
+        target_t = torch.from_numpy(seen[-1])
         source_t = torch.from_numpy(self.index.keypoints[i].astype(np.float64))
         phi = self.make_map().fit(source_t[transport.fit_on], target_t[transport.fit_on])
         with torch.no_grad():  # one inverse for every frame: the last one is the current observation
-            back = phi.inverse(torch.from_numpy(np.stack(frames))).to(torch.float64)  # [n_obs, K, D]
+            back = phi.inverse(torch.from_numpy(seen)).to(torch.float64)  # [n_obs, K, D]
             if self.pull_back == "all":
                 pullback = back[-1]
             else:
@@ -258,7 +315,34 @@ class TransportedKCFMPolicy:
             if self.n_obs > 1:
                 pullback = pullback + (back - back[-1])
         chunk = self.policy.act({"keypoints" if self.n_obs == 1 else "keypoints_history": pullback.numpy()})
-        out = transport_chunk(phi, chunk, target.shape[1], self.rotation)
-        self.last_source, self.last_map, self.last_pullback = i, phi, pullback.numpy()
-        self.last_transport, self.last_phase = transport, transport.phase.name if transport.phase else None
-        return check_actions(out, "the transported K-CFM")
+        dim = seen.shape[-1]
+        out = transport_chunk(phi, chunk, dim, self.rotation)
+        if correspondence.tool_turn and self.rotation:  # the tool turned about its own z axis: R -> R Rz(turn)
+            out[:, dim : dim + 6] = matrix_to_rot6d(rot6d_to_matrix(out[:, dim : dim + 6]) @ yaw_rotation(correspondence.tool_turn))
+        return out, phi, pullback.numpy()
+
+    def _followable(self, obs: dict, transport: PhaseTransport, which: int, first: int, target: np.ndarray, frames: list[np.ndarray]):
+        """``(source, correspondence, (chunk, map, input))`` of the first candidate the arm can follow (module
+        docstring): the phase's kept correspondence of the chosen source, else the cheapest of the others, else the
+        next sources'; the first candidate when none can be followed."""
+        near, _ = transport.choice.index.query_k(target, min(self.alternatives, len(transport.members)))
+        sources = [first] + [int(transport.members[j]) for j in near if int(transport.members[j]) != first][: self.alternatives - 1]
+        n = len(transport.correspondences)
+        fallback = None
+        for source in sources:
+            kept = self.kept.get(which)
+            order = ([kept] + [c for c in range(n) if c != kept]) if kept is not None else list(range(n))
+            rated = []
+            for c in order:
+                candidate = self._transported(transport, source, transport.correspondences[c], frames)
+                fallback = fallback or (source, c, candidate)
+                cost = float(self.arm.cost(obs, candidate[0]))
+                if c == kept and np.isfinite(cost):
+                    return source, c, candidate  # the kept correspondence while the arm follows it
+                rated.append((cost, c, candidate))
+            cost, c, candidate = min(rated, key=lambda r: r[0])  # the first of the cheapest
+            if np.isfinite(cost):
+                self.kept[which] = c
+                return source, c, candidate
+        self.unfollowable += 1
+        return fallback

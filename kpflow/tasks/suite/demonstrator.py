@@ -7,7 +7,7 @@ start, from the objects' geometry.
 * ``place`` (stack, can, square): carry the held object over its goal at a safe height, lower it, open, retreat
   upwards. Its goal comes from where the object is in the hand now: cube A's centre on top of cube B; the can over
   its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the
-  turn that :func:`path_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
+  turn that :func:`~.arm_limits.path_cost` rates best (within ``MAX_PLACE_TURN`` and the last joint's range, nearest the
   robot's base): with the handle pointing away, the peg is at the edge of the Panda's reach.
 
 Poses are the grip site's (between the finger pads), as :class:`~kpflow.trajectory.Trajectory` rows in the
@@ -17,14 +17,13 @@ command (closed while True).
 
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 
-from kpflow.geometry.angles import wrap_angle, yaw_of, yaw_rotation
+from kpflow.geometry.angles import yaw_of, yaw_rotation
 from kpflow.tasks.arm.motion import segments_to_trajectory
 from kpflow.trajectory import Trajectory
 
+from .arm_limits import MAX_PLACE_TURN, path_cost
 from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw
 from .specs import TaskSpec
 
@@ -37,8 +36,6 @@ CARRY_CLEARANCE = {"cubeB": 0.06, "bin": 0.14, "peg": 0.20}  # m of the held obj
 #: kept one can's radius and 1 cm from its walls; the quarter is at the Panda's reach, and 1.5 cm further out (the
 #: first choice, (0.05, 0.065)) the elbow often ended a place at its stop
 CAN_COMPARTMENT = (0.035, 0.045, 0.0)
-MAX_PLACE_TURN = 0.75 * np.pi  # rad the wrist may turn the nut to align it with the peg
-WRIST_LIMIT = 2.65  # rad: the Panda's last joint stops at +-2.9
 RELEASE_HEIGHT = {"cubeB": 0.004, "bin": 0.09, "peg": 0.03}  # m above the goal (see plan_place) at which the jaws open
 
 
@@ -100,24 +97,6 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
             raise ValueError(f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range")
         return goal, float(turns[int(np.argmin(costs))])
     raise ValueError(f"no placement on a {kind!r}")
-
-
-def path_cost(env) -> Callable[[np.ndarray, np.ndarray], float]:
-    """How hard a path of grip-site poses (``positions [T, 3]``, ``rotations [T, 3, 3]``) is for the arm from where
-    it is now: infinite when the jaws turn past ``MAX_PLACE_TURN`` on the way or the turn takes the Panda's last
-    joint past ``WRIST_LIMIT`` (turning the jaws by +t turns that joint by about -t), else its end's distance from
-    the robot's base in the plane (the Panda's reach ends just past the peg). The turn is summed step by step (the
-    first step, from the jaws now, by the shorter way), so a path that turns the long way round is seen to."""
-    wrist, yaw, base = float(env.arm_joints()[6]), yaw_of(env.ee_pose()[1]), env.base_position()
-
-    def cost(positions: np.ndarray, rotations: np.ndarray) -> float:
-        yaws = np.array([yaw, *(yaw_of(r) for r in rotations)])
-        turn = float(np.sum(wrap_angle(np.diff(yaws))))
-        if abs(turn) > MAX_PLACE_TURN or abs(wrist - turn) > WRIST_LIMIT:
-            return np.inf
-        return float(np.linalg.norm((np.asarray(positions[-1]) - base)[:2]))
-
-    return cost
 
 
 def plan_place(env, spec: TaskSpec) -> Trajectory:

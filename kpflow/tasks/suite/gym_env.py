@@ -4,8 +4,9 @@ runs a policy in.
 ``reset(seed=i, options={"stream": s})`` sets up scene ``i`` of the env's variant in scene stream ``s`` (without a
 seed, a scene drawn from the env's generator)
 (:func:`~.scene.sample_scene`: the key ``(s, variant, i)``) and restarts the perception's noise at ``i``;
-``info["scene"]`` is the scene as a dict. Observations are ``{"keypoints": [K, 3]}``
-(:func:`~.keypoints.policy_keypoints`): the gripper's from the robot, the objects' from the perception (the
+``info["scene"]`` is the scene as a dict. Observations are ``{"keypoints": [K, 3], "joints": [7]}``
+(:func:`~.keypoints.policy_keypoints`, and the arm's joint angles, which a policy checks its chunks against:
+:class:`~.arm_limits.SuiteArmLimits`): the gripper's from the robot, the objects' from the perception (the
 simulator's at every step; a camera's only where the loop says a decision will read the observation,
 :meth:`SuiteGymEnv.will_read`, held in between; an object the cameras cannot place in a read keeps its last seen pose;
 the object picked, once the jaws close on it, is carried with them from where it was last seen). An action is an
@@ -28,6 +29,7 @@ from .keypoints import SimulatorPoses, policy_keypoints, policy_objects
 from .scene import sample_scene
 
 ACTION_DIM = 10  #: position [3], 6-D rotation [6], gripper [1]
+ARM_JOINTS = 7  #: the Panda's arm joints (rad), observed beside the keypoints
 WORKSPACE_M = 2.0  #: the action space's bound on a target position's coordinates (m, world frame)
 
 
@@ -42,7 +44,8 @@ class SuiteGymEnv(gym.Env):
             raise ValueError(f"{sim.spec.name} has no variant {variant!r}; choose from {', '.join(sim.spec.variants)}")
         self.sim, self.variant, self.render_mode = sim, variant, render_mode
         self.perception = SimulatorPoses() if perception is None else perception
-        self.observation_space = gym.spaces.Dict({"keypoints": gym.spaces.Box(-np.inf, np.inf, (n_keypoints, 3), np.float64)})
+        self.observation_space = gym.spaces.Dict({"keypoints": gym.spaces.Box(-np.inf, np.inf, (n_keypoints, 3), np.float64),
+                                                  "joints": gym.spaces.Box(*sim.joint_limits.T, (ARM_JOINTS,), np.float64)})  # fmt: skip
         bound = np.array([WORKSPACE_M] * 3 + [1.0] * 7)  # a position in the world (m), a 6-D rotation's columns, the gripper
         self.action_space = gym.spaces.Box(-bound, bound, (ACTION_DIM,), np.float64)
         self._names = policy_objects(sim.spec)
@@ -60,9 +63,10 @@ class SuiteGymEnv(gym.Env):
             except ValueError:  # an object hidden (by the arm, the jaws) in this read: keep what was seen last
                 self._unseen += 1
         if self._poses is None:
-            self._obs = {"keypoints": np.full(self.observation_space["keypoints"].shape, np.nan)}
+            keypoints = np.full(self.observation_space["keypoints"].shape, np.nan)
         else:
-            self._obs = {"keypoints": policy_keypoints(self.sim, self.sim.spec, self._poses)}
+            keypoints = policy_keypoints(self.sim, self.sim.spec, self._poses)
+        self._obs = {"keypoints": keypoints, "joints": self.sim.arm_joints()}
         return self._obs
 
     def _info(self, **extra) -> dict:

@@ -28,6 +28,7 @@ import numpy as np
 from kpflow.geometry.angles import yaw_of, yaw_rotation
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.phases import Grip, Phase, Phases
+from kpflow.policies.symmetry import Symmetry, turn_permutation
 
 from .specs import TaskSpec
 
@@ -179,18 +180,43 @@ def task_phases(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> Phases:
     return Phases(grip, (pick, place))
 
 
+def task_symmetries(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> tuple[Symmetry, ...]:
+    """The relabellings of :func:`policy_keypoints` that leave the task as it was (:mod:`kpflow.policies.symmetry`):
+    each turn of an observed object that :data:`SYMMETRY` says looks the same (a cube's and the square peg's
+    quarter turns, the bin's half turn; the can's keypoints stand in fixed world directions, the nut's handle fixes
+    its yaw), and the parallel jaws' half turn about their approach axis while they hold nothing (the finger pads
+    swapped, the jaws turned by pi)."""
+    k = sum(len(g) for g in groups.values())
+    out = []
+    for name in policy_objects(spec):
+        order = SYMMETRY[spec.kinds[name]]
+        points = object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0)
+        for turn in range(1, order if order > 1 else 1):
+            local = turn_permutation(points, np.zeros(3), 2 * np.pi * turn / order)
+            perm = list(range(k))
+            for i, j in enumerate(local):
+                perm[groups[name][i]] = groups[name][j]
+            out.append(Symmetry(f"{name} turned {turn}/{order}", tuple(perm)))
+    perm = list(range(k))
+    pads = groups["gripper"][1:]
+    perm[pads[0]], perm[pads[1]] = pads[1], pads[0]
+    out.append(Symmetry("jaws turned 1/2", tuple(perm), tool_turn=np.pi, holding=False))
+    return tuple(out)
+
+
 def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
     """The layout of :func:`policy_keypoints` for ``spec``: the object picked (role ``objects``, named as in the
     task), its goal (``goals``: the target's keypoints, where the task has one) and ``gripper`` (``robot``: the grip
     site and the finger pads), all 3-D (counted on a unit pose); actions of ``action_dim`` values: position, 6-D
-    rotation, gripper; its phases are :func:`task_phases`."""
+    rotation, gripper; its phases are :func:`task_phases`, its symmetries :func:`task_symmetries`."""
     groups, start = {}, 0
     for name in policy_objects(spec):
         n = len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0))
         groups[name], start = tuple(range(start, start + n)), start + n
     groups["gripper"] = tuple(range(start, start + GRIPPER_KEYPOINTS))
     roles = {"objects": (spec.grasp,), "goals": (spec.target,) if spec.target else (), "robot": ("gripper",)}
-    return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True, phases=task_phases(spec, groups))
+    return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True, phases=task_phases(spec, groups),
+                        symmetries=task_symmetries(spec, groups))  # fmt: skip
 
 
 def policy_objects(spec: TaskSpec) -> list[str]:

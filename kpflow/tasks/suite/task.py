@@ -20,7 +20,8 @@ from kpflow.tasks.base import EvaluationScene, GymTask, Segment, SegmentStart
 from kpflow.trajectory import Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 
-from .demonstrator import path_cost, plan_segment
+from .arm_limits import SuiteArmLimits, path_cost
+from .demonstrator import plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
 from .gym_env import ACTION_DIM, SuiteGymEnv
 from .keypoints import (
@@ -87,6 +88,11 @@ class SuiteTask(GymTask):
         """What its learned policies observe and return (:func:`~.keypoints.policy_layout`)."""
         return self._layout
 
+    @property
+    def arm_limits(self) -> SuiteArmLimits:
+        """The Panda's limits a policy checks its chunks against (:class:`~.arm_limits.SuiteArmLimits`)."""
+        return SuiteArmLimits(self._layout.groups["gripper"][1:])
+
     def make_sim(self, render: bool = False) -> SuiteEnv:
         """A simulator for this task (rendering when asked, or when its keypoints come from cameras, whose names are
         checked against the model's here: an unknown camera is refused before any episode)."""
@@ -132,7 +138,7 @@ class SuiteTask(GymTask):
         """What ``segment`` depends on, now (:class:`~kpflow.tasks.base.SegmentStart`): for a pick the grasp
         keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
         (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
-        :func:`~.demonstrator.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
+        :func:`~.arm_limits.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``
         start's yaws (the recorded source's; its own without one). The poses of the reference object and of the one
         picked come from :attr:`perception` (the simulator, or one capture of the cameras)."""
         spec = self.spec
