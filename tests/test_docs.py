@@ -37,6 +37,7 @@ OWN_FILE = {
     "own-data": "trains, evaluates and serves a policy",
     "own-task": "collects, trains, evaluates and serves on a task of its own",
     "generate": "generates robosuite demonstrations (MuJoCo)",
+    "mimicgen-benchmark": "generates in MimicGen's D1, trains and evaluates a robosuite policy",
     "pusht-human": "imports the human Push-T dataset, trains and evaluates a K-CFM",
 }
 # examples run directly (not included in a page) that take more than ~20 s, and why
