@@ -15,7 +15,7 @@ LAYERS = [
     {"transport", "trajectory"},
     {"vision"},
     {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
-    {"tasks", "policies.base"},  # the policy contract (base.py, phases.py) sits beside the task contract: tasks declare their layout with it
+    {"tasks", "policies.base"},  # the policy contract (base.py, phases.py, symmetry.py) sits beside the task contract: tasks declare their layout with it
     {"policies"},
     {"eval", "serving", "generation"},  # generation: segment transport and whole datasets, beside evaluation
     {"cli", "conf", "examples", "__init__"},  # the commands (kpflow/cli/), the installed examples and the package's front door
@@ -48,7 +48,7 @@ def imports(path: Path) -> set[str]:
 
 def layer(module: str) -> str:
     parts = module.split(".")
-    if parts[1:3] in (["policies", "base"], ["policies", "phases"]):
+    if parts[1:3] in (["policies", "base"], ["policies", "phases"], ["policies", "symmetry"]):
         return "policies.base"
     return parts[1] if len(parts) > 1 else "__init__"
 
