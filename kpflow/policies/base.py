@@ -15,8 +15,8 @@
   queue (a chunk is executed open loop; the policy is asked again when it runs out). Every task's episode loop
   (Push-T's and the robosuite tasks') runs its policy through it.
 
-This module imports nothing else of kpflow but :mod:`.phases` and :mod:`.symmetry` (which import none): tasks import
-it to declare their layout.
+This module imports nothing else of kpflow but :mod:`.phases` and :mod:`.symmetry` (which import only
+:mod:`kpflow.geometry`): tasks import it to declare their layout.
 """
 
 from __future__ import annotations

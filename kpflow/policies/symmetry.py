@@ -19,7 +19,8 @@ decision, keeps it while the arm can follow, and otherwise tries the others and 
 :func:`turn_permutation` builds an object's turn from its keypoints: the permutation that a rotation about a
 vertical axis maps the keypoints onto.
 
-This module imports nothing else of kpflow: :mod:`.base` holds a layout's symmetries.
+This module imports nothing else of kpflow but :mod:`kpflow.geometry`: :mod:`.base` holds a layout's symmetries (and
+checks that each relabels the layout's keypoints).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from dataclasses import dataclass
 from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
+
+from ..geometry.angles import yaw_rotation
 
 
 @dataclass(frozen=True)
@@ -59,12 +62,11 @@ def identity(k: int) -> Symmetry:
 def phase_correspondences(symmetries: Sequence[Symmetry], k: int, fit_on: Sequence[int], holding: bool | None) -> list[Symmetry]:
     """The correspondences a phase fitted on ``fit_on`` that holds (``holding``) chooses among: the identity first,
     then each symmetry that relabels a keypoint of ``fit_on`` or turns the tool, where it holds in the phase (a
-    symmetry with ``holding`` set holds only in a phase with the same ``holding``)."""
+    symmetry with ``holding`` set holds only in a phase with the same ``holding``); the identity alone without
+    ``symmetries``."""
     fit = set(int(i) for i in fit_on)
     out = [identity(k)]
     for s in symmetries:
-        if len(s.perm) != k:
-            raise ValueError(f"symmetry {s.name!r} relabels {len(s.perm)} keypoints; the layout has {k}")
         if s.holding is not None and s.holding != holding:
             continue
         if s.tool_turn or s.moves() & fit:
@@ -77,9 +79,7 @@ def turn_permutation(keypoints: np.ndarray, axis: np.ndarray, angle: float, atol
     ``angle`` about the vertical through ``axis [3]``) for keypoints ``[N, 3]``; ``ValueError`` where the turn does
     not map the keypoints onto themselves."""
     p = np.asarray(keypoints, np.float64)
-    c, s = np.cos(angle), np.sin(angle)
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    turned = (p - axis) @ r.T + axis
+    turned = (p - axis) @ yaw_rotation(angle).T + axis
     dist = np.linalg.norm(turned[:, None] - p[None], axis=-1)
     perm = dist.argmin(1)
     if not np.all(dist[np.arange(len(p)), perm] < atol) or len(set(perm.tolist())) != len(p):

@@ -77,7 +77,7 @@ from .kcfm.model import KCFM
 from .kcfm.policy import KCFMPolicy
 from .phases import Phase, Phases
 from .source_choice import SourceChoice
-from .symmetry import ArmLimits, Symmetry, identity, phase_correspondences
+from .symmetry import ArmLimits, Symmetry, phase_correspondences
 
 PULL_BACK = ("agent", "all")
 
@@ -94,7 +94,7 @@ class PhaseTransport:
     members: np.ndarray
     fit_on: slice | np.ndarray
     pulled: np.ndarray
-    correspondences: tuple[Symmetry, ...] = ()
+    correspondences: tuple[Symmetry, ...]
 
 
 def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
@@ -116,10 +116,10 @@ def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
     return which
 
 
-def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict, symmetric: bool = False) -> list[PhaseTransport]:
+def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict, symmetries: Sequence[Symmetry] = ()) -> list[PhaseTransport]:
     """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase
-    (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``; with ``symmetric``, the
-    correspondences the layout's symmetries admit in it."""
+    (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``, with the correspondences
+    ``symmetries`` admit in it (:func:`~.symmetry.phase_correspondences`; none: the identity alone)."""
     which = source_phases(index, phases)
     out = []
     for i, phase in enumerate(phases.phases):
@@ -129,9 +129,8 @@ def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, c
         sub = SourceIndex(index.keypoints[members], index.chunks[members], layout.weights(phase.weights), layout.indices(*phase.frame))
         pulled = np.asarray(sorted({*layout.indices("robot"), *(layout.indices(*phase.carried) if phase.carried else ())}))
         fit_on = np.asarray(layout.indices(*phase.fit_on))
-        k = layout.n_keypoints
-        correspondences = phase_correspondences(layout.symmetries, k, fit_on, phase.holding) if symmetric else [identity(k)]
-        out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, fit_on, pulled, tuple(correspondences)))
+        correspondences = tuple(phase_correspondences(symmetries, layout.n_keypoints, fit_on, phase.holding))
+        out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, fit_on, pulled, correspondences))
     return out
 
 
@@ -197,19 +196,17 @@ class TransportedKCFMPolicy:
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
+        symmetries = layout.symmetries if arm is not None else ()  # without the arm's cost, nothing to choose by
         self.phases = None
         if segments:
             if layout is None or layout.phases is None:
                 raise ValueError("segments=true follows the phases a task declares (PolicyLayout.phases); this task declares none")
             self.phases = layout.phases
-            self.transports = phase_transports(index, layout, layout.phases, choice, symmetric=arm is not None)
+            self.transports = phase_transports(index, layout, layout.phases, choice, symmetries)
         else:
             fit = fitted_keypoints(fit_on, k)
-            correspondences = [identity(k)]
-            if arm is not None and layout is not None:
-                correspondences = phase_correspondences(layout.symmetries, k, np.arange(k)[fit], None)
-            whole = PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fit, robot, tuple(correspondences))
-            self.transports = [whole]
+            correspondences = tuple(phase_correspondences(symmetries, k, np.arange(k)[fit], None))
+            self.transports = [PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fit, robot, correspondences)]
         self.last_transport = self.transports[0]
         self.last_source: int | None = None
         self.last_phase: str | None = None
@@ -327,10 +324,9 @@ class TransportedKCFMPolicy:
         next sources'; the first candidate when none can be followed."""
         near, _ = transport.choice.index.query_k(target, min(self.alternatives, len(transport.members)))
         sources = [first] + [int(transport.members[j]) for j in near if int(transport.members[j]) != first][: self.alternatives - 1]
-        n = len(transport.correspondences)
+        n, kept = len(transport.correspondences), self.kept.get(which)
         fallback = None
         for source in sources:
-            kept = self.kept.get(which)
             order = ([kept] + [c for c in range(n) if c != kept]) if kept is not None else list(range(n))
             rated = []
             for c in order:

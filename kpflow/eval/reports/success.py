@@ -63,9 +63,14 @@ class SuccessReport:
             rows.append(f"| {' | '.join(cell)} | {s['trials']} | {success_cells(s)} |{short} {steps} |")
         return "\n".join(rows) + "\n"
 
+    def within_note(self) -> str:
+        """The header's words on the shorter horizons (empty without them)."""
+        return f"; success within {', '.join(map(str, self.within))} steps too" if self.within else ""
+
     def header(self, trial, n_trials: dict[str, int]) -> str:
         return (f"# {trial.name}: {trial.policy_name} in closed loop\n\n"
-                f"Episodes per condition: {n_trials}; at most {step_limits(trial)} control steps; the env's own success test.\n\n")  # fmt: skip
+                f"Episodes per condition: {n_trials}; at most {step_limits(trial)} control steps; the env's own success test"
+                f"{self.within_note()}.\n\n")  # fmt: skip
 
     def showcase(self, trials: list[TrialResult], videos: int) -> list[tuple[TrialResult, bool]]:
         return [(t, True) for t in trials if t.index == trials[0].index][:videos]

@@ -14,5 +14,4 @@ class SuiteReport(SuccessReport):
     def header(self, trial, n_trials: dict[str, int]) -> str:
         return (f"# {trial.name}: {trial.policy_name} in closed loop\n\n"
                 f"Episodes per variant: {n_trials}; at most {step_limits(trial)} control steps; robosuite's own success check"
-                + (f"; success within {', '.join(map(str, self.within))} steps too (MimicGen's and robomimic's horizon: 400)" if self.within else "")
-                + ".\n\n")  # fmt: skip
+                f"{self.within_note()}.\n\n")  # fmt: skip

@@ -27,7 +27,8 @@ WRIST_LIMIT = 2.65  # rad: the Panda's last joint stops at +-2.9
 #: m in the plane from the robot's base beyond which no target is sent: the generated Square d1 demonstrations'
 #: grip targets reach 0.82 m (99th percentile) and 0.88 m at most (ilwr family, 64,335 steps)
 REACH = 0.90
-#: the robot's base in the world (robosuite's table tasks put the Panda's base here)
+#: the robot's base in the world (robosuite's table tasks put the Panda's base here; tests/test_suite_tasks.py rates a chunk
+#: against the simulator's own base position)
 BASE_XY = (-0.56, 0.0)
 
 
