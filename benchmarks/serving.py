@@ -130,7 +130,7 @@ def main() -> None:
              "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     base = None
     for max_batch in (1, args.max_batch):
-        deployment = load_deployment(args.checkpoint, PushTTask(), steps=args.steps, max_batch=max_batch, max_wait_ms=args.max_wait_ms)
+        deployment = load_deployment(args.checkpoint, PushTTask(), {"steps": args.steps}, max_batch=max_batch, max_wait_ms=args.max_wait_ms)
         path = f"server, batching on ({max_batch} rows, {args.max_wait_ms:g} ms)" if max_batch > 1 else "server, batching off"
         if base is None:
             in_process(deployment, obs[:10])  # warm-up

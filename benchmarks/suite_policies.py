@@ -1,7 +1,7 @@
 """Decision latency of the robosuite tasks' policies on one CPU thread: the bare K-CFM (the baseline, same run), the
 transported K-CFM (Eq. 5: source search + map fit on the objects' keypoints + pull-back of the robot and of the
 observation history + K-CFM + push-forward of positions and orientations) with ILWR and with a rigid map, segment by
-segment (``policy.segments``: the phase read from the keypoints, the source searched among that phase's, the map on
+segment (``policy.transport.segments``: the phase read from the keypoints, the source searched among that phase's, the map on
 the phase's object), and policy transportation.
 
 Run::

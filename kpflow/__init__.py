@@ -3,7 +3,7 @@
 Fit a smooth map phi from the keypoints of a demonstration's scene to those of a new scene
 (:mod:`kpflow.maps`) and push the demonstration through it (:mod:`kpflow.transport`). Importing kpflow registers
 its Gymnasium ids and the config resolvers ``${release:NAME}`` and ``${kpflow_data:NAME}``; :func:`load_policy`
-loads a trained K-CFM for deployment, from a path or a released checkpoint's name (``release:NAME``,
+loads a trained policy for deployment as its checkpoint describes it, from a path or a released checkpoint's name (``release:NAME``,
 :mod:`kpflow.utils.releases`).
 """
 
@@ -20,16 +20,22 @@ register_resolver()  # ${release:NAME} in any config value (kpflow/utils/release
 register_data_resolver()  # ${kpflow_data:NAME}: where collected and imported data go (kpflow/utils/data_dir.py)
 
 
-def load_policy(path, steps: int | None = None, execute: int | None = None):
-    """A ready K-CFM policy (``reset(seed)``, ``act(obs) -> [execute, 2]``) from a Lightning checkpoint (a path, or
-    ``release:NAME`` for a released one: ``kpflow.load_policy("release:pusht_standard_fast")``), on the CPU,
-    sampling with ``steps`` network calls and returning ``execute`` actions (None: the checkpoint's own settings,
-    :mod:`kpflow.policies.settings`).
+def load_policy(path, task=None, input_margin: float | None = 10.0, **overrides):
+    """The policy a checkpoint holds, ready to act (``reset(seed)``, ``act(obs) -> action chunk``), built as its config
+    says (:mod:`kpflow.policies.config`: its kind, settings, transport and keypoint layout), on the CPU: a path, or
+    ``release:NAME`` for a released one (``kpflow.load_policy("release:pusht_standard_fast")`` acts as its results
+    page measured it, with no overrides).
 
-    A checkpoint trained on a GPU loads too; a missing file raises ``FileNotFoundError`` and a corrupt one a
-    ``ValueError`` naming the file. Wrap it in :class:`kpflow.policies.transported_kcfm.TransportedKCFMPolicy` for
-    online transport, or in :class:`kpflow.policies.subgoal.SubgoalPolicy` to show it its goal within reach and turn.
+    ``overrides``: ``kind`` (``kcfm``: the K-CFM as it is, ``transported_kcfm``: transported online over the source
+    index saved beside the checkpoint), ``steps``, ``solver``, ``execute``, ``reach``, ``turn_deg`` and ``transport``
+    (a mapping of :class:`~kpflow.policies.config.TransportConfig` options); ``task``: the task it acts in (a task
+    object; None: the layout the checkpoint records); ``input_margin``: how far outside its training keypoints an
+    observation may lie (:mod:`kpflow.policies.checks`). One builder makes it, the one ``kpflow-evaluate`` and
+    ``kpflow-serve`` use (:class:`kpflow.policies.factory.PolicyBuilder`).
+
+    A checkpoint trained on a GPU loads too; a missing file raises ``FileNotFoundError``, a corrupt one or an option
+    it ignores a ``ValueError`` naming it.
     """
-    from kpflow.policies.kcfm.policy import KCFMPolicy
+    from kpflow.policies.factory import build
 
-    return KCFMPolicy.from_checkpoint(path, steps=steps, execute=execute)
+    return build(path, overrides, task, None, input_margin)

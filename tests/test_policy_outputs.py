@@ -5,7 +5,6 @@ keypoint at 1e300 px (finite), and a real checkpoint whose last layer's finite w
 evaluation splits (object_ood, robot_ood: the large workspace) stay accepted by the released checkpoints. Real
 K-CFMs (the released ones, a tiny one trained here), real servers on port 0; no mocks."""
 
-import functools
 from pathlib import Path
 
 import lightning
@@ -16,7 +15,6 @@ import torch
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
-from kpflow.maps import AffineMap, ILWRMap
 from kpflow.policies.checks import INPUT_MARGIN, check_actions
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm.model import KCFM
@@ -169,10 +167,10 @@ def test_served_policies_reply_with_an_error_naming_the_cause(tiny):
     """Through real servers: the 1e300 scene (plain and transported K-CFM) and the overflowing checkpoint get error
     replies naming the cause, and each connection goes on serving."""
     good, overflow, _ = tiny
-    rigid = functools.partial(AffineMap, kind="rigid")
-    for path, make_map, obs, match in ((good, None, HUGE, FAR), (good, ILWRMap, HUGE, FAR),
-                                       (overflow, None, scene(), NOT_FINITE), (overflow, rigid, scene(), NOT_FINITE)):  # fmt: skip
-        deployment = load_deployment(path, PushTTask(), make_map, steps=2, execute=4)
+    ilwr, rigid = {"kind": "transported_kcfm"}, {"kind": "transported_kcfm", "transport": {"map": "affine"}}
+    for path, kind, obs, match in ((good, {}, HUGE, FAR), (good, ilwr, HUGE, FAR),
+                                   (overflow, {}, scene(), NOT_FINITE), (overflow, rigid, scene(), NOT_FINITE)):  # fmt: skip
+        deployment = load_deployment(path, PushTTask(), {**kind, "steps": 2, "execute": 4})
         with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
             with pytest.raises(PolicyServerError, match=match):
                 client.act(obs)
@@ -182,7 +180,7 @@ def test_served_policies_reply_with_an_error_naming_the_cause(tiny):
             else:
                 with pytest.raises(PolicyServerError, match=NOT_FINITE):
                     client.act(scene())
-    deployment = load_deployment(good, PushTTask(), steps=2, execute=4, input_margin=None)
+    deployment = load_deployment(good, PushTTask(), {"steps": 2, "execute": 4}, input_margin=None)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         with pytest.raises(PolicyServerError, match=NOT_FINITE):  # no range check: the output check still holds
             client.act(HUGE)

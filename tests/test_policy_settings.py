@@ -55,7 +55,11 @@ def test_settings_are_checked_and_given_values_win():
 
 
 def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
-    dst = release(trained, tmp_path / "r.ckpt", settings={"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40})
+    with pytest.raises(ValueError, match="no keypoint layout names them: pass the task"):  # a goal limit needs the task's groups
+        release(trained, tmp_path / "r.ckpt", settings={"reach": 50})
+    assert not (tmp_path / "r.ckpt").exists()
+    settings = {"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40}
+    dst = release(trained, tmp_path / "r.ckpt", settings=settings, layout=PushTTask.policy_layout)
     assert torch.load(dst, weights_only=True)[CHECKPOINT_KEY] == {"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40}
     task = PushTTask()
     policy = kcfm(str(dst), task)  # evaluate's policy=kcfm with no overrides
@@ -65,8 +69,9 @@ def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
     given = kcfm(str(dst), task, steps=5, execute=2, reach=False)  # what is given wins; False drops the reach
     assert (given.reach, given.turn_deg, given.policy.steps, given.policy.execute) == (None, 40.0, 5, 2)
     assert isinstance(kcfm(str(dst), task, reach=False, turn_deg=False), KCFMPolicy)
-    bare = load_policy(dst)  # the bare K-CFM: the sampling settings, no goal limit
-    assert (bare.steps, bare.solver, bare.execute) == (3, "midpoint", 4)
+    loaded = load_policy(dst)  # the whole record, with no task given: the layout travels in the file
+    assert isinstance(loaded, SubgoalPolicy) and (loaded.reach, loaded.turn_deg) == (50.0, 40.0)
+    assert (loaded.policy.steps, loaded.policy.solver, loaded.policy.execute) == (3, "midpoint", 4)
     served = load_deployment(dst, task)
     assert served.metadata.policy == "kcfm/reach=50/turn_deg=40" and served.metadata.action_shape == [4, 2]
     plain = KCFMPolicy.from_checkpoint(trained)  # no record: the model's own sample_steps and 8 actions

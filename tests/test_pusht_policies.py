@@ -330,8 +330,9 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
 
 
 def test_one_source_search_reaches_every_transporting_policy(demos):
-    """``source_search.<key>=`` is the one spelling of the search options: composed into nearest neighbour, policy
-    transportation and the server alike, checked as one options object."""
+    """``source_search.<key>=`` composes the search options into nearest neighbour and policy transportation, and a
+    served (or evaluated) transported K-CFM's ``transport.search`` takes the same options, checked as one options
+    object."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_dir
@@ -345,12 +346,12 @@ def test_one_source_search_reaches_every_transporting_policy(demos):
     with initialize_config_dir(conf, version_base="1.3"):
         transport = instantiate(compose("evaluate", overrides=[*overrides, "policy=transport"]).policy)
         nearest = instantiate(compose("evaluate", overrides=[*overrides, "policy=nearest"]).policy)
-        served = compose("serve", overrides=["checkpoint=x", "source_search.candidates=5"]).source_search
+        served = compose("serve", overrides=["checkpoint=x", "transport.search={candidates: 5}"]).transport.search
     assert transport.source.candidates == 5 and transport.source.stuck_decisions == 5  # Push-T's: a stuck block after 5
     assert transport.index.reference is None and nearest.index.reference is None  # frame=world
     agent = list(PushTTask.policy_layout.indices("robot"))
     assert transport.index.weights[agent].tolist() == nearest.index.weights[agent].tolist() == [2.0]
-    assert SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None  # serve's default
+    assert SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None  # the rest: the checkpoint's
     with pytest.raises(ValueError, match="source_search has no option canidates; its options are candidates, frame"):
         SourceSearch.of({"canidates": 3})
     with pytest.raises(ValueError, match="temperature must be a positive number"):

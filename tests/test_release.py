@@ -35,7 +35,7 @@ def test_release_keeps_weights_and_config_only(tmp_path, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["kpflow-release", f"src={tmp_path / 'full.ckpt'}", f"dst={tmp_path / 'out' / 'small.ckpt'}", "note=tiny"])
     main()
     small = torch.load(tmp_path / "out" / "small.ckpt", weights_only=True)
-    assert set(small) <= {*KEEP, "release"} and small["release"]["note"] == "tiny"
+    assert set(small) <= {*KEEP, "release", "policy_config"} and small["release"]["note"] == "tiny"
     assert "optimizer_states" in torch.load(tmp_path / "full.ckpt", weights_only=True)
     assert (tmp_path / "out" / "small.ckpt").stat().st_size < (tmp_path / "full.ckpt").stat().st_size
     obs = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})[0]
@@ -53,7 +53,7 @@ def test_released_checkpoints_load_and_act_on_cpu():
     env = PushTEnv()
     for path in RELEASED:
         policy = load_policy(path)
-        assert set(torch.load(path, weights_only=True)) <= {*KEEP, "release", CHECKPOINT_KEY}
+        assert set(torch.load(path, weights_only=True)) <= {*KEEP, "release", CHECKPOINT_KEY, "policy_config"}
         obs, _ = env.reset(options={"config": standard_config(100_000)})
         obs = dict(obs, keypoints_history=np.stack([obs["keypoints"]] * policy.n_obs))
         policy.reset(0)

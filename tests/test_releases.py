@@ -68,7 +68,7 @@ def test_this_checkout_is_a_clone_and_its_releases_load_by_name(tmp_path, monkey
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert releases.clone_dir() == ROOT / "release" and release_path(SMALL) == ROOT / "release" / f"{SMALL}.ckpt"
     policy = kpflow.load_policy(f"release:{SMALL}")
-    assert policy.model.hparams.n_keypoints == 25
+    assert policy.policy.model.hparams.n_keypoints == 25  # shown its goal within reach, as its record says
     assert read_checkpoint(f"release:{SMALL}")["state_dict"].keys() == read_checkpoint(ROOT / "release" / f"{SMALL}.ckpt")["state_dict"].keys()
     with pytest.raises(FileNotFoundError, match=f"no released file {SMALL}x.ckpt: .*released there: .*{SMALL}"):
         kpflow.load_policy(f"release:{SMALL}x")

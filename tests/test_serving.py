@@ -20,7 +20,6 @@ import pytest
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
-from kpflow.maps import ILWRMap
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.kcfm.policy import KCFMPolicy
@@ -51,7 +50,7 @@ def observation(seed: int) -> dict:
 
 @pytest.fixture(scope="module")
 def released():
-    return load_deployment(RELEASED, PushTTask(), steps=4)
+    return load_deployment(RELEASED, PushTTask(), {"steps": 4})
 
 
 @pytest.fixture(scope="module")
@@ -254,13 +253,13 @@ def test_graceful_shutdown_finishes_requests_then_says_going_away(released):
 def test_transported_policy_is_served_with_its_source_index(tiny_run):
     checkpoint, index = tiny_run
     with pytest.raises(FileNotFoundError, match="source_index.npz"):
-        load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr")
+        load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm"})
     index.save(source_index_path(checkpoint))
     loaded = SourceIndex.load(source_index_path(checkpoint))
     for a, b in ((loaded.keypoints, index.keypoints), (loaded.chunks, index.chunks), (loaded.weights, index.weights)):
         np.testing.assert_array_equal(a, b)
     assert loaded.reference == index.reference
-    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4)
+    deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": "all"}})
     assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, layout=PUSHT)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
@@ -270,7 +269,8 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     # and kpflow-evaluate's source search (conf/source_search/pusht.yaml's weights and frame, a stuck block after 2)
     fit_on, search = [*range(12), 24], SourceSearch({"objects": 1.0, "goals": 1.0, "robot": 4.0}, "objects", stuck_decisions=2)
-    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["objects", "robot"], search=search)
+    SEARCH = {"weights": {"objects": 1.0, "goals": 1.0, "robot": 4.0}, "frame": "objects", "stuck_decisions": 2}
+    deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["objects", "robot"], "search": SEARCH}})
     searched, choice = search.reindexed(index, PUSHT), search.choice()
     local = TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
@@ -279,7 +279,8 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
             np.testing.assert_array_equal(client.act(obs), local.act(obs))
         assert local.source.stuck_count == 1
     # shown its goal within reach and turn (Table 1's transported K-CFM): what SubgoalPolicy around it returns in process
-    deployment = load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", steps=4, fit_on=["block", "agent"], search=search, reach=60, turn_deg=30)
+    deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["block", "agent"], "search": SEARCH}, "reach": 60,
+                                                 "turn_deg": 30})  # fmt: skip
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
     limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
@@ -290,14 +291,14 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(served, limited.act(far))
         assert not np.array_equal(served, local.act(far))  # the goal, 180 px off and turned 2.2 rad, was moved
     with pytest.raises(ValueError, match="unknown keypoint group 'hand'"):
-        load_deployment(checkpoint, PushTTask(), make_map=ILWRMap, map_name="ilwr", fit_on=["hand"])
-    with pytest.raises(ValueError, match="make_map must be a factory of unfitted maps"):
-        load_deployment(checkpoint, PushTTask(), make_map="spline")
+        load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "transport": {"fit_on": ["hand"]}})
+    with pytest.raises(ValueError, match="transport.map='spline' names no map of kpflow/conf/map/"):
+        load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "transport": {"map": "spline"}})
 
 
 def test_kcfm_within_reach_is_served_as_it_acts_in_process():
     """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
-    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60, turn_deg=False)  # no turn limit (the release has 60)
+    deployment = load_deployment(RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": False})  # no turn limit (the release has 60)
     assert deployment.metadata.policy == "kcfm/reach=60"
     local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
     plain = KCFMPolicy.from_checkpoint(RELEASED, steps=4)
@@ -308,16 +309,16 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         np.testing.assert_array_equal(served, local.act(obs))
         assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
     with pytest.raises(ValueError, match="is a policy for 25 keypoints in 2-D and 2-D actions, but lift shows 11 keypoints in 3-D"):
-        load_deployment(RELEASED, SuiteTask("lift"), reach=60)
+        load_deployment(RELEASED, SuiteTask("lift"), {"reach": 60})
     with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
-        load_deployment(RELEASED, PushTTask(), reach=0)
+        load_deployment(RELEASED, PushTTask(), {"reach": 0})
     with pytest.raises(ValueError, match="turn_deg must be a positive finite number or None"):
-        load_deployment(RELEASED, PushTTask(), turn_deg=-1)
+        load_deployment(RELEASED, PushTTask(), {"turn_deg": -1})
 
 
 def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
     """``turn_deg`` with ``reach`` serves what SubgoalPolicy with both returns in process."""
-    deployment = load_deployment(RELEASED, PushTTask(), steps=4, reach=60, turn_deg=30)
+    deployment = load_deployment(RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": 30})
     assert deployment.metadata.policy == "kcfm/reach=60/turn_deg=30"
     local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     reach_only = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)

@@ -227,14 +227,14 @@ def test_four_clients_at_once_get_the_unbatched_replies(tiny_checkpoint):
     unbatched policy's on the same sequence (the same noise, drawn from the connection's own generator), and the
     server ran fewer forward passes than it received network calls."""
     n_clients, n_requests, steps = 4, 8, 4
-    plain = load_deployment(tiny_checkpoint, PushTTask(), steps=steps, execute=4)
+    plain = load_deployment(tiny_checkpoint, PushTTask(), {"steps": steps, "execute": 4})
     expected = {}
     for c in range(n_clients):
         local = plain.make_policy()
         local.reset(c)
         for r in range(n_requests):
             expected[c, r] = local.act(observation(10 * c + r))
-    batched = load_deployment(tiny_checkpoint, PushTTask(), steps=steps, execute=4, max_batch=8, max_wait_ms=20)
+    batched = load_deployment(tiny_checkpoint, PushTTask(), {"steps": steps, "execute": 4}, max_batch=8, max_wait_ms=20)
     assert isinstance(batched.make_policy(), BatchedPolicy) and batched.network is not None
     got, server_ms, failures, start = {}, [], [], threading.Barrier(n_clients)
 

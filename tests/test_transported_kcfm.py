@@ -258,8 +258,9 @@ def test_built_with_reach_and_turn_it_searches_and_acts_on_the_shown_goal(traine
 
     _, ckpt = trained
     demos = ChunkDataModule(store_path, horizon=H)
-    wrapped = transported_kcfm(str(ckpt), demos, PushTTask(), search={"weights": {"agent": 4.0}, "frame": "block"}, fit_on=["block", "agent"], reach=60.0, turn_deg=20.0)
-    plain = transported_kcfm(str(ckpt), demos, PushTTask(), search={"weights": {"agent": 4.0}, "frame": "block"}, fit_on=["block", "agent"])
+    TRANSPORT = {"search": {"weights": {"agent": 4.0}, "frame": "block"}, "fit_on": ["block", "agent"]}
+    wrapped = transported_kcfm(str(ckpt), demos, PushTTask(), transport=TRANSPORT, reach=60.0, turn_deg=20.0)
+    plain = transported_kcfm(str(ckpt), demos, PushTTask(), transport=TRANSPORT)
     assert isinstance(wrapped, SubgoalPolicy) and isinstance(wrapped.policy, TransportedKCFMPolicy)
     assert isinstance(plain, TransportedKCFMPolicy)
     obs = _obs(observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0)))  # goal 180 px off, turned 2.2 rad

@@ -2,17 +2,20 @@
 
     kpflow-release src=outputs/pusht_kcfm/<run>/checkpoints/last.ckpt dst=release/<name>.ckpt [note="..."] \
         [settings.steps=20 settings.reach=60 settings.turn_deg=60]
-    kpflow-release src=<run>/checkpoints/last.ckpt dst=release/suite_lift_kcfm.ckpt ema_only=true \
+    kpflow-release src=<run>/checkpoints/last.ckpt dst=release/suite_lift_kcfm.ckpt ema_only=true kind=transported_kcfm \
         task=lift source_store=<generate run>/d0/rigid/episodes.zarr source_action_key=ee_target source_episodes=200 source_every=2
 
 The released file holds the weights and buffers (``state_dict``: the trained and the EMA network, or with
 ``ema_only=true`` the EMA network alone, which is what sampling uses), the normalisation statistics, the plain hyper-parameters, a ``release`` record (source path, note,
-parameter count) and the policy's own settings (``settings.<name>``: :class:`~kpflow.policies.settings.PolicySettings`,
-what the release's results page measured, so that loading it with no overrides reproduces that figure; releasing a
-released file again keeps its settings, its source path and adds the ones given) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
+parameter count), the policy's own settings (``settings.<name>``: :class:`~kpflow.policies.settings.PolicySettings`)
+and its config (:class:`~kpflow.policies.config.PolicyConfig`: ``kind=kcfm | transported_kcfm``,
+``transport.<option>`` and, with ``task=``, the task's keypoint layout): what the release's results page measured,
+so that loading it with no overrides reproduces that figure (releasing a released file again keeps its settings,
+config and source path and adds the ones given) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
 has loaded back through :func:`kpflow.load_policy` (``torch.load(weights_only=True)``).
 
-With ``source_store``, the transported K-CFM's source index is written beside it
+With ``source_store`` (or ``data=``, a data node of ``kpflow/conf/data/``, its goals read as it says), the
+transported K-CFM's source index is written beside it
 (:func:`~kpflow.policies.factory.source_index_path`): the keypoints of every ``source_every``-th step of the
 store's first ``source_episodes`` episodes, searched as the transporting policies of ``task`` (any task of ``kpflow/conf/task/`` with a policy layout) search by default
 (robot keypoints weighted 4, relative to the objects). A transported K-CFM uses the sources' keypoints only, so their
@@ -22,6 +25,7 @@ chunks are kept one action long.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import hydra
@@ -29,7 +33,10 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from kpflow.policies.settings import CHECKPOINT_KEY, PolicySettings
+from kpflow.policies.base import PolicyLayout
+from kpflow.policies.config import CHECKPOINT_KEY as CONFIG_KEY
+from kpflow.policies.config import KINDS, PolicyConfig, TransportConfig
+from kpflow.policies.settings import CHECKPOINT_KEY as SETTINGS_KEY
 from kpflow.utils.checkpoint import read_checkpoint
 from kpflow.utils.config_checks import Key, check_config
 from kpflow.utils.errors import command, config_dir_checked
@@ -38,14 +45,22 @@ from kpflow.utils.io import atomic_path
 KEEP = ("state_dict", "hyper_parameters", "pytorch-lightning_version")
 
 
-def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = False, settings: Mapping | None = None) -> Path:
+def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = False, settings: Mapping | None = None, kind: str | None = None,
+            transport: Mapping | None = None, layout: PolicyLayout | None = None) -> Path:  # fmt: skip
     """Write the deployment part of checkpoint ``src`` to ``dst`` with the policy ``settings`` given (None values:
-    not set) on top of those ``src`` holds (module docstring); returns ``dst``."""
+    not set), its ``kind`` and ``transport`` options and the task's keypoint ``layout`` (None: ``src``'s) on top of
+    what ``src`` holds (module docstring); returns ``dst``."""
     checkpoint = read_checkpoint(src)
     out = {k: checkpoint[k] for k in KEEP if k in checkpoint}
-    merged = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY), str(src)).given(**(settings or {}))
-    if merged.record():
-        out[CHECKPOINT_KEY] = merged.record()
+    config = PolicyConfig.of_checkpoint(checkpoint, str(src))
+    config = config.given(kind, TransportConfig.of({k: v for k, v in (transport or {}).items() if v is not None}), **(settings or {}))
+    if config.kind == "kcfm" and config.transport.record():
+        raise ValueError(f"kind=kcfm releases the K-CFM as it is: transport options {sorted(config.transport.record())} would be unused")
+    if layout is not None:
+        config = replace(config, layout=layout.record())
+    if config.settings.record():
+        out[SETTINGS_KEY] = config.settings.record()
+    out[CONFIG_KEY] = config.record()
     earlier = checkpoint.get("release") if isinstance(checkpoint.get("release"), dict) else {}
     state = out["state_dict"]
     if ema_only:
@@ -60,19 +75,25 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
 
     with atomic_path(dst) as tmp:
         torch.save(out, tmp)
-        load_policy(tmp)  # a file that does not load back never reaches dst
+        load_policy(tmp, kind="kcfm")  # a file that does not load back never reaches dst (its source index is written after it)
     return dst
 
 
-def release_source_index(dst: str | Path, layout, store: str | Path, episodes: int, every: int = 1, action_key: str = "action") -> Path:
-    """Write the source index of a transported K-CFM released at ``dst`` (module docstring); returns its path."""
+def release_source_index(dst: str | Path, layout, store: str | Path | None, episodes: int, every: int = 1, action_key: str = "action",
+                         demos=None) -> Path:  # fmt: skip
+    """Write the source index of a transported K-CFM released at ``dst`` (module docstring): over ``demos`` (a data
+    node, its goals read as it says: Push-T's hindsight goals) or else the first ``episodes`` of ``store``; returns
+    its path."""
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
     from kpflow.policies.factory import source_index_path
     from kpflow.policies.source_search import SourceSearch
 
-    with EpisodeStore(store) as s:
-        full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
+    if demos is not None:
+        full = SourceSearch().index(demos, layout, 1)
+    else:
+        with EpisodeStore(store) as s:
+            full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
     kept = SourceIndex(full.keypoints[keep], full.chunks[keep], None, None, full.episodes[keep])
     return SourceSearch({"robot": 4.0}, "objects").reindexed(kept, layout).save(source_index_path(dst))
@@ -87,6 +108,7 @@ KEYS = {
     "source_episodes": Key(int, lo=1),
     "source_every": Key(int, lo=1),
     "source_action_key": Key(str),
+    "kind": Key(str, choices=KINDS, nullable=True),
 }
 
 
@@ -95,13 +117,17 @@ KEYS = {
 @command
 def main(cfg: DictConfig) -> Path:
     check_config(cfg, KEYS)
-    if cfg.source_store and cfg.get("task") is None:
-        raise ValueError("source_store needs task=<name> (kpflow/conf/task/): the keypoint layout its index is searched with")
-    dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only, OmegaConf.to_container(cfg.settings) if cfg.get("settings") else None)
+    sources = cfg.source_store or cfg.get("data") is not None
+    if sources and cfg.get("task") is None:
+        raise ValueError("source_store and data= need task=<name> (kpflow/conf/task/): the keypoint layout the index is searched with")
+    layout = instantiate(cfg.task).policy_layout if cfg.get("task") is not None else None
+    settings = OmegaConf.to_container(cfg.settings) if cfg.get("settings") else None
+    transport = OmegaConf.to_container(cfg.transport, resolve=True) if cfg.get("transport") else None
+    dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only, settings, cfg.kind, transport, layout)
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
-    if cfg.source_store:
-        layout = instantiate(cfg.task).policy_layout
-        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key)
+    if sources:
+        demos = instantiate(cfg.data) if cfg.get("data") is not None else None
+        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key, demos)
         print(f"source index {index} ({index.stat().st_size / 1e6:.2f} MB)")
     return dst
 

@@ -1,8 +1,10 @@
-"""Serve a trained policy: ``kpflow-serve checkpoint=PATH [transported=true map=ilwr] [host=0.0.0.0 port=8000]``.
+"""Serve a trained policy: ``kpflow-serve checkpoint=PATH [kind=transported_kcfm transport.map=gp] [host=0.0.0.0 port=8000]``.
 
-Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's K-CFM (with ``transported=true``
-transported online through ``map=``, the same map group as kpflow-evaluate's, its source index read from
-``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM.
+Runs :class:`~kpflow.serving.server.PolicyServer` for the checkpoint's policy as its config says (its kind,
+settings and transport: :mod:`kpflow.policies.config`), the options given on top, built by the one builder
+(:class:`~kpflow.policies.factory.PolicyBuilder`; a transported K-CFM reads its source index from
+``<name>.source_index.npz`` beside the checkpoint) until SIGINT or SIGTERM. ``transported=true|false`` is the old
+spelling of ``kind``.
 Connect with :class:`~kpflow.serving.client.PolicyClient`.
 
 The config keys, then the host and port (the host must resolve and the port bind), are checked before the model is
@@ -19,10 +21,11 @@ import logging
 
 import hydra
 import torch
-from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
+from kpflow.policies.config import KINDS
+from kpflow.policies.factory import SETTINGS
 from kpflow.serving.deployment import load_deployment
 from kpflow.serving.server import PolicyServer, check_address
 from kpflow.utils.config_checks import Key, check_config
@@ -31,10 +34,10 @@ from kpflow.utils.errors import command, config_dir_checked
 log = logging.getLogger("kpflow.serve")
 KEYS = {
     "checkpoint": Key(str),
-    "transported": Key(bool),
+    "kind": Key(str, choices=KINDS, nullable=True),
+    "transported": Key(bool, nullable=True),
     "steps": Key(int, lo=1, nullable=True),
     "solver": Key(str, nullable=True),
-    "segments": Key(bool),
     "execute": Key(int, lo=1, nullable=True),
     "control_hz": Key(float, lo=0),
     "host": Key(str),
@@ -54,14 +57,15 @@ def main(cfg: DictConfig) -> None:
     check_config(cfg, KEYS)
     check_address(cfg.host, cfg.port)  # before the model is loaded
     torch.set_num_threads(cfg.threads)
-    fit_on = OmegaConf.to_container(cfg.fit_on) if isinstance(cfg.fit_on, ListConfig) else cfg.fit_on
-    search = OmegaConf.to_container(cfg.source_search)
-    make_map, map_name = (instantiate(cfg.map), HydraConfig.get().runtime.choices.get("map")) if cfg.transported else (None, None)
-    deployment = load_deployment(
-        cfg.checkpoint, instantiate(cfg.task) if cfg.get("task") is not None else None, make_map, cfg.steps, cfg.execute, cfg.pull_back, cfg.control_hz, fit_on, search,
-        cfg.reach, cfg.turn_deg, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms), cfg.solver,
-        cfg.segments, map_name,
-    )
+    kind = cfg.kind
+    if cfg.transported is not None:
+        old = "transported_kcfm" if cfg.transported else "kcfm"
+        if kind not in (None, old):
+            raise ValueError(f"transported={cfg.transported} (the old spelling of kind) contradicts kind={kind}: give kind alone")
+        kind = old
+    overrides = {"kind": kind, "transport": OmegaConf.to_container(cfg.transport, resolve=True), **{k: cfg[k] for k in SETTINGS}}
+    task = instantiate(cfg.task) if cfg.get("task") is not None else None
+    deployment = load_deployment(cfg.checkpoint, task, overrides, cfg.control_hz, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms))
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
     batching = f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait" if cfg.batch.max_size > 1 else "no batching"
     log.info("%s from %s (sha256 %s; %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12], batching)

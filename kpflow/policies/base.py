@@ -23,11 +23,11 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Mapping, Protocol, runtime_checkable
+from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from .phases import Phases
+from .phases import Grip, Phase, Phases
 from .symmetry import Symmetry
 
 ROLES = ("objects", "goals", "robot")
@@ -52,7 +52,12 @@ class PolicyLayout:
 
     ``groups`` maps a group name to its keypoint indices (Push-T: ``block``, ``goal``, ``agent``); ``roles`` maps each
     of :data:`ROLES` to the names of its groups. A name in a policy's options (weights, the frame searched in, the
-    keypoints a map is fitted on) is a group's or a role's.
+    keypoints a map is fitted on) is a group's or a role's. ``transport``: the task's defaults for transporting
+    policies, plain options of :class:`~kpflow.policies.config.TransportConfig` (Push-T: the map fitted on the
+    block and the agent, a stuck block detected; the robosuite tasks: phase by phase).
+
+    :meth:`record` is the layout as plain data (what a checkpoint stores beside the weights) and :meth:`from_record`
+    reads it back.
     """
 
     n_keypoints: int
@@ -63,6 +68,7 @@ class PolicyLayout:
     rotation: bool = field(default=False, compare=False)
     phases: Phases | None = field(default=None, compare=False)
     symmetries: tuple[Symmetry, ...] = field(default=(), compare=False)
+    transport: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         seen = sorted(i for idx in self.groups.values() for i in idx)
@@ -85,6 +91,40 @@ class PolicyLayout:
         for symmetry in self.symmetries:
             if len(symmetry.perm) != self.n_keypoints:
                 raise ValueError(f"symmetry {symmetry.name!r} relabels {len(symmetry.perm)} keypoints; the layout has {self.n_keypoints}")
+
+    def record(self) -> dict:
+        """The layout as plain data: strings, numbers, lists and mappings (:meth:`from_record` reads it back)."""
+
+        def plain(value):
+            if isinstance(value, Mapping):
+                return {str(k): plain(v) for k, v in value.items()}
+            if isinstance(value, (tuple, list)):
+                return [plain(v) for v in value]
+            if hasattr(value, "__dataclass_fields__"):
+                return {f: plain(getattr(value, f)) for f in value.__dataclass_fields__}
+            return value.item() if isinstance(value, np.generic) else value
+
+        return plain(self)
+
+    @classmethod
+    def from_record(cls, record: Mapping, where: str = "the checkpoint") -> PolicyLayout:
+        """The layout of a :meth:`record`; ``ValueError`` naming ``where`` for a record that is not one."""
+        try:
+            r = dict(record)
+            phases = r.get("phases")
+            if phases is not None:
+                grip = {k: tuple(v) if isinstance(v, list) else v for k, v in phases["grip"].items()}
+                phases = Phases(Grip(**grip), tuple(Phase(**{k: tuple(v) if isinstance(v, list) else v for k, v in p.items()}) for p in phases["phases"]))
+            return cls(
+                int(r["n_keypoints"]), int(r["keypoint_dim"]), int(r["action_dim"]),
+                {str(k): tuple(int(i) for i in v) for k, v in r.get("groups", {}).items()},
+                {str(k): tuple(str(n) for n in v) for k, v in r.get("roles", {}).items()},
+                bool(r.get("rotation", False)), phases,
+                tuple(Symmetry(s["name"], tuple(s["perm"]), float(s.get("tool_turn", 0.0)), s.get("holding")) for s in r.get("symmetries", [])),
+                dict(r.get("transport", {})),
+            )  # fmt: skip
+        except (KeyError, TypeError, AttributeError) as e:
+            raise ValueError(f"{where}: its keypoint layout record is malformed ({type(e).__name__}: {e})") from None
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -1,6 +1,7 @@
 """The one policy builder: every policy of every task, built from configuration (``kpflow/conf/policy/*.yaml``, plain
-functions Hydra instantiates) for ``evaluate`` and ``correct``, and from a checkpoint for ``serve``
-(:func:`make_kcfm`, :func:`make_transported_kcfm`).
+functions Hydra instantiates) for ``evaluate`` and ``correct``; a policy in a checkpoint is built by
+:class:`PolicyBuilder` (:func:`build`) as the checkpoint's config says (:mod:`.config`), for ``kpflow.load_policy``,
+``evaluate`` and ``serve`` alike.
 
 What is task-specific comes from the task's :class:`~.base.PolicyLayout`: the keypoints' dimension, their named
 groups and roles (``objects``, ``goals``, ``robot``) and whether actions carry a rotation. Options that name
@@ -84,6 +85,9 @@ def within_reach(policy, layout: PolicyLayout, reach: float | None, turn_deg: fl
 
     if reach is None and turn_deg is None:
         return policy
+    if not layout.groups:
+        raise ValueError("reach and turn_deg show the policy its goal nearer its object, but no keypoint layout names them: pass the task "
+                         "(task=...) or release the checkpoint with task= (kpflow-release), which records its layout")  # fmt: skip
     if layout.keypoint_dim != 2 or not layout.indices("goals"):
         raise ValueError("reach and turn_deg show a planar task's goal nearer its object: this task has no planar goal")
     return SubgoalPolicy(policy, layout.indices("objects"), layout.indices("goals"), reach, turn_deg)
@@ -106,7 +110,7 @@ def make_kcfm(model, layout: PolicyLayout, steps: int | None = None, execute: in
 
 
 def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_map: Callable[[], TransportMap] = ILWRMap,
-                          steps: int | None = None, execute: int | None = None, pull_back: str = "agent", fit_on: Sequence[int] | None = None,
+                          steps: int | None = None, execute: int | None = None, pull_back: str = "robot", fit_on: Sequence[int] | None = None,
                           input_margin: float | None = INPUT_MARGIN, reach: float | None = None, turn_deg: float | None = None,
                           solver: str | None = None, segments: bool = False, search: SourceSearch | Mapping | None = None,
                           arm: ArmLimits | None = None, alternatives: int = 3):  # fmt: skip
@@ -132,57 +136,141 @@ def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, s
     return NearestNeighbourPolicy(index, execute, relative)
 
 
-def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap] = ILWRMap, horizon: int = 20,
-              search: SourceSearch | Mapping | None = None, execute: int = 8, fit_on: str | Sequence[str] = "all",
+def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap] | None = None, horizon: int = 20,
+              search: SourceSearch | Mapping | None = None, execute: int = 8, fit_on: str | Sequence[str] | None = None,
               max_step_px: float | None = None):  # fmt: skip
     """Policy transportation (:class:`~.chunk_transport.TransportPolicy`) over the demonstrations' index, its source
     found as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on``, each executed
-    step clipped to ``max_step_px``. A learned map is read now and checked against the keypoints it is fitted on."""
+    step clipped to ``max_step_px``. ``make_map`` None: ILWR (``kpflow/conf/map/ilwr.yaml``); ``fit_on`` None: the task's default (``PolicyLayout.transport``, else all). A
+    learned map is read now and checked against the keypoints it is fitted on."""
     layout, search = layout_of(task), SourceSearch.of(search)
+    fit_on = layout.transport.get("fit_on", "all") if fit_on is None else fit_on
+    if make_map is None:
+        from .config import map_factory
+
+        make_map = map_factory("ilwr")
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"policy transportation (fit_on={fit_on})")
     return TransportPolicy(search.index(_built(demos), layout, horizon), make_map, execute, max_step_px, fit, layout, **search.choice())
 
 
+class PolicyBuilder:
+    """A checkpoint read once, ready to build the policy its config says (:class:`~.config.PolicyConfig`), with
+    ``overrides`` on top: the one way from a checkpoint to an acting policy (``kpflow.load_policy``,
+    ``kpflow-evaluate``'s ``policy=kcfm | transported_kcfm`` and ``kpflow-serve`` all use it).
+
+    ``overrides`` (None: none): ``kind`` (:data:`~.config.KINDS`), the settings (``steps``, ``solver``, ``execute``,
+    ``reach``, ``turn_deg``; None keeps the checkpoint's, ``reach``/``turn_deg`` False: the goal as observed) and
+    ``transport`` (options of :class:`~.config.TransportConfig`; None values: the checkpoint's, then the task's
+    defaults, then the built-in ones). ``task``: the task the policy acts in (a task object or config node; None: the
+    keypoint layout the checkpoint records, or for a checkpoint without one its bare shape, no named groups);
+    ``demos``: a transporting policy's sources as a data node (None: the index saved beside the checkpoint,
+    :func:`source_index_path`); ``input_margin``: how far outside its training keypoints an observation may lie
+    (:mod:`.checks`).
+
+    Everything is resolved and checked here, before any policy acts: a checkpoint of another task, a transport option
+    the mode ignores or a kcfm given transport options (named), an unknown keypoint group, a map that does not fit
+    the keypoints it is fitted on, ``arm`` on a task without arm limits. :attr:`config` is what was resolved;
+    :meth:`build` returns a fresh policy (its own noise and decisions) sharing the loaded model and index."""
+
+    def __init__(self, checkpoint: str | Path, overrides: Mapping | None = None, task=None, demos: ChunkDataModule | Mapping | None = None,
+                 input_margin: float | None = INPUT_MARGIN) -> None:  # fmt: skip
+        from ..utils.checkpoint import load_checkpoint
+        from .config import KINDS, PolicyConfig, TransportConfig, map_factory
+        from .kcfm.model import KCFM
+
+        overrides = dict(overrides or {})
+        if unknown := sorted(set(overrides) - {"kind", "transport", *SETTINGS}):
+            raise ValueError(f"unknown policy option(s) {unknown}; the options are kind, transport and {', '.join(SETTINGS)}")
+        self.checkpoint = resolve_release(checkpoint)
+        self.model = model = load_checkpoint(KCFM, self.checkpoint, map_location="cpu")
+        stored: PolicyConfig = model.policy_config
+        task = _built(task)
+        if task is not None:
+            check_checkpoint_fits(str(checkpoint), model.hparams, task)
+            self.layout = layout_of(task)
+        elif stored.layout is not None:
+            self.layout = PolicyLayout.from_record(stored.layout, str(checkpoint))
+        else:
+            hp = model.hparams
+            self.layout = PolicyLayout(int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.action_dim))
+        kind = overrides.get("kind") or stored.kind
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}; got {kind!r}")
+        given = TransportConfig.of(overrides.get("transport"), "transport")
+        settings = {k: overrides.get(k) for k in SETTINGS}
+        self.steps, self.execute, self.solver = settings["steps"], settings["execute"], settings["solver"]
+        self.reach, self.turn_deg, self.input_margin = settings["reach"], settings["turn_deg"], input_margin
+        self.index = self.make_map = self.arm = None
+        if kind == "kcfm":
+            if given.record():
+                raise ValueError(f"kind=kcfm is the K-CFM as it is, not transported: transport options {sorted(given.record())} are unused "
+                                 "(kind=transported_kcfm transports it)")  # fmt: skip
+            transport = None
+        else:
+            transport = given.over(stored.transport or TransportConfig(), defaults=self.layout.transport)
+            self.fit_on = None if transport.segments else fit_on_indices(self.layout, transport.fit_on)
+            self.make_map = _map_factory(map_factory(transport.map, transport.map_options), self.layout, self.fit_on,
+                                         f"the transported K-CFM (fit_on={transport.fit_on})")  # fmt: skip
+            if transport.arm:
+                self.arm = getattr(task, "arm_limits", None)
+                if self.arm is None:
+                    raise ValueError(f"transport.arm=true checks chunks against the task's arm_limits; {type(task).__name__} declares none")
+            search = SourceSearch.of(transport.search)
+            if demos is None:
+                self.index = search.reindexed(SourceIndex.load(source_index_path(self.checkpoint)), self.layout)
+            else:
+                self.index = search.index(_built(demos), self.layout, int(model.hparams.horizon))
+            self.search = search
+        self.config = PolicyConfig(kind, model.settings.given(**settings), transport, self.layout.record())
+        self.build()  # checks the settings against the model now
+
+    def build(self):
+        """A fresh policy as :attr:`config` says."""
+        if self.config.kind == "kcfm":
+            return make_kcfm(self.model, self.layout, self.steps, self.execute, self.input_margin, self.reach, self.turn_deg, self.solver)
+        t = self.config.transport
+        return make_transported_kcfm(self.model, self.index, self.layout, self.make_map, self.steps, self.execute, t.pull_back, self.fit_on,
+                                     self.input_margin, self.reach, self.turn_deg, self.solver, t.segments, self.search, self.arm,
+                                     t.alternatives)  # fmt: skip
+
+
+SETTINGS = ("steps", "solver", "execute", "reach", "turn_deg")
+
+
+def build(checkpoint: str | Path, overrides: Mapping | None = None, task=None, demos: ChunkDataModule | Mapping | None = None,
+          input_margin: float | None = INPUT_MARGIN):  # fmt: skip
+    """The policy of ``checkpoint`` as its config says, ``overrides`` on top (:class:`PolicyBuilder`)."""
+    return PolicyBuilder(checkpoint, overrides, task, demos, input_margin).build()
+
+
 def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = None, reach: float | None = None, turn_deg: float | None = None,
          input_margin: float | None = INPUT_MARGIN, solver: str | None = None):  # fmt: skip
-    """The K-CFM at ``checkpoint`` for ``task`` (:func:`make_kcfm`; ``steps``/``solver`` None: the checkpoint's); a
-    checkpoint trained on another task's keypoints or actions is refused here, naming both layouts
-    (:func:`check_checkpoint_fits`)."""
-    from .kcfm.policy import KCFMPolicy
-
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
-    check_checkpoint_fits(checkpoint, model.hparams, task)
-    return make_kcfm(model, layout_of(task), steps, execute, input_margin, reach, turn_deg, solver)
+    """``policy=kcfm``: the K-CFM at ``checkpoint`` for ``task``, as it is (:func:`build` with ``kind=kcfm``; the
+    settings None: the checkpoint's)."""
+    overrides = {"kind": "kcfm", "steps": steps, "execute": execute, "reach": reach, "turn_deg": turn_deg, "solver": solver}
+    return build(checkpoint, overrides, task, input_margin=input_margin)
 
 
-def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, make_map: Callable[[], TransportMap] | Mapping = ILWRMap,
-                     steps: int | None = None, execute: int | None = None, search: SourceSearch | Mapping | None = None, pull_back: str = "agent",
-                     fit_on: str | Sequence[str] = "all", reach: float | None = None, turn_deg: float | None = None,
-                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, segments: bool = False, arm: bool = False,
-                     alternatives: int = 3):  # fmt: skip
-    """The K-CFM at ``checkpoint`` transported online over the index of its demonstrations ``demos`` (None: the
-    index saved beside the checkpoint, :func:`source_index_path`) (:func:`make_transported_kcfm`), its source found
-    as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on`` (with ``segments``:
-    phase by phase, each phase's map, search frame and weights as the task declares them); with ``arm``, each chunk
-    checked against the task's ``arm_limits`` and the symmetric correspondence chosen by their cost. The checkpoint
-    is checked against the task and a learned map against the keypoints it is fitted on, before the
-    demonstrations are built (the config is not instantiated recursively: a refused file collects nothing)."""
-    from .kcfm.policy import KCFMPolicy
+SOURCES = ("auto", "saved", "data")
 
-    task = _built(task)
-    layout = layout_of(task)
-    limits = getattr(task, "arm_limits", None) if arm else None
-    if arm and limits is None:
-        raise ValueError(f"arm=true checks chunks against the task's arm_limits; {type(task).__name__} declares none")
-    model = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin, solver).model
-    check_checkpoint_fits(checkpoint, model.hparams, task)
-    fit = fit_on_indices(layout, fit_on)
-    make_map = _map_factory(make_map, layout, fit, f"the transported K-CFM (fit_on={fit_on})")
-    search = SourceSearch.of(search)
-    if demos is None:
-        index = search.reindexed(SourceIndex.load(source_index_path(checkpoint)), layout)
-    else:
-        index = search.index(_built(demos), layout, int(model.hparams.horizon))
-    return make_transported_kcfm(model, index, layout, make_map, steps, execute, pull_back, fit, input_margin, reach, turn_deg, solver, segments,
-                                 search, limits, alternatives)  # fmt: skip
+
+def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, task, transport: Mapping | None = None, steps: int | None = None,
+                     execute: int | None = None, reach: float | None = None, turn_deg: float | None = None,
+                     input_margin: float | None = INPUT_MARGIN, solver: str | None = None, sources: str = "auto"):  # fmt: skip
+    """``policy=transported_kcfm``: the K-CFM at ``checkpoint`` transported online (:func:`build` with
+    ``kind=transported_kcfm``) over the index ``sources`` says: ``saved`` (beside the checkpoint,
+    :func:`source_index_path`), ``data`` (over the episodes of ``demos``), ``auto`` (saved where there is one, else
+    data); ``transport`` and the settings None: the checkpoint's, then the task's. The checkpoint is read and checked
+    before the demonstrations are built (the config is not instantiated recursively: a refused file collects
+    nothing)."""
+    if sources not in SOURCES:
+        raise ValueError(f"sources must be one of {SOURCES}; got {sources!r}")
+    if sources == "auto":
+        sources = "saved" if source_index_path(checkpoint).is_file() or demos is None else "data"
+    if sources == "data" and demos is None:
+        raise ValueError("sources=data transports over the episodes of a data node: pass data=<node> (kpflow/conf/data/)")
+    demos = demos if sources == "data" else None
+    overrides = {"kind": "transported_kcfm", "transport": transport, "steps": steps, "execute": execute, "reach": reach, "turn_deg": turn_deg,
+                 "solver": solver}  # fmt: skip
+    return build(checkpoint, overrides, task, demos, input_margin)

@@ -8,7 +8,7 @@ At every decision, with ``T`` the observed keypoints and ``x`` the robot's state
 2. ``phi``: a keypoint map fitted so that ``phi(S) ~= T`` (ILWR by default), on the keypoints ``fit_on`` (all by
    default; Push-T: the block and the agent, see :mod:`.chunk_transport`);
 3. ``phi^-1(x)``: the robot pulled back into the source scene. The K-CFM's input is ``S`` with its robot replaced
-   by ``phi^-1(x)`` (``pull_back="agent"``): a scene it was trained on, exactly, with the robot where the map puts
+   by ``phi^-1(x)`` (``pull_back="robot"``; ``"agent"``, its old spelling, is read the same): a scene it was trained on, exactly, with the robot where the map puts
    it. ``pull_back="all"`` pulls every observed keypoint back instead. A K-CFM with an observation history
    (``n_obs > 1``) sees each earlier frame ``T_j`` as the current input moved by ``phi^-1(T_j) - phi^-1(T)``, the
    motion since then pulled back (for ``pull_back="all"`` that is ``phi^-1(T_j)`` itself);
@@ -79,7 +79,8 @@ from .phases import Phase, Phases
 from .source_choice import SourceChoice
 from .symmetry import ArmLimits, Symmetry, phase_correspondences
 
-PULL_BACK = ("agent", "all")
+PULL_BACK = ("robot", "all")
+OLD_PULL_BACK = {"agent": "robot"}  # the old spelling, still read
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,7 @@ class TransportedKCFMPolicy:
         steps, solver: network calls per chunk and the sampler (:class:`~kpflow.policies.kcfm.policy.KCFMPolicy`;
             None: the model's own).
         execute: how many actions of the chunk :meth:`act` returns (None: the checkpoint's setting, else 8).
-        pull_back: ``"agent"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
+        pull_back: ``"robot"`` (the source scene with the robot pulled back) or ``"all"`` (every observed keypoint
             pulled back); see the module docstring.
         fit_on: indices of the keypoints the map is fitted on (None: all).
         input_margin: how far outside the K-CFM's training keypoints an observation may lie
@@ -172,7 +173,7 @@ class TransportedKCFMPolicy:
         make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int | None = None,
         execute: int | None = None,
-        pull_back: str = "agent",
+        pull_back: str = "robot",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,
@@ -193,6 +194,7 @@ class TransportedKCFMPolicy:
         if index.keypoints.shape[1:] != (k, d):
             raise ValueError(f"the index holds keypoints {index.keypoints.shape[1:]}; the model takes ({k}, {d})")
         robot, self.rotation = robot_and_rotation(layout, k)
+        pull_back = OLD_PULL_BACK.get(pull_back, pull_back)
         if pull_back not in PULL_BACK:
             raise ValueError(f"pull_back must be one of {PULL_BACK}; got {pull_back!r}")
         self.index, self.make_map, self.pull_back = index, make_map, pull_back
@@ -224,7 +226,7 @@ class TransportedKCFMPolicy:
         make_map: Callable[[], TransportMap] = ILWRMap,
         steps: int | None = None,
         execute: int | None = None,
-        pull_back: str = "agent",
+        pull_back: str = "robot",
         fit_on: Sequence[int] | None = None,
         input_margin: float | None = INPUT_MARGIN,
         layout: PolicyLayout | None = None,

@@ -168,6 +168,7 @@ class KCFM(lightning.LightningModule):
         self.register_buffer("action_scale", torch.ones(action_dim))
         self.register_buffer("stats_set", torch.tensor(False))
         self.settings = PolicySettings()  # how it acts once released (kpflow/policies/settings.py): read from its checkpoint
+        self.policy_config = None  # what it is and how it acts (kpflow/policies/config.py): read from its checkpoint
 
     # ------------------------------------------------------------------------------------ normalisation
 
@@ -504,8 +505,13 @@ class KCFM(lightning.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         """Read the settings a released checkpoint carries (:class:`~kpflow.policies.settings.PolicySettings`) and
         check them against this model: ``steps`` and ``solver`` must suit its objective, ``execute`` its chunk length
-        (``ValueError`` naming the setting; :func:`~kpflow.utils.checkpoint.load_checkpoint` adds the file)."""
-        settings = PolicySettings.from_record(checkpoint.get(CHECKPOINT_KEY))
+        (``ValueError`` naming the setting; :func:`~kpflow.utils.checkpoint.load_checkpoint` adds the file); and the
+        policy's whole config (:class:`~kpflow.policies.config.PolicyConfig`: its kind, transport and keypoint
+        layout; a checkpoint without one: a bare K-CFM) into :attr:`policy_config`."""
+        from kpflow.policies.config import PolicyConfig
+
+        self.policy_config = PolicyConfig.of_checkpoint(checkpoint, "its policy_config")
+        settings = self.policy_config.settings
         try:
             check_sampler(self.objective, settings.steps or 1, settings.solver)
         except ValueError as e:

@@ -50,6 +50,8 @@ class PushTTask(GymTask):
         N_KEYPOINTS, 2, 2,
         groups={"block": tuple(range(N_T_KEYPOINTS)), "goal": tuple(range(N_T_KEYPOINTS, 2 * N_T_KEYPOINTS)), "agent": (N_KEYPOINTS - 1,)},
         roles={"objects": ("block",), "goals": ("goal",), "robot": ("agent",)},
+        transport={"fit_on": ["objects", "robot"], "search": {"stuck_decisions": 5}},  # the map on the block and the agent (the goal is
+        # matched by the search); a block that moved < 2 px over 5 decisions counts as stuck (results/pusht_standard.md)
     )  # fmt: skip
 
     def make_env(self, condition: str = "in_distribution", render: bool = False, **kwargs) -> PushTEnv:

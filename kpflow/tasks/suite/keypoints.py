@@ -208,15 +208,18 @@ def policy_layout(spec: TaskSpec, action_dim: int) -> PolicyLayout:
     """The layout of :func:`policy_keypoints` for ``spec``: the object picked (role ``objects``, named as in the
     task), its goal (``goals``: the target's keypoints, where the task has one) and ``gripper`` (``robot``: the grip
     site and the finger pads), all 3-D (counted on a unit pose); actions of ``action_dim`` values: position, 6-D
-    rotation, gripper; its phases are :func:`task_phases`, its symmetries :func:`task_symmetries`."""
+    rotation, gripper; its phases are :func:`task_phases`, its symmetries :func:`task_symmetries`, its transport defaults phase by phase."""
     groups, start = {}, 0
     for name in policy_objects(spec):
         n = len(object_keypoints(spec.kinds[name], np.zeros(3), np.eye(3), half=1.0))
         groups[name], start = tuple(range(start, start + n)), start + n
     groups["gripper"] = tuple(range(start, start + GRIPPER_KEYPOINTS))
     roles = {"objects": (spec.grasp,), "goals": (spec.target,) if spec.target else (), "robot": ("gripper",)}
+    # transporting policies follow the phases (results/suite_policies.md); without them a map on the objects, the
+    # gripper pulled back, not fitted
+    transport = {"segments": True, "fit_on": ["objects", "goals"]}
     return PolicyLayout(start + GRIPPER_KEYPOINTS, 3, action_dim, groups, roles, rotation=True, phases=task_phases(spec, groups),
-                        symmetries=task_symmetries(spec, groups))  # fmt: skip
+                        symmetries=task_symmetries(spec, groups), transport=transport)  # fmt: skip
 
 
 def policy_objects(spec: TaskSpec) -> list[str]:
