@@ -10,6 +10,7 @@ import pytest
 import torch
 from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
+from omegaconf import OmegaConf
 
 from kpflow.cli.train import fill_from_data
 from kpflow.eval.policy_trial import PolicyTrial
@@ -254,3 +255,15 @@ def test_experiment_options_compose_and_instantiate(name, entry, store, tmp_path
         assert isinstance(run, partial) and callable(run)
     else:
         assert isinstance(instantiate(cfg.model, _convert_="all"), lightning.LightningModule)
+
+
+def test_evaluate_takes_condition_and_still_reads_split_its_old_spelling(tmp_path):
+    from kpflow.cli.evaluate import read_old_spellings
+
+    new = compose_config("evaluate", ["condition=standard"], tmp_path)
+    old = compose_config("evaluate", ["split=standard"], tmp_path)
+    read_old_spellings(new), read_old_spellings(old)
+    assert new.condition == old.condition == "standard" and old.split is None
+    assert OmegaConf.to_container(old.experiment, resolve=True)["conditions"] == "standard"
+    with pytest.raises(ValueError, match="split=robot_ood \\(the old spelling of condition\\) contradicts condition=standard"):
+        read_old_spellings(compose_config("evaluate", ["split=robot_ood", "condition=standard"], tmp_path))

@@ -1,4 +1,4 @@
-"""Evaluate: ``python evaluate.py policy=transport split=all`` (Push-T) or ``python evaluate.py experiment=frames``.
+"""Evaluate: ``python evaluate.py policy=transport condition=all`` (Push-T; ``split=`` is the old spelling) or ``python evaluate.py experiment=frames``.
 Builds the experiment (and what it needs: policy, data, map) from ``kpflow/conf/``, runs it, writes the resolved
 config, results, plots and videos under the run's output folder and prints the table it computed (an experiment
 returns its results with ``metrics`` for the loggers, ``table``: the text of its results.md, and the ``figures`` and
@@ -22,13 +22,26 @@ from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
 log = logging.getLogger(__name__)  # the console and the run's evaluate.log (Hydra's job logging)
-KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "split": Key(str)}
+KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "condition": Key(str)}
 
 
 def keys_of(cfg: DictConfig) -> dict:
-    """:data:`KEYS`, with ``split`` one of the conditions the run's task declares (``task.conditions``) or ``all``."""
+    """:data:`KEYS`, with ``condition`` one of the conditions the run's task declares (``task.conditions``) or ``all``."""
     conditions = getattr(instantiate(cfg.task), "conditions", None) if cfg.get("task") is not None else None
-    return {**KEYS, "split": Key(str, choices=(*conditions, "all"))} if conditions else KEYS
+    return {**KEYS, "condition": Key(str, choices=(*conditions, "all"))} if conditions else KEYS
+
+
+def read_old_spellings(cfg: DictConfig) -> None:
+    """``split=`` (the old spelling of ``condition=``) read as ``condition``, with a note; both given and different:
+    ``ValueError`` naming them."""
+    split = cfg.get("split")
+    if split is None:
+        return
+    if cfg.condition not in ("all", split):
+        raise ValueError(f"split={split} (the old spelling of condition) contradicts condition={cfg.condition}: give condition alone")
+    log.warning("split=%s is the old spelling of condition=%s: read as that", split, split)
+    with open_dict(cfg):
+        cfg.condition, cfg.split = split, None
 
 
 def record_used(cfg: DictConfig, results: dict) -> None:
@@ -55,6 +68,7 @@ def record_used(cfg: DictConfig, results: dict) -> None:
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
 @command
 def main(cfg: DictConfig) -> dict:
+    read_old_spellings(cfg)
     out = start_run(cfg, keys_of(cfg))
     loggers = make_loggers(cfg)
     run = instantiate(cfg.experiment)

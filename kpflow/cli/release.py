@@ -17,8 +17,8 @@ has loaded back through :func:`kpflow.load_policy` (``torch.load(weights_only=Tr
 With ``source_store`` (or ``data=``, a data node of ``kpflow/conf/data/``, its goals read as it says), the
 transported K-CFM's source index is written beside it
 (:func:`~kpflow.policies.factory.source_index_path`): the keypoints of every ``source_every``-th step of the
-store's first ``source_episodes`` episodes, searched as the transporting policies of ``task`` (any task of ``kpflow/conf/task/`` with a policy layout) search by default
-(robot keypoints weighted 4, relative to the objects). A transported K-CFM uses the sources' keypoints only, so their
+store's first ``source_episodes`` episodes, stored with the built-in search's weights and frame (:data:`kpflow.policies.config.DEFAULTS`; the builder searches
+it as the policy's resolved transport says). A transported K-CFM uses the sources' keypoints only, so their
 chunks are kept one action long.
 """
 
@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.config import CHECKPOINT_KEY as CONFIG_KEY
-from kpflow.policies.config import KINDS, PolicyConfig, TransportConfig
+from kpflow.policies.config import DEFAULTS, KINDS, PolicyConfig, TransportConfig
 from kpflow.policies.settings import CHECKPOINT_KEY as SETTINGS_KEY
 from kpflow.utils.checkpoint import read_checkpoint
 from kpflow.utils.config_checks import Key, check_config
@@ -96,7 +96,7 @@ def release_source_index(dst: str | Path, layout, store: str | Path | None, epis
             full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
     kept = SourceIndex(full.keypoints[keep], full.chunks[keep], None, None, full.episodes[keep])
-    return SourceSearch({"robot": 4.0}, "objects").reindexed(kept, layout).save(source_index_path(dst))
+    return SourceSearch.of(DEFAULTS["search"]).reindexed(kept, layout).save(source_index_path(dst))  # searched as the builder reindexes it
 
 
 KEYS = {
