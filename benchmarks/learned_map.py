@@ -144,18 +144,19 @@ def decision_latency(make_map, store: str, kcfm: str | None, n: int = 50) -> tup
     from kpflow.data.episode_store import EpisodeStore
     from kpflow.data.source_index import SourceIndex
     from kpflow.policies.chunk_transport import TransportPolicy
-    from kpflow.policies.kcfm.policy import KCFMPolicy
+    from kpflow.policies.kcfm.model import KCFM
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
     from kpflow.tasks.pusht import PushTEnv, split_config
     from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights
     from kpflow.tasks.pusht.task import PushTTask
+    from kpflow.utils.checkpoint import load_checkpoint
 
     env = PushTEnv()
     observations = [env.reset(options={"config": split_config("in_distribution", i, seed=7)})[0] for i in range(n)]
     index = SourceIndex.from_store(EpisodeStore(store), 20, pusht_weights(agent=4.0), PUSHT_BLOCK)
     policies = [TransportPolicy(index, make_map, execute=8, candidates=5, temperature=1.2, layout=PushTTask.policy_layout)]
     if kcfm:
-        model = KCFMPolicy.from_checkpoint(kcfm).model
+        model = load_checkpoint(KCFM, kcfm)
         index_h = SourceIndex.from_store(EpisodeStore(store), int(model.hparams.horizon), pusht_weights(agent=4.0), PUSHT_BLOCK)
         policies.append(TransportedKCFMPolicy(model, index_h, make_map, layout=PushTTask.policy_layout))
     out = []

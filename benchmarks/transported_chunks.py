@@ -29,10 +29,12 @@ from kpflow.data.episode_store import EpisodeStore  # noqa: E402
 from kpflow.data.source_index import SourceIndex  # noqa: E402
 from kpflow.maps import AffineMap, GPMap, ILWRMap  # noqa: E402
 from kpflow.policies.chunk_transport import TransportPolicy  # noqa: E402
+from kpflow.policies.kcfm.model import KCFM  # noqa: E402
 from kpflow.policies.kcfm.policy import KCFMPolicy  # noqa: E402
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy  # noqa: E402
 from kpflow.tasks.pusht.geometry import PUSHT_BLOCK, pusht_weights  # noqa: E402
 from kpflow.tasks.pusht.task import PushTTask  # noqa: E402
+from kpflow.utils.checkpoint import load_checkpoint  # noqa: E402
 from kpflow.utils.io import publish  # noqa: E402
 
 PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
@@ -55,7 +57,7 @@ def main(argv=None) -> str:
     weights = pusht_weights(agent=4.0)
     index = SourceIndex.from_store(store, 20, weights, PUSHT_BLOCK, episodes=range(args.index_episodes))
     held_out = SourceIndex.from_store(store, 20, weights, PUSHT_BLOCK, episodes=range(args.index_episodes, len(store)))
-    model = KCFMPolicy.from_checkpoint(args.checkpoint).model
+    model = load_checkpoint(KCFM, args.checkpoint)
     variants = {
         "policy transportation (ILWR)": TransportPolicy(index, ILWRMap, EXECUTE, layout=PUSHT),
         "K-CFM at the observation": KCFMPolicy(model, 10, EXECUTE),

@@ -2,7 +2,7 @@
 
 Fit a smooth map phi from the keypoints of a demonstration's scene to those of a new scene
 (:mod:`kpflow.maps`) and push the demonstration through it (:mod:`kpflow.transport`). Importing kpflow registers
-its Gymnasium ids and the config resolvers ``${release:NAME}`` and ``${kpflow_data:NAME}``; :func:`load_policy`
+its Gymnasium ids and the config resolvers ``${release:NAME}``, ``${kpflow_data:NAME}`` and ``${choice:GROUP}``; :func:`load_policy`
 loads a trained policy for deployment as its checkpoint describes it, from a path or a released checkpoint's name (``release:NAME``,
 :mod:`kpflow.utils.releases`).
 """
@@ -11,6 +11,7 @@ from importlib.metadata import version
 
 from kpflow.tasks.pusht.registration import register_envs
 from kpflow.utils.data_dir import register_resolver as register_data_resolver
+from kpflow.utils.group_choice import register_resolver as register_choice_resolver
 from kpflow.utils.releases import register_resolver
 
 __version__ = version("kpflow")  # pyproject.toml's, the one place it is written
@@ -18,6 +19,7 @@ __version__ = version("kpflow")  # pyproject.toml's, the one place it is written
 register_envs()  # gymnasium.make("kpflow/PushT-v0") and the split ids (kpflow/tasks/pusht/registration.py)
 register_resolver()  # ${release:NAME} in any config value (kpflow/utils/releases.py)
 register_data_resolver()  # ${kpflow_data:NAME}: where collected and imported data go (kpflow/utils/data_dir.py)
+register_choice_resolver()  # ${choice:GROUP}: a config group's option on the command line, or null (kpflow/utils/group_choice.py)
 
 
 def load_policy(path, task=None, input_margin: float | None = 10.0, **overrides):

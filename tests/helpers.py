@@ -171,3 +171,20 @@ def run_command(module: str, *args: str, env: dict[str, str] | None = None):
         os.environ.clear()
         os.environ.update(saved_env)
     return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())
+
+
+def load_kcfm(path):
+    """The K-CFM model of a checkpoint (weights_only, on the CPU), for tests that assemble a policy around it."""
+    from kpflow.policies.kcfm.model import KCFM
+    from kpflow.utils.checkpoint import load_checkpoint
+    from kpflow.utils.releases import resolve_release
+
+    return load_checkpoint(KCFM, resolve_release(path), map_location="cpu")
+
+
+def bare_kcfm(path, *args, **kwargs):
+    """The bare :class:`~kpflow.policies.kcfm.policy.KCFMPolicy` of a checkpoint (no goal limit, whatever it
+    records): ``KCFMPolicy(model, steps, execute, input_margin, solver)``."""
+    from kpflow.policies.kcfm.policy import KCFMPolicy
+
+    return KCFMPolicy(load_kcfm(path), *args, **kwargs)

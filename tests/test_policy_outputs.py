@@ -35,7 +35,7 @@ from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
 from kpflow.tasks.pusht.task import PushTTask
 from kpflow.utils.checkpoint import load_checkpoint
-from tests.helpers import StandStill, walk_to_block_store
+from tests.helpers import StandStill, bare_kcfm, walk_to_block_store
 
 PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
@@ -106,7 +106,7 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
         turned.act({"keypoints": agent_away})
     assert not calls
     assert policies[0].act(scene()).shape == (4, 2) and len(calls) == 2  # an ordinary scene runs the network (2 steps)
-    released = KCFMPolicy.from_checkpoint(STANDARD, steps=2)
+    released = bare_kcfm(STANDARD, steps=2)
     assert released.model.hparams.goal_frame == goal_frame()
     with pytest.raises(ValueError, match=f"{FAR}: keypoint 0 at"):
         released.act(HUGE)  # in its goal's frame this scene is ordinary: the world check refuses it
@@ -120,13 +120,13 @@ def test_without_the_range_check_extreme_observations_give_non_finite_actions_th
     """input_margin=None turns the range check off: the 1e300 scene then reaches the network, whose chunk comes out
     NaN or inf (the failure on main), and the output check refuses it instead of returning it."""
     good, _, _ = tiny
-    policy = KCFMPolicy.from_checkpoint(good, steps=2, execute=4, input_margin=None)
+    policy = bare_kcfm(good, steps=2, execute=4, input_margin=None)
     calls = counting(policy.model)
     with pytest.raises(ValueError, match=f"the K-CFM {NOT_FINITE} of 8"):
         policy.act(HUGE)
     assert calls  # the network did run: the output check caught it
     with pytest.raises(ValueError, match="input_margin must be a finite number >= 0 or null; got -1"):
-        KCFMPolicy.from_checkpoint(good, input_margin=-1)
+        bare_kcfm(good, input_margin=-1)
 
 
 def test_a_model_whose_output_overflows_is_refused(tiny):

@@ -20,7 +20,7 @@ from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.serving.deployment import load_deployment
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.tasks.pusht.task import PushTTask
-from tests.helpers import walk_to_block_store
+from tests.helpers import bare_kcfm, walk_to_block_store
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
     assert (loaded.policy.steps, loaded.policy.solver, loaded.policy.execute) == (3, "midpoint", 4)
     served = load_deployment(dst, task)
     assert served.metadata.policy == "kcfm/reach=50/turn_deg=40" and served.metadata.action_shape == [4, 2]
-    plain = KCFMPolicy.from_checkpoint(trained)  # no record: the model's own sample_steps and 8 actions
+    plain = bare_kcfm(trained)  # no record: the model's own sample_steps and 8 actions
     assert (plain.steps, plain.solver, plain.execute) == (10, "euler", 8)
 
     again = release(dst, tmp_path / "again.ckpt", settings={"steps": 6})  # a re-release adds to the record

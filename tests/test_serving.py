@@ -22,7 +22,6 @@ from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.policies.factory import source_index_path
 from kpflow.policies.kcfm.model import KCFM
-from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.source_search import SourceSearch
 from kpflow.policies.subgoal import SubgoalPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
@@ -35,7 +34,7 @@ from kpflow.tasks.pusht.rollout import run_episode
 from kpflow.tasks.pusht.scene import split_config
 from kpflow.tasks.pusht.task import PushTTask
 from kpflow.tasks.suite.task import SuiteTask
-from tests.helpers import run_command, walk_to_block_store
+from tests.helpers import bare_kcfm, load_kcfm, run_command, walk_to_block_store
 
 PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
@@ -261,7 +260,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     assert loaded.reference == index.reference
     deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": "all"}})
     assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
-    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, index, steps=4, layout=PUSHT)
+    local = TransportedKCFMPolicy(load_kcfm(checkpoint), index, steps=4, layout=PUSHT)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(1), local.reset(1)
@@ -272,7 +271,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     SEARCH = {"weights": {"objects": 1.0, "goals": 1.0, "robot": 4.0}, "frame": "objects", "stuck_decisions": 2}
     deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["objects", "robot"], "search": SEARCH}})
     searched, choice = search.reindexed(index, PUSHT), search.choice()
-    local = TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
+    local = TransportedKCFMPolicy(load_kcfm(checkpoint), searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), local.reset(2)
         for _ in range(4):  # the same scene four times: the fourth decision is taken as stuck, on both sides
@@ -282,7 +281,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["block", "agent"], "search": SEARCH}, "reach": 60,
                                                  "turn_deg": 30})  # fmt: skip
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
-    limited = SubgoalPolicy(TransportedKCFMPolicy.from_checkpoint(checkpoint, searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
+    limited = SubgoalPolicy(TransportedKCFMPolicy(load_kcfm(checkpoint), searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
                             PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     far = {"keypoints": observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
@@ -300,8 +299,8 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
     """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
     deployment = load_deployment(RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": False})  # no turn limit (the release has 60)
     assert deployment.metadata.policy == "kcfm/reach=60"
-    local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
-    plain = KCFMPolicy.from_checkpoint(RELEASED, steps=4)
+    local = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
+    plain = bare_kcfm(RELEASED, steps=4)
     obs = {"keypoints": observation_keypoints((420.0, 120.0, 0.3), (256.0, 256.0, np.pi / 4), (100.0, 400.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(3), local.reset(3), plain.reset(3)
@@ -320,8 +319,8 @@ def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
     """``turn_deg`` with ``reach`` serves what SubgoalPolicy with both returns in process."""
     deployment = load_deployment(RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": 30})
     assert deployment.metadata.policy == "kcfm/reach=60/turn_deg=30"
-    local = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
-    reach_only = SubgoalPolicy(KCFMPolicy.from_checkpoint(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
+    local = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
+    reach_only = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
     obs = {"keypoints": observation_keypoints((300.0, 280.0, np.pi / 4 + 2.0), (256.0, 256.0, np.pi / 4), (100.0, 400.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(3), local.reset(3), reach_only.reset(3)

@@ -15,6 +15,7 @@ from kpflow.tasks.suite.scene import sample_scene
 from kpflow.tasks.suite.specs import task_spec
 from kpflow.vision.boxes import fit_footprint_box
 from kpflow.vision.noise import CameraNoise
+from tests.helpers import bare_kcfm
 
 SPEC = task_spec("lift")
 
@@ -195,12 +196,11 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     """The released Lift K-CFM in closed loop on camera keypoints: the cameras are read at the steps whose
     observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
     is the same for the same seed."""
-    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.tasks.rollout import rollout
     from kpflow.tasks.suite.gym_env import SuiteGymEnv
     from kpflow.tasks.suite.task import SuiteTask
 
-    policy = KCFMPolicy.from_checkpoint("release/suite_lift_kcfm.ckpt", steps=2, execute=8)
+    policy = bare_kcfm("release/suite_lift_kcfm.ckpt", steps=2, execute=8)
     n_keypoints = SuiteTask("lift").policy_layout.n_keypoints
     scene = {"seed": 0, "options": {"stream": 20_000}}
     runs = []

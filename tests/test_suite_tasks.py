@@ -17,6 +17,7 @@ from kpflow.tasks.suite.scene import Scene
 from kpflow.tasks.suite.specs import TASKS, task_spec
 from kpflow.tasks.suite.task import SuiteTask
 from kpflow.trajectory import Trajectory
+from tests.helpers import bare_kcfm
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -336,7 +337,6 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
 
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.kcfm.model import KCFM
-    from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.tasks.rollout import rollout
 
     out, _ = generated
@@ -348,7 +348,7 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
                                 enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
-    policy = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt", steps=2, execute=8)
+    policy = bare_kcfm(tmp_path / "last.ckpt", steps=2, execute=8)
     assert type(policy.model.objective) is type(model.objective)
     with pytest.raises(ValueError, match=r"\[B, 2, 11, 3\]"):
         policy.model.sample(np.zeros((2, 11, 2)))
@@ -522,7 +522,7 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     released = release(tmp_path / "last.ckpt", tmp_path / "suite_lift_kcfm.ckpt", ema_only=True)
     release_source_index(released, SuiteTask("lift").policy_layout, store, 200, action_key="ee_target")
     obs = {"keypoints_history": data.train_dataloader().dataset[0]["history"].numpy().astype(np.float64)}
-    full, ema = KCFMPolicy.from_checkpoint(tmp_path / "last.ckpt"), KCFMPolicy.from_checkpoint(released)
+    full, ema = bare_kcfm(tmp_path / "last.ckpt"), bare_kcfm(released)
     np.testing.assert_array_equal(full.act(obs), ema.act(obs))  # sampling uses the EMA network: the release acts the same
     common = ["experiment=suite_policy", "task=lift"]
     expected = {

@@ -22,7 +22,7 @@ from kpflow.policies.kcfm.sampling import MAX_STEPS
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from kpflow.tasks.pusht.geometry import N_KEYPOINTS, PUSHT_BLOCK, pusht_weights
 from kpflow.tasks.pusht.task import PushTTask
-from tests.helpers import walk_to_block_store
+from tests.helpers import bare_kcfm, load_kcfm, walk_to_block_store
 
 PUSHT = PushTTask.policy_layout  # the transporting policies need the task's layout (Push-T: the agent is the robot)
 
@@ -121,15 +121,15 @@ def test_bad_arguments_raise(untrained, index):
     with pytest.raises(ValueError, match="shape"):
         policy.act(_obs(index.keypoints[0, :24]))
     with pytest.raises(FileNotFoundError):
-        KCFMPolicy.from_checkpoint("/nonexistent/kcfm.ckpt")
+        bare_kcfm("/nonexistent/kcfm.ckpt")
 
 
 @pytest.mark.slow
 def test_checkpoint_round_trip_gives_identical_actions(trained, index):
     model, ckpt = trained
     for make in (
-        lambda: (KCFMPolicy(model, 10, 6), KCFMPolicy.from_checkpoint(ckpt, 10, 6)),
-        lambda: (TransportedKCFMPolicy(model, index, execute=6, layout=PUSHT), TransportedKCFMPolicy.from_checkpoint(ckpt, index, execute=6, layout=PUSHT)),
+        lambda: (KCFMPolicy(model, 10, 6), bare_kcfm(ckpt, 10, 6)),
+        lambda: (TransportedKCFMPolicy(model, index, execute=6, layout=PUSHT), TransportedKCFMPolicy(load_kcfm(ckpt), index, execute=6, layout=PUSHT)),
     ):
         live, loaded = make()
         assert not loaded.model.training and loaded.model.device.type == "cpu"

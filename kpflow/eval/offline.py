@@ -32,12 +32,13 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
                      execute: int = 8, every: int = 4, progress: bool = True) -> dict:  # fmt: skip
     """Run the offline check (module docstring) of the K-CFM at ``checkpoint`` on ``data``'s held-out episodes."""
     from kpflow.eval.plots import offline_figure
-    from kpflow.policies.kcfm.policy import KCFMPolicy
+    from kpflow.policies.factory import build
 
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     out = Path(output_dir)
-    policy = KCFMPolicy.from_checkpoint(checkpoint, steps, execute, input_margin=None)
+    # the bare K-CFM (no goal limit: the held-out chunks are the demonstrated ones), by the one builder
+    policy = build(checkpoint, {"kind": "kcfm", "steps": steps, "execute": execute, "reach": False, "turn_deg": False}, input_margin=None)
     steps = policy.steps
     n_obs = int(policy.model.hparams.n_obs)
     data.setup()

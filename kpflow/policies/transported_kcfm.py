@@ -59,7 +59,6 @@ pull-back too (:meth:`~kpflow.policies.kcfm.KCFM.check_in_range`); actions that 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -217,29 +216,6 @@ class TransportedKCFMPolicy:
         self.last_correspondence: Symmetry | None = None
         self.kept: dict[int, int] = {}  # phase (its transport's position) -> the correspondence kept in it
         self.unfollowable = 0
-
-    @classmethod
-    def from_checkpoint(
-        cls,
-        path: str | Path,
-        index: SourceIndex,
-        make_map: Callable[[], TransportMap] = ILWRMap,
-        steps: int | None = None,
-        execute: int | None = None,
-        pull_back: str = "robot",
-        fit_on: Sequence[int] | None = None,
-        input_margin: float | None = INPUT_MARGIN,
-        layout: PolicyLayout | None = None,
-        solver: str | None = None,
-        segments: bool = False,
-        arm: ArmLimits | None = None,
-        alternatives: int = 3,
-        **choice,
-    ) -> "TransportedKCFMPolicy":
-        """The transported policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
-        base = KCFMPolicy.from_checkpoint(path, steps, execute, input_margin, solver)
-        return cls(base.model, index, make_map, steps, execute, pull_back, fit_on, input_margin, layout, solver, segments, arm, alternatives,
-                   **choice)  # fmt: skip
 
     @property
     def model(self) -> KCFM:

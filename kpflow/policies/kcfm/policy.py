@@ -13,7 +13,6 @@ never returned (:func:`~kpflow.policies.checks.check_actions`): both raise a ``V
 from __future__ import annotations
 
 import weakref
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -78,14 +77,6 @@ class KCFMPolicy:
         self.n_obs = int(model.hparams.n_obs)
         self.generator = torch.Generator()
         self.reset()
-
-    @classmethod
-    def from_checkpoint(cls, path: str | Path, steps: int | None = None, execute: int | None = None, input_margin: float | None = INPUT_MARGIN,
-                        solver: str | None = None) -> "KCFMPolicy":  # fmt: skip
-        """The policy of a K-CFM Lightning checkpoint, loaded on the CPU."""
-        from kpflow.utils.checkpoint import load_checkpoint
-
-        return cls(load_checkpoint(KCFM, path, map_location="cpu"), steps, execute, input_margin, solver)
 
     def reset(self, seed: int | None = None) -> None:
         """Reseed the sampling noise with ``seed`` (an integer >= 0; 0 when None)."""
