@@ -38,11 +38,12 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP) osmesa
 	$(BIN)/kpflow-evaluate experiment=pusht_demo
 
-# ruff (pyflakes, import order, complexity; see pyproject.toml), then every test, on 2 worker processes (one test
+# ruff (pyflakes, import order, complexity; see pyproject.toml) and ruff's formatting, then every test, on 2 worker processes (one test
 # file per worker, so a file's module fixtures such as the MuJoCo scenes are built once), printing the 20 slowest.
 # `make test-fast` leaves out the tests marked slow (CLI subprocesses, MuJoCo scenes, long rollouts) for the inner loop.
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 test: lint osmesa
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=20

@@ -16,6 +16,7 @@ Both baselines leave out the authors' rigid (rotation + translation) pre-alignme
 Importing this module has no side effects. Run as a script, it times both baselines
 single-threaded (``python benchmarks/baselines.py``).
 """
+
 import os
 
 if __name__ == "__main__":  # must precede the numpy import to take effect
@@ -98,8 +99,9 @@ def sklearn_gp_fit(source, target, n_restarts=5, seed=0, normalize_y=False, kern
     """
     source = np.asarray(source, dtype=float)
     kernel = kernel if kernel is not None else ConstantKernel(0.1) * RBF(length_scale=[0.1]) + WhiteKernel(1e-4)
-    gp = GaussianProcessRegressor(kernel=kernel, alpha=1e-10, n_restarts_optimizer=n_restarts,
-                                  normalize_y=normalize_y, random_state=seed)
+    gp = GaussianProcessRegressor(
+        kernel=kernel, alpha=1e-10, n_restarts_optimizer=n_restarts, normalize_y=normalize_y, random_state=seed
+    )
     return gp.fit(source, np.asarray(target, dtype=float) - source)
 
 
@@ -144,12 +146,16 @@ if __name__ == "__main__":
             model = sklearn_gp_fit(src, tgt, normalize_y=normalize_y)
             sklearn_gp_transport(model, q)
             return lambda x: sklearn_gp_transport(model, x)[0]
+
         return run
 
     print(f"25 keypoints in 2-D, fit + 20-point transport, median over {reps} random problems")
     print(f"{'method':30s} {'ms':>8s} {'res max':>10s} {'res rms':>10s}")
-    for name, run in [("ilwr (30 steps, beta=0.9)", ilwr), ("sklearn_gp (authors' setup)", gp(False)),
-                      ("sklearn_gp normalize_y=True", gp(True))]:
+    for name, run in [
+        ("ilwr (30 steps, beta=0.9)", ilwr),
+        ("sklearn_gp (authors' setup)", gp(False)),
+        ("sklearn_gp normalize_y=True", gp(True)),
+    ]:
         ms, rmax, rrms = [], [], []
         for rep in range(reps + 1):  # rep 0 is a warm-up
             src, tgt, q = _problem(np.random.default_rng(rep))

@@ -86,7 +86,10 @@ def measure(tasks, variants, scenes: int):
         demo = {n: scene_keypoints(env, spec, n, demo_yaw[n]) for n in names}
         match_rng = np.random.default_rng(0)
         for variant in (v for v in variants if v in spec.variants):
-            perceivers = {"clean": CameraKeypoints(cameras, CameraNoise.off(), seed=0), "D435 noise": CameraKeypoints(cameras, CameraNoise(), seed=0)}
+            perceivers = {
+                "clean": CameraKeypoints(cameras, CameraNoise.off(), seed=0),
+                "D435 noise": CameraKeypoints(cameras, CameraNoise(), seed=0),
+            }
             for i in range(scenes):
                 env.reset_to(sample_scene(spec, env, variant, i, seed=0))
                 start = time.perf_counter()
@@ -103,12 +106,17 @@ def measure(tasks, variants, scenes: int):
                         except ValueError:
                             failures[key] += 1
                             continue
-                        errors[key].extend(1e3 * np.linalg.norm(seen[name] - scene_keypoints(env, spec, name, demo_yaw[name]), axis=1))
+                        errors[key].extend(
+                            1e3 * np.linalg.norm(seen[name] - scene_keypoints(env, spec, name, demo_yaw[name]), axis=1)
+                        )
                     if label == "D435 noise":
                         extract_ms[task].append(1e3 * (time.perf_counter() - start))
                         if len(seen) == len(names):
                             for drop in (False, True):
-                                ok = [order_recovered(demo[n], seen[n], match_rng, drop and n == spec.grasp) for n in names]
+                                ok = [
+                                    order_recovered(demo[n], seen[n], match_rng, drop and n == spec.grasp)
+                                    for n in names
+                                ]
                                 recovered[(task, variant, drop)].append(all(ok))
             print(f"{task} {variant}: {scenes} scenes", flush=True)
     return errors, failures, capture_ms, extract_ms, recovered
@@ -139,8 +147,16 @@ def main() -> None:
         cells = [f"{np.median(x):.1f} / {np.percentile(x, 90):.1f}" if len(x) else "-" for x in (np.asarray(e), noisy)]
         rows.append(f"| {task} | {variant} | {kind} | {cells[0]} | {cells[1]} | "
                     f"{failures[(task, variant, kind, 'clean')]} / {failures[(task, variant, kind, 'D435 noise')]} |")  # fmt: skip
-    rows += ["", "| task | capture: 3 RGB-D + segmentation renders, ms (median) | extraction with noise, ms per scene (median) |", "|---|---|---|"]
-    rows += [f"| {task} | {np.median(capture_ms[task]):.0f} | {np.median(extract_ms[task]):.0f} |" for task in args.tasks if capture_ms[task]]
+    rows += [
+        "",
+        "| task | capture: 3 RGB-D + segmentation renders, ms (median) | extraction with noise, ms per scene (median) |",
+        "|---|---|---|",
+    ]
+    rows += [
+        f"| {task} | {np.median(capture_ms[task]):.0f} | {np.median(extract_ms[task]):.0f} |"
+        for task in args.tasks
+        if capture_ms[task]
+    ]
     rows += ["", "Order lost (D435 noise): scenes whose shuffled keypoints `match_keypoints` put back in the demonstration's order.", "",
              "| task | variant | all keypoints [95% CI] | one keypoint dropped [95% CI] |", "|---|---|---|---|"]  # fmt: skip
     for task in args.tasks:

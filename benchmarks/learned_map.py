@@ -154,10 +154,14 @@ def decision_latency(make_map, store: str, kcfm: str | None, n: int = 50) -> tup
     env = PushTEnv()
     observations = [env.reset(options={"config": split_config("in_distribution", i, seed=7)})[0] for i in range(n)]
     index = SourceIndex.from_store(EpisodeStore(store), 20, pusht_weights(agent=4.0), PUSHT_BLOCK)
-    policies = [TransportPolicy(index, make_map, execute=8, candidates=5, temperature=1.2, layout=PushTTask.policy_layout)]
+    policies = [
+        TransportPolicy(index, make_map, execute=8, candidates=5, temperature=1.2, layout=PushTTask.policy_layout)
+    ]
     if kcfm:
         model = load_checkpoint(KCFM, kcfm)
-        index_h = SourceIndex.from_store(EpisodeStore(store), int(model.hparams.horizon), pusht_weights(agent=4.0), PUSHT_BLOCK)
+        index_h = SourceIndex.from_store(
+            EpisodeStore(store), int(model.hparams.horizon), pusht_weights(agent=4.0), PUSHT_BLOCK
+        )
         policies.append(TransportedKCFMPolicy(model, index_h, make_map, layout=PushTTask.policy_layout))
     out = []
     for policy in policies:
@@ -188,7 +192,9 @@ def regularity(factory, src, tgt, n: int = 12) -> tuple[float, float]:
         axis = torch.linspace(0, 1, n, dtype=s.dtype)
         grid = lo + (hi - lo) * torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
         direction = torch.randn(64, 2, generator=g, dtype=s.dtype)
-        ring = s.mean(0) + direction / direction.norm(dim=-1, keepdim=True) * (0.5 * (hi - lo).amax()) * (2 + torch.rand(64, 1, generator=g, dtype=s.dtype))
+        ring = s.mean(0) + direction / direction.norm(dim=-1, keepdim=True) * (0.5 * (hi - lo).amax()) * (
+            2 + torch.rand(64, 1, generator=g, dtype=s.dtype)
+        )
         phi, rigid = factory().fit(s, t), AffineMap("rigid").fit(s, t)
         stretch.append(float(torch.linalg.slogdet(phi.jacobian(grid)).logabsdet.abs().max()))
         with torch.no_grad():
@@ -196,8 +202,15 @@ def regularity(factory, src, tgt, n: int = 12) -> tuple[float, float]:
     return float(np.median(stretch)), float(np.median(far))
 
 
-def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: int = 1000, kcfm: str | None = None,
-                       also: dict[str, str] | None = None) -> str:
+def learned_map_tables(
+    checkpoint: str,
+    store: str,
+    n: int,
+    log=print,
+    batch: int = 1000,
+    kcfm: str | None = None,
+    also: dict[str, str] | None = None,
+) -> str:
     """The tables of the module docstring, as markdown."""
     warnings.filterwarnings("ignore")
     pairs = held_out_pairs(store, n)
@@ -218,7 +231,13 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
         log(f"regularity: {name}")
         st, far = regularity(family[name], src[:50], tgt[:50])
         rows.append(f"| {name} | {st:.2f} | {far:.1f} |")
-    t1b = "\n".join(["| map | max abs log det J near the keypoints | distance from the rigid motion far away (px) |", "|---|---|---|", *rows])
+    t1b = "\n".join(
+        [
+            "| map | max abs log det J near the keypoints | distance from the rigid motion far away (px) |",
+            "|---|---|---|",
+            *rows,
+        ]
+    )
 
     src, tgt = pairs["in-distribution resets"]
     rows = []
@@ -227,14 +246,22 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
         fit, inv = time_scene(family[name], src, tgt)
         at_once = time_batch(family[name], src, tgt, batch) if name != "GPMap" else None
         rows.append(f"| {name} | {fmt_ms(fit)} | {fmt_ms(inv)} | {fmt_ms(at_once) if at_once else 'no batched fit'} |")
-    t2 = "\n".join([f"| map | fit + 20-point transport, per scene | inverse of 20 points | {batch:,} scenes at once |", "|---|---|---|---|", *rows])
+    t2 = "\n".join(
+        [
+            f"| map | fit + 20-point transport, per scene | inverse of 20 points | {batch:,} scenes at once |",
+            "|---|---|---|---|",
+            *rows,
+        ]
+    )
 
     log("grid checks")
     all_src = torch.cat([p[0] for p in pairs.values()])
     all_tgt = torch.cat([p[1] for p in pairs.values()])
     share, worst = grid_checks(checkpoint, all_src, all_tgt)
-    t3 = (f"{len(all_src)} pairs, a 15 x 15 grid over three times each source's extent: det J > 0 at "
-          f"{100 * share:.2f} % of the points; largest |phi^-1(phi(x)) - x| = {worst:.2e} px.")
+    t3 = (
+        f"{len(all_src)} pairs, a 15 x 15 grid over three times each source's extent: det J > 0 at "
+        f"{100 * share:.2f} % of the points; largest |phi^-1(phi(x)) - x| = {worst:.2e} px."
+    )
     rows = []
     base = None
     for name in ("ILWRMap", "LearnedMap", "LearnedMap + 3 ILWR steps"):
@@ -242,15 +269,26 @@ def learned_map_tables(checkpoint: str, store: str, n: int, log=print, batch: in
         pt, tk = decision_latency(family[name], store, kcfm, 10 if n <= 10 else 50)
         base = base or (pt, tk)
         ratio = lambda x, b: f" ({x / b:.2f}x ILWR's)" if b and name != "ILWRMap" else ""  # noqa: E731
-        rows.append(f"| {name} | {fmt_ms(pt)}{ratio(pt, base[0])} | " + (f"{fmt_ms(tk)}{ratio(tk, base[1])}" if tk else "-") + " |")
+        rows.append(
+            f"| {name} | {fmt_ms(pt)}{ratio(pt, base[0])} | "
+            + (f"{fmt_ms(tk)}{ratio(tk, base[1])}" if tk else "-")
+            + " |"
+        )
     t4 = "\n".join(["| map | policy transportation | transported K-CFM |", "|---|---|---|", *rows])
-    return "\n\n".join([
-        "### residual (px; median / p90 over pairs)", t1,
-        "### regularity (medians over 50 in-distribution pairs)", t1b,
-        "### time (float64, one thread; in-distribution pairs)", t2,
-        "### invertibility", t3,
-        "### decision latency (one thread; median over in-distribution resets)", t4,
-    ])
+    return "\n\n".join(
+        [
+            "### residual (px; median / p90 over pairs)",
+            t1,
+            "### regularity (medians over 50 in-distribution pairs)",
+            t1b,
+            "### time (float64, one thread; in-distribution pairs)",
+            t2,
+            "### invertibility",
+            t3,
+            "### decision latency (one thread; median over in-distribution resets)",
+            t4,
+        ]
+    )
 
 
 def main(argv=None) -> None:
@@ -261,7 +299,13 @@ def main(argv=None) -> None:
     ap.add_argument("--quick", action="store_true", help="smoke test: 10 pairs per kind")
     ap.add_argument("--batch", type=int, default=1000, help="scenes fitted at once in the batched timing")
     ap.add_argument("--kcfm", help="a K-CFM checkpoint (n_obs=1): adds the transported K-CFM's decision latency")
-    ap.add_argument("--also", nargs="*", default=[], metavar="NAME=CKPT", help="more learned maps for the residual and regularity tables")
+    ap.add_argument(
+        "--also",
+        nargs="*",
+        default=[],
+        metavar="NAME=CKPT",
+        help="more learned maps for the residual and regularity tables",
+    )
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/learned_map.md"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -269,10 +313,20 @@ def main(argv=None) -> None:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    text = (f"# learned map vs ILWR and GP on held-out Push-T pairs{' (--quick)' if args.quick else ''}\n\n"
-            f"checkpoint `{args.checkpoint}`, sources from `{args.store}`; torch {torch.__version__}, 1 thread.\n\n"
-            + learned_map_tables(args.checkpoint, args.store, 10 if args.quick else args.pairs, log, args.batch, args.kcfm,
-                                 dict(a.split("=", 1) for a in args.also)) + "\n")
+    text = (
+        f"# learned map vs ILWR and GP on held-out Push-T pairs{' (--quick)' if args.quick else ''}\n\n"
+        f"checkpoint `{args.checkpoint}`, sources from `{args.store}`; torch {torch.__version__}, 1 thread.\n\n"
+        + learned_map_tables(
+            args.checkpoint,
+            args.store,
+            10 if args.quick else args.pairs,
+            log,
+            args.batch,
+            args.kcfm,
+            dict(a.split("=", 1) for a in args.also),
+        )
+        + "\n"
+    )
     print(text)
     write_text(args.out, text)
     log(f"wrote {args.out}")

@@ -104,7 +104,12 @@ def lasa_cases(shapes: slice = slice(None)) -> list[Case]:
     cases = []
     for shape in shapes:
         demos = demonstrations(shape)
-        cases += [Case(demos[i][1], demos[j][1], demos[i][0], demos[j][0]) for i in range(N_DEMOS) for j in range(N_DEMOS) if i != j]
+        cases += [
+            Case(demos[i][1], demos[j][1], demos[i][0], demos[j][0])
+            for i in range(N_DEMOS)
+            for j in range(N_DEMOS)
+            if i != j
+        ]
     return cases
 
 
@@ -138,7 +143,17 @@ def suite_cases(tasks: list[str], n_scenes: int, seed: int, cache: Path) -> list
                     continue
                 for seg_a, seg_b in zip(a.segments, b.segments):
                     source, target = suite_recordings.keypoint_pair(seg_a, seg_b)
-                    cases.append(Case(source, target, seg_a.positions, seg_b.positions, seg_a.rotations, seg_b.rotations, seg_a.turns))
+                    cases.append(
+                        Case(
+                            source,
+                            target,
+                            seg_a.positions,
+                            seg_b.positions,
+                            seg_a.rotations,
+                            seg_b.rotations,
+                            seg_a.turns,
+                        )
+                    )
     return cases
 
 
@@ -167,7 +182,9 @@ def authors_gp(src, tgt, x, return_std: bool = False):
     rigid = AffineMap("rigid").fit(torch.as_tensor(src), torch.as_tensor(tgt))
     with torch.no_grad():
         aligned_src, aligned_x = rigid(torch.as_tensor(src)).numpy(), rigid(torch.as_tensor(x)).numpy()
-    kernel = ConstantKernel(math.sqrt(10)) * Matern(length_scale=20.0, length_scale_bounds=(10.0, 50.0), nu=2.5) + WhiteKernel(0.01)
+    kernel = ConstantKernel(math.sqrt(10)) * Matern(
+        length_scale=20.0, length_scale_bounds=(10.0, 50.0), nu=2.5
+    ) + WhiteKernel(0.01)
     with warnings.catch_warnings():  # a length-scale at its bound is the setting's intent, not news
         warnings.simplefilter("ignore", ConvergenceWarning)
         model = sklearn_gp_fit(aligned_src, tgt, n_restarts=5, seed=0, kernel=kernel)
@@ -220,7 +237,11 @@ def score(transport: Transport, case: Case) -> dict[str, float]:
     moved = transport(case.source, case.target, case.path)
     elapsed = time.perf_counter() - start
     a, b = torch.as_tensor(moved), torch.as_tensor(case.truth)
-    row = {"frechet": float(metrics.discrete_frechet(a, b)), "final_position": float(np.linalg.norm(moved[-1] - case.truth[-1])), "seconds": elapsed}
+    row = {
+        "frechet": float(metrics.discrete_frechet(a, b)),
+        "final_position": float(np.linalg.norm(moved[-1] - case.truth[-1])),
+        "seconds": elapsed,
+    }
     if case.rotations is None:
         diff = float(end_heading(a, -1) - end_heading(b, -1))
         row["final_heading"] = abs(math.atan2(math.sin(diff), math.cos(diff)))
@@ -250,7 +271,9 @@ def benchmark_table(name: str, rows: dict[str, list[dict]], units: str) -> str:
              "|---|---|---|---|---|---|"]  # fmt: skip
     for m, s in med.items():
         ratio = f"{s['frechet'] / base['frechet']:.2f}" if base else "-"
-        lines.append(f"| {m} | {s['frechet']:.3g} | {ratio} | {s['final_position']:.3g} | {s['final_heading']:.3f} | {1e3 * s['seconds']:.1f} |")
+        lines.append(
+            f"| {m} | {s['frechet']:.3g} | {ratio} | {s['final_position']:.3g} | {s['final_heading']:.3f} | {1e3 * s['seconds']:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -311,7 +334,10 @@ def candidate_maps() -> dict[str, Transport]:
     """The grid the defaults were chosen from (``--candidates``, on the tuning split): GP kernels, length-scales (x the
     keypoints' diameter or RMS spread) and noise (x the residuals' mean square), the default on a similarity alignment and fitted
     by maximum likelihood; ILWR's alignments and steps."""
-    kernels = {"Matern 5/2": lambda: gpytorch.kernels.MaternKernel(nu=2.5), "Matern 3/2": lambda: gpytorch.kernels.MaternKernel(nu=1.5)}
+    kernels = {
+        "Matern 5/2": lambda: gpytorch.kernels.MaternKernel(nu=2.5),
+        "Matern 3/2": lambda: gpytorch.kernels.MaternKernel(nu=1.5),
+    }
     maps = {"similarity": kpflow_map(lambda: AffineMap("similarity")), AUTHORS: authors_gp}
     for kname, kernel in kernels.items():
         for unit, scales in (("diameter", (0.6, 0.8, 1.0, 1.3)), ("spread", (1.2, 1.6, 2.0, 2.4))):
@@ -323,7 +349,9 @@ def candidate_maps() -> dict[str, Transport]:
     maps["GPMap Matern 3/2, maximum likelihood from the default"] = kpflow_map(functools.partial(GPMap, iters=6))
     for alignment in ("rigid", "similarity", "translation", "affine"):
         for steps in (30, 100):
-            maps[f"ILWRMap {alignment}, {steps} steps"] = kpflow_map(functools.partial(ILWRMap, n_steps=steps, alignment=alignment))
+            maps[f"ILWRMap {alignment}, {steps} steps"] = kpflow_map(
+                functools.partial(ILWRMap, n_steps=steps, alignment=alignment)
+            )
     return maps
 
 
@@ -332,10 +360,14 @@ def split_cases(bench: str, split: str, args) -> list[Case]:
     ``--seed`` and the rest)."""
     seed = 1 if split == "tuning" else args.seed
     if bench == "lasa":
-        return lasa_cases(slice(0, 3) if args.quick else slice(0, LASA_TUNING) if split == "tuning" else slice(LASA_TUNING, None))
+        return lasa_cases(
+            slice(0, 3) if args.quick else slice(0, LASA_TUNING) if split == "tuning" else slice(LASA_TUNING, None)
+        )
     if bench == "multiframe":
         return multiframe_cases(2 if args.quick else 12, seed=seed)
-    return suite_cases(args.tasks[:1] if args.quick else args.tasks, 2 if args.quick else args.scenes, seed, Path(args.cache))
+    return suite_cases(
+        args.tasks[:1] if args.quick else args.tasks, 2 if args.quick else args.scenes, seed, Path(args.cache)
+    )
 
 
 def main(argv=None) -> str:
@@ -344,12 +376,18 @@ def main(argv=None) -> str:
     parser.add_argument("--quick", action="store_true", help="a few shapes, families and scenes (a smoke run)")
     parser.add_argument("--split", choices=["evaluation", "tuning"], default="evaluation",
                         help="evaluation: --seed's families and scenes, LASA's shapes 13-26; tuning: seed 1, shapes 1-12")  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, help="the evaluation split's multi-frame families and robosuite scenes")
-    parser.add_argument("--candidates", action="store_true", help="the grid the defaults were chosen from (run it with --split tuning)")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="the evaluation split's multi-frame families and robosuite scenes"
+    )
+    parser.add_argument(
+        "--candidates", action="store_true", help="the grid the defaults were chosen from (run it with --split tuning)"
+    )
     parser.add_argument("--tasks", nargs="*", default=["lift", "stack", "can", "square"])
     parser.add_argument("--scenes", type=int, default=8, help="robosuite scenes recorded per task")
     parser.add_argument("--cache", default="outputs/map_suite/recordings")
-    parser.add_argument("--learned-2d", default=None, help="a learned map's checkpoint for the 2-D benchmarks (10 keypoints)")
+    parser.add_argument(
+        "--learned-2d", default=None, help="a learned map's checkpoint for the 2-D benchmarks (10 keypoints)"
+    )
     parser.add_argument("--learned-3d", default=None, help="a learned map's checkpoint for the suite")
     parser.add_argument("--out", default="outputs/benchmarks/maps_suite.md")
     args = parser.parse_args(argv)
@@ -366,7 +404,18 @@ def main(argv=None) -> str:
     if "multiframe" in args.benchmarks and not args.candidates:
         sections.append(batched_table(args.learned_2d, 100 if args.quick else 1000, 1 if args.quick else 5))
     header = f"Split: {args.split} ({'seed 1, LASA shapes 1-12' if args.split == 'tuning' else f'seed {args.seed}, LASA shapes 13-26'})."
-    text = "\n".join([header, "", "## Summary: median Frechet over the authors' GP settings'", "", summary_table(results), "## Per benchmark", "", *sections])
+    text = "\n".join(
+        [
+            header,
+            "",
+            "## Summary: median Frechet over the authors' GP settings'",
+            "",
+            summary_table(results),
+            "## Per benchmark",
+            "",
+            *sections,
+        ]
+    )
     write_text(Path(args.out), text)
     print(text)
     return text

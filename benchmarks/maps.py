@@ -188,14 +188,22 @@ def table_fit_transport(cfg, dtype, log) -> str:
                 reps = min(reps, cfg["reps_1000"].get(name, reps))
             t0 = time.perf_counter()
             fit_t, tr_t, res = bench_family(name, factory, n, cfg["queries"], reps, cfg["budget"], dtype)
-            log(f"  {name:24s} N={n:5d}: fit {fmt_ms(median(fit_t))} ms, {len(fit_t)} reps, "
-                f"{time.perf_counter() - t0:.1f} s")
+            log(
+                f"  {name:24s} N={n:5d}: fit {fmt_ms(median(fit_t))} ms, {len(fit_t)} reps, "
+                f"{time.perf_counter() - t0:.1f} s"
+            )
             for j, m in enumerate(cfg["queries"]):
-                rows.append([
-                    name if j == 0 else "", str(n) if j == 0 else "", str(m),
-                    fmt_ms(median(fit_t)) if j == 0 else "\u2033", fmt_ms(median(tr_t[m])),
-                    fmt_px(median(res)) if j == 0 else "\u2033", str(len(fit_t)),
-                ])
+                rows.append(
+                    [
+                        name if j == 0 else "",
+                        str(n) if j == 0 else "",
+                        str(m),
+                        fmt_ms(median(fit_t)) if j == 0 else "\u2033",
+                        fmt_ms(median(tr_t[m])),
+                        fmt_px(median(res)) if j == 0 else "\u2033",
+                        str(len(fit_t)),
+                    ]
+                )
     header = ["map", "N keypoints", "M queries", "fit ms", "transport ms", "residual px", "reps"]
     return table(header, rows)
 
@@ -274,9 +282,13 @@ def table_vs_authors(cfg, log) -> tuple[str, dict]:
     for name, run in runs.items():
         t0 = time.perf_counter()
         out[name] = bench_problem_runner(run, n, m, reps, budget)
-        log(f"  {name:50s} {fmt_ms(median(out[name][0]))} ms, {len(out[name][0])} reps, {time.perf_counter() - t0:.1f} s")
-    base_of = {"ILWR": "baseline ILWR (scipy L-BFGS-B, beta=0.9, 30 steps)",
-               "GP": "baseline sklearn GP (C*RBF+White, 5 restarts)"}
+        log(
+            f"  {name:50s} {fmt_ms(median(out[name][0]))} ms, {len(out[name][0])} reps, {time.perf_counter() - t0:.1f} s"
+        )
+    base_of = {
+        "ILWR": "baseline ILWR (scipy L-BFGS-B, beta=0.9, 30 steps)",
+        "GP": "baseline sklearn GP (C*RBF+White, 5 restarts)",
+    }
     rows = []
     for name, (times, res) in out.items():
         kind = "ILWR" if "ILWR" in name else "GP"
@@ -287,10 +299,18 @@ def table_vs_authors(cfg, log) -> tuple[str, dict]:
             ratio = f"{median(base_t) / median(times):.2f}x"
             k = min(len(res), len(base_r))  # same seeds: problem i is the same for both
             wins = f"{np.mean(np.array(res[:k]) <= np.array(base_r[:k]) * (1 + 1e-6)):.0%}"
-        rows.append([name, fmt_ms(median(times)), fmt_px(median(res)), fmt_px(float(np.max(res))), ratio, wins,
-                     str(len(times))])
-    header = ["method", "fit + 20-pt transport ms", "residual px (median)", "residual px (worst)",
-              "speed-up vs baseline (baseline ms / this ms)", "problems with residual <= baseline's", "reps"]
+        rows.append(
+            [name, fmt_ms(median(times)), fmt_px(median(res)), fmt_px(float(np.max(res))), ratio, wins, str(len(times))]
+        )
+    header = [
+        "method",
+        "fit + 20-pt transport ms",
+        "residual px (median)",
+        "residual px (worst)",
+        "speed-up vs baseline (baseline ms / this ms)",
+        "problems with residual <= baseline's",
+        "reps",
+    ]
     return table(header, rows), out
 
 
@@ -343,11 +363,32 @@ def table_batched(cfg, log) -> tuple[str, dict]:
             total = [a + c for a, c in zip(fit_t, tr_t)]
             out[(name, dname)] = total
             log(f"  {name:20s} {dname}: fit+transport {median(total):.3f} s, {len(total)} reps")
-            rows.append([name, dname, f"{median(fit_t):.4f}", f"{median(tr_t):.4f}", f"{median(total):.4f}",
-                         f"{median(total) / b * 1e3:.3g}", fmt_px(median(res_med)), fmt_px(max(res_worst)),
-                         f"{diff:.1e}", str(len(total))])
-    header = ["map", "dtype", "fit s", "transport s (20 pts/set)", "fit + transport s", "ms per set",
-              "residual px (median set)", "residual px (worst set)", "max abs diff vs unbatched fits (5 sets)", "reps"]
+            rows.append(
+                [
+                    name,
+                    dname,
+                    f"{median(fit_t):.4f}",
+                    f"{median(tr_t):.4f}",
+                    f"{median(total):.4f}",
+                    f"{median(total) / b * 1e3:.3g}",
+                    fmt_px(median(res_med)),
+                    fmt_px(max(res_worst)),
+                    f"{diff:.1e}",
+                    str(len(total)),
+                ]
+            )
+    header = [
+        "map",
+        "dtype",
+        "fit s",
+        "transport s (20 pts/set)",
+        "fit + transport s",
+        "ms per set",
+        "residual px (median set)",
+        "residual px (worst set)",
+        "max abs diff vs unbatched fits (5 sets)",
+        "reps",
+    ]
     return table(header, rows), out
 
 
@@ -360,17 +401,31 @@ def targets_section(vs, batch) -> str:
     for dname in DTYPES:
         t, r = vs[f"kpflow ILWRMap {dname}"]
         ok = median(t) <= 1e-3 and median(r) <= median(base_r)
-        rows.append([f"ILWRMap {dname}: fit + 20-pt transport <= 1 ms, residual <= baseline's",
-                     f"{fmt_ms(median(t))} ms; residual {fmt_px(median(r))} px vs baseline {fmt_px(median(base_r))} px",
-                     "PASS" if ok else "MISS"])
+        rows.append(
+            [
+                f"ILWRMap {dname}: fit + 20-pt transport <= 1 ms, residual <= baseline's",
+                f"{fmt_ms(median(t))} ms; residual {fmt_px(median(r))} px vs baseline {fmt_px(median(base_r))} px",
+                "PASS" if ok else "MISS",
+            ]
+        )
     for dname in DTYPES:
         t, _ = vs[f"kpflow GPMap {dname}"]
-        rows.append([f"GPMap {dname}: fit + 20-pt transport <= 15 ms", f"{fmt_ms(median(t))} ms",
-                     "PASS" if median(t) <= 15e-3 else "MISS"])
+        rows.append(
+            [
+                f"GPMap {dname}: fit + 20-pt transport <= 15 ms",
+                f"{fmt_ms(median(t))} ms",
+                "PASS" if median(t) <= 15e-3 else "MISS",
+            ]
+        )
     for dname in DTYPES:
         t = batch[("ILWRMap", dname)]
-        rows.append([f"ILWRMap {dname}: batch of 1000 source sets (fit + 20-pt transport) <= 0.5 s",
-                     f"{median(t):.3f} s", "PASS" if median(t) <= 0.5 else "MISS"])
+        rows.append(
+            [
+                f"ILWRMap {dname}: batch of 1000 source sets (fit + 20-pt transport) <= 0.5 s",
+                f"{median(t):.3f} s",
+                "PASS" if median(t) <= 0.5 else "MISS",
+            ]
+        )
     return table(["target", "measured (median)", "verdict"], rows)
 
 
@@ -393,26 +448,45 @@ def profile_ilwr(reps: int = 200) -> str:
 def config(quick: bool) -> dict:
     if quick:
         return dict(
-            sizes=(10, 25), queries=(20, 10_000), reps_default=5, budget=2.0,
-            reps={"FlowMap": 1, "MLPMap": 2, "EnsembleMap (5 MLPMap)": 1}, reps_1000={},
-            skip={}, reps_vs=10, budget_vs=3.0, reps_batch=2,
+            sizes=(10, 25),
+            queries=(20, 10_000),
+            reps_default=5,
+            budget=2.0,
+            reps={"FlowMap": 1, "MLPMap": 2, "EnsembleMap (5 MLPMap)": 1},
+            reps_1000={},
+            skip={},
+            reps_vs=10,
+            budget_vs=3.0,
+            reps_batch=2,
         )
     return dict(
-        sizes=(10, 25, 100, 1000), queries=(20, 10_000), reps_default=30, budget=15.0,
+        sizes=(10, 25, 100, 1000),
+        queries=(20, 10_000),
+        reps_default=30,
+        budget=15.0,
         reps={"FlowMap": 7, "MLPMap": 11, "GPMap": 21, "EnsembleMap (5 MLPMap)": 5},
         reps_1000={"GPMap": 3, "FlowMap": 3, "MLPMap": 5, "EnsembleMap (5 MLPMap)": 1},
-        skip={}, reps_vs=50, budget_vs=30.0, reps_batch=10,
+        skip={},
+        reps_vs=50,
+        budget_vs=30.0,
+        reps_batch=10,
     )
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--quick", action="store_true", help="smoke test: fewer repetitions and sizes (< 60 s)")
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/maps.md"), help="markdown output file")
     ap.add_argument("--dtype", choices=tuple(DTYPES), default="float32", help="dtype of table 1 (default float32)")
     ap.add_argument("--profile", action="store_true", help="append a cProfile of ILWRMap fit on 25 keypoints")
     ap.add_argument("--learned", help="a learned-map checkpoint: append its tables on held-out Push-T pairs")
-    ap.add_argument("--learned-store", default="data/pusht_expert_200.zarr", help="the store the learned map's pair sources come from")
+    ap.add_argument(
+        "--learned-store",
+        default="data/pusht_expert_200.zarr",
+        help="the store the learned map's pair sources come from",
+    )
     args = ap.parse_args(argv)
 
     warnings.filterwarnings("ignore")  # sklearn ConvergenceWarning, gpytorch NumericalWarning (jitter added)
@@ -437,34 +511,43 @@ def main(argv=None) -> None:
     sections = [head]
 
     log("table 1: fit + transport")
-    sections.append(f"## 1. fit + transport (default settings, {args.dtype})\n\n"
-                    "Fit time does not depend on M (\u2033 = as above); transport = `phi(x)` on M points.\n\n"
-                    + table_fit_transport(cfg, DTYPES[args.dtype], log))
+    sections.append(
+        f"## 1. fit + transport (default settings, {args.dtype})\n\n"
+        "Fit time does not depend on M (\u2033 = as above); transport = `phi(x)` on M points.\n\n"
+        + table_fit_transport(cfg, DTYPES[args.dtype], log)
+    )
     log("table 2: vs the authors' library")
     t2, vs = table_vs_authors(cfg, log)
     sections.append(
         "## 2. vs the authors' library (25 keypoints, 20 query points, fit + transport)\n\n"
         "Baselines from `benchmarks/baselines.py` (numpy/scipy/sklearn, float64) with the authors' rigid (Kabsch) "
         "pre-alignment, timed. kpflow inputs are tensors made before timing. Each repetition is a new random "
-        "problem; the same problems for every method.\n\n" + t2)
+        "problem; the same problems for every method.\n\n" + t2
+    )
     log("table 3: batched")
     t3, batch = table_batched(cfg, log)
-    sections.append("## 3. batched fit: 1000 source sets [1000, 25, 2] -> one target [25, 2], 20 query points per set\n\n" + t3)
+    sections.append(
+        "## 3. batched fit: 1000 source sets [1000, 25, 2] -> one target [25, 2], 20 query points per set\n\n" + t3
+    )
     sections.append("## targets from the issue\n\n" + targets_section(vs, batch))
     if args.learned:
         from learned_map import learned_map_tables
 
         log("table 4: learned map")
         n = 10 if args.quick else 200
-        sections.append(f"## 4. learned map on held-out Push-T pairs ({n} per kind)\n\n"
-                        + learned_map_tables(args.learned, args.learned_store, n, log))
+        sections.append(
+            f"## 4. learned map on held-out Push-T pairs ({n} per kind)\n\n"
+            + learned_map_tables(args.learned, args.learned_store, n, log)
+        )
     if args.profile:
         log("profile")
         sections.append("## where ILWRMap.fit spends its time\n\n" + profile_ilwr())
     load_end = os.getloadavg()[0]
-    sections.append(f"_total run time {time.perf_counter() - t_start:.0f} s; 1-min load average {load_start:.2f} at "
-                    f"start, {load_end:.2f} at end on {os.cpu_count()} CPUs (above ~1 means other processes shared "
-                    f"the CPUs and timings are noisier)_")
+    sections.append(
+        f"_total run time {time.perf_counter() - t_start:.0f} s; 1-min load average {load_start:.2f} at "
+        f"start, {load_end:.2f} at end on {os.cpu_count()} CPUs (above ~1 means other processes shared "
+        f"the CPUs and timings are noisier)_"
+    )
     text = "\n\n".join(sections) + "\n"
     print(text)
     write_text(args.out, text)

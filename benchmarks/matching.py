@@ -52,7 +52,11 @@ def trial(points: np.ndarray, noise: float, planar: bool, condition: str, rng: n
     """A corrupted, moved, shuffled copy of ``points`` and the true ``perm`` (-1 where the target lacks it)."""
     n, d = points.shape
     angle = rng.uniform(-np.pi, np.pi)
-    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]) if planar else Rotation.from_euler("z", angle).as_matrix()
+    rot = (
+        np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        if planar
+        else Rotation.from_euler("z", angle).as_matrix()
+    )
     spread = np.linalg.norm(points - points.mean(0), axis=1).mean()
     moved = points @ rot.T + rng.normal(0, spread, d) + rng.normal(0, noise, (n, d))
     order = rng.permutation(n)
@@ -102,7 +106,9 @@ def recovered(result, truth: np.ndarray, images: list[np.ndarray]) -> tuple[bool
 SLOW = ("cpd", "cpd_nonrigid", "ot")
 
 
-def run(trials: int, slow_trials: int, methods: list[str], sets: list[str] | None = None, progress: bool = True) -> list[dict]:
+def run(
+    trials: int, slow_trials: int, methods: list[str], sets: list[str] | None = None, progress: bool = True
+) -> list[dict]:
     rows = []
     cells = [(s, c, m) for s in (sets or SETS) for c in CONDITIONS for m in methods]
     for set_name, condition, method in tqdm(cells, desc="matching cells", unit="cell", disable=not progress):
@@ -113,7 +119,9 @@ def run(trials: int, slow_trials: int, methods: list[str], sets: list[str] | Non
         for _ in range(n):
             target, truth = trial(points, noise, planar, condition, rng)
             start = time.perf_counter()
-            result = match_keypoints(points, target, method=method, max_distance=5 * noise, n_starts=12 if planar else 8)
+            result = match_keypoints(
+                points, target, method=method, max_distance=5 * noise, n_starts=12 if planar else 8
+            )
             times.append(time.perf_counter() - start)
             hit, is_unique = recovered(result, truth, images)
             hits, unique, unique_hits = hits + hit, unique + is_unique, unique_hits + (hit and is_unique)

@@ -47,7 +47,9 @@ def loop_coupling(a: np.ndarray, b: np.ndarray, combine) -> float:
             if i == 0 and j == 0:
                 c[i, j] = d[0, 0]
                 continue
-            best = min(c[i - 1, j] if i else np.inf, c[i, j - 1] if j else np.inf, c[i - 1, j - 1] if i and j else np.inf)
+            best = min(
+                c[i - 1, j] if i else np.inf, c[i, j - 1] if j else np.inf, c[i - 1, j - 1] if i and j else np.inf
+            )
             c[i, j] = combine(d[i, j], best)
     return float(c[-1, -1])
 
@@ -71,7 +73,10 @@ def main(argv=None) -> str:
     torch.set_num_threads(1)
     g = torch.Generator().manual_seed(0)
 
-    rows = ["| metric | points | kpflow ms (median) | double loop ms (median) | speed-up | max disagreement |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| metric | points | kpflow ms (median) | double loop ms (median) | speed-up | max disagreement |",
+        "|---|---|---|---|---|---|",
+    ]
     verdicts = []
     for n in args.sizes:
         a, b = torch.randn(n, 2, generator=g), torch.randn(n, 2, generator=g)
@@ -82,9 +87,13 @@ def main(argv=None) -> str:
             error = abs(value - reference) / max(1.0, abs(reference))
             rows.append(f"| {name} | {n} | {ours:.2f} | {base:.1f} | {base / ours:.1f}x | {error:.1e} |")
             if n == 200:
-                verdicts.append(f"{name}, 200 points: {ours:.1f} ms < {TARGET_MS:.0f} ms: {'PASS' if ours < TARGET_MS else 'MISS'}")
+                verdicts.append(
+                    f"{name}, 200 points: {ours:.1f} ms < {TARGET_MS:.0f} ms: {'PASS' if ours < TARGET_MS else 'MISS'}"
+                )
     lines = ["## Curve metrics", "", *rows, "", "Targets:", *[f"- {v}" for v in verdicts], ""]
-    lines.append(f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread.")
+    lines.append(
+        f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread."
+    )
     return publish(args.out, lines)
 
 

@@ -133,10 +133,18 @@ def main(argv=None) -> str:
     footer = f"{datetime.date.today()}, {platform.machine()}, torch {torch.__version__}, one thread."
     if args.only == "few_step":
         env = PushTEnv()
-        queries = [env.reset(options={"config": split_config("in_distribution", 20_000 + i)})[0] for i in range(args.reps)]
+        queries = [
+            env.reset(options={"config": split_config("in_distribution", 20_000 + i)})[0] for i in range(args.reps)
+        ]
         kps = np.stack([q["keypoints"] for q in queries]).astype(np.float32)
         fake_chunks = kps[:, -1:, :].repeat(20, 1) + rng.normal(0, 20.0, (len(kps), 20, 2)).astype(np.float32)
-        lines = [f"## Few-step K-CFM chunks (one CPU thread, median of {args.reps})", "", *few_step_table(queries, kps, fake_chunks), "", footer]
+        lines = [
+            f"## Few-step K-CFM chunks (one CPU thread, median of {args.reps})",
+            "",
+            *few_step_table(queries, kps, fake_chunks),
+            "",
+            footer,
+        ]
         return publish(args.out, lines)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -158,6 +166,7 @@ def main(argv=None) -> str:
 
     search = median_ms(index.query, query_kps)
     baseline = median_ms(sklearn_query, query_kps)
+
     def weighted(i, q):  # the weighted squared distance of source i to q, in float64
         f = index.canonical(np.asarray(q, np.float32)[None])[0]
         return float((weights[:, None] * (features[i] / np.sqrt(weights)[:, None] - f) ** 2).sum())
@@ -166,7 +175,9 @@ def main(argv=None) -> str:
                      for q in query_kps[:50]])  # fmt: skip
     transport = median_ms(TransportPolicy(index, execute=20, layout=PushTTask.policy_layout).act, queries)
 
-    model = KCFM(N_KEYPOINTS, horizon=20, goal_frame=goal_frame())  # the configuration kpflow/conf/experiment/pusht_kcfm.yaml trains
+    model = KCFM(
+        N_KEYPOINTS, horizon=20, goal_frame=goal_frame()
+    )  # the configuration kpflow/conf/experiment/pusht_kcfm.yaml trains
     model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
     k1, k10, k20 = (KCFMPolicy(model, steps=n, execute=8) for n in (1, 10, 20))
     k1.reset(0), k10.reset(0), k20.reset(0)
@@ -202,7 +213,10 @@ def main(argv=None) -> str:
         "",
         "| learned policy, one 16-action chunk, 10 network calls | parameters | ms per chunk | vs default | target |",
         "|---|---|---|---|---|",
-        *[f"| {label} | {n:,} | {ms:.2f} | {ms / variants[0][2]:.2f}x | <= 20 ms: {verdict(ms <= 20)} |" for label, n, ms in variants],
+        *[
+            f"| {label} | {n:,} | {ms:.2f} | {ms / variants[0][2]:.2f}x | <= 20 ms: {verdict(ms <= 20)} |"
+            for label, n, ms in variants
+        ],
         "",
         *few_step_table(queries, keypoints, chunks),
         "",

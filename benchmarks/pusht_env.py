@@ -295,7 +295,11 @@ def record_actions(configs: list[Config], steps: int, seed: int) -> list[np.ndar
         if n <= 0:
             break
         obs, _ = env.reset(options={"config": config})
-        phase, speed, radius = rng.uniform(0, 2 * np.pi), rng.choice([-1.0, 1.0]) * rng.uniform(0.15, 0.3), rng.uniform(60, 80)
+        phase, speed, radius = (
+            rng.uniform(0, 2 * np.pi),
+            rng.choice([-1.0, 1.0]) * rng.uniform(0.15, 0.3),
+            rng.uniform(60, 80),
+        )
         actions = np.empty((n, 2))
         for k in range(n):
             centre = obs["keypoints"][:12].mean(0)
@@ -397,7 +401,9 @@ def table(header: list[str], rows: list[list[str]]) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--steps", type=int, default=6000, help="environment steps per replay (default 6000)")
     ap.add_argument("--repeats", type=int, default=5, help="timed replays per env (default 5); medians are reported")
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/pusht_env.md"), help="markdown output file")
@@ -436,8 +442,10 @@ def main(argv=None) -> None:
         k_times.append(replay_kpflow(configs, episodes)[0])
         b_times.append(replay_baseline(configs, episodes)[0])
         bt_times.append(replay_baseline(configs, episodes, as_tuples=True)[0])
-        log(f"repeat {r + 1}/{args.repeats}: kpflow {n_steps / k_times[-1]:.0f} steps/s, baseline "
-            f"{n_steps / b_times[-1]:.0f} steps/s (tuple actions {n_steps / bt_times[-1]:.0f})")
+        log(
+            f"repeat {r + 1}/{args.repeats}: kpflow {n_steps / k_times[-1]:.0f} steps/s, baseline "
+            f"{n_steps / b_times[-1]:.0f} steps/s (tuple actions {n_steps / bt_times[-1]:.0f})"
+        )
     kc_times, bc_times = [], []
     for _ in range(args.repeats):
         tk, tb, kc, bc = time_coverage(configs, episodes, k_poses)
@@ -448,41 +456,69 @@ def main(argv=None) -> None:
     bt_step = float(np.median(bt_times)) / n_steps
     k_cov_t, b_cov_t = float(np.median(kc_times)) / n_steps, float(np.median(bc_times)) / n_steps
     rows = [
-        ["kpflow `PushTEnv.step` (25 keypoints + poses + coverage + info)", f"{1 / k_step:,.0f}",
-         f"{k_step * 1e6:.1f}", f"{k_cov_t * 1e6:.1f}", f"{k_cov_t / k_step:.0%}", f"{b_step / k_step:.2f}x"],
-        ["baseline: gym-pusht 0.1.8 `step` (transcribed; 8 keypoints + agent pos)", f"{1 / b_step:,.0f}",
-         f"{b_step * 1e6:.1f}", f"{b_cov_t * 1e6:.1f}", f"{b_cov_t / b_step:.0%}", "1 (reference)"],
-        ["baseline, actions passed as Python tuples instead of numpy arrays", f"{1 / bt_step:,.0f}",
-         f"{bt_step * 1e6:.1f}", f"{b_cov_t * 1e6:.1f}", f"{b_cov_t / bt_step:.0%}", f"{b_step / bt_step:.2f}x"],
+        [
+            "kpflow `PushTEnv.step` (25 keypoints + poses + coverage + info)",
+            f"{1 / k_step:,.0f}",
+            f"{k_step * 1e6:.1f}",
+            f"{k_cov_t * 1e6:.1f}",
+            f"{k_cov_t / k_step:.0%}",
+            f"{b_step / k_step:.2f}x",
+        ],
+        [
+            "baseline: gym-pusht 0.1.8 `step` (transcribed; 8 keypoints + agent pos)",
+            f"{1 / b_step:,.0f}",
+            f"{b_step * 1e6:.1f}",
+            f"{b_cov_t * 1e6:.1f}",
+            f"{b_cov_t / b_step:.0%}",
+            "1 (reference)",
+        ],
+        [
+            "baseline, actions passed as Python tuples instead of numpy arrays",
+            f"{1 / bt_step:,.0f}",
+            f"{bt_step * 1e6:.1f}",
+            f"{b_cov_t * 1e6:.1f}",
+            f"{b_cov_t / bt_step:.0%}",
+            f"{b_step / bt_step:.2f}x",
+        ],
     ]
-    header = ["step", "steps/s (median)", "us / step", "coverage us / step", "coverage share of step",
-              "speed-up vs baseline"]
+    header = [
+        "step",
+        "steps/s (median)",
+        "us / step",
+        "coverage us / step",
+        "coverage share of step",
+        "speed-up vs baseline",
+    ]
     load_end = os.getloadavg()[0]
     verdict = "PASS" if b_step / k_step >= 2.0 else "MISS"
-    text = "\n\n".join([
-        f"# Push-T environment step benchmark\n\n{datetime.datetime.now().isoformat(timespec='seconds')}; "
-        f"{platform.processor() or platform.machine()}, Python {platform.python_version()}, pymunk {pymunk.version}, "
-        f"shapely {shapely.__version__}, numpy {np.__version__}; OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}. "
-        f"{n_steps} steps per replay ({len(episodes)} episodes of <= {EPISODE} steps, in-distribution starts with the "
-        f"goal near the block), median over {args.repeats} replays after one warm-up; resets untimed.",
-        table(header, rows),
-        f"- target: kpflow >= 2x the baseline's steps/s: **{verdict}** ({b_step / k_step:.2f}x)\n"
-        f"- same trajectories: largest block-pose difference between the two replays {pose_diff:.1e} px, "
-        f"{angle_diff:.1e} rad; largest coverage difference {cov_diff:.1e} (on identical states: {cov_same:.1e})\n"
-        f"- coverage work: the block's and the goal's bounding boxes overlap (shapely runs in kpflow) on "
-        f"{overlap:.0%} of the steps; mean coverage {k_cov.mean():.2f}, coverage > 0 on {np.mean(k_cov > 0):.0%}\n"
-        f"- per-repeat steps/s, kpflow: {', '.join(f'{n_steps / t:,.0f}' for t in k_times)}; baseline: "
-        f"{', '.join(f'{n_steps / t:,.0f}' for t in b_times)}; baseline with tuple actions: "
-        f"{', '.join(f'{n_steps / t:,.0f}' for t in bt_times)}\n"
-        f"- actions are float64 numpy arrays [2] for kpflow and the baseline's main row (gym's usual type); the "
-        f"baseline's PD update then mixes numpy and pymunk ``Vec2d`` arithmetic, which the tuple row avoids",
-    ])
+    text = "\n\n".join(
+        [
+            f"# Push-T environment step benchmark\n\n{datetime.datetime.now().isoformat(timespec='seconds')}; "
+            f"{platform.processor() or platform.machine()}, Python {platform.python_version()}, pymunk {pymunk.version}, "
+            f"shapely {shapely.__version__}, numpy {np.__version__}; OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}. "
+            f"{n_steps} steps per replay ({len(episodes)} episodes of <= {EPISODE} steps, in-distribution starts with the "
+            f"goal near the block), median over {args.repeats} replays after one warm-up; resets untimed.",
+            table(header, rows),
+            f"- target: kpflow >= 2x the baseline's steps/s: **{verdict}** ({b_step / k_step:.2f}x)\n"
+            f"- same trajectories: largest block-pose difference between the two replays {pose_diff:.1e} px, "
+            f"{angle_diff:.1e} rad; largest coverage difference {cov_diff:.1e} (on identical states: {cov_same:.1e})\n"
+            f"- coverage work: the block's and the goal's bounding boxes overlap (shapely runs in kpflow) on "
+            f"{overlap:.0%} of the steps; mean coverage {k_cov.mean():.2f}, coverage > 0 on {np.mean(k_cov > 0):.0%}\n"
+            f"- per-repeat steps/s, kpflow: {', '.join(f'{n_steps / t:,.0f}' for t in k_times)}; baseline: "
+            f"{', '.join(f'{n_steps / t:,.0f}' for t in b_times)}; baseline with tuple actions: "
+            f"{', '.join(f'{n_steps / t:,.0f}' for t in bt_times)}\n"
+            f"- actions are float64 numpy arrays [2] for kpflow and the baseline's main row (gym's usual type); the "
+            f"baseline's PD update then mixes numpy and pymunk ``Vec2d`` arithmetic, which the tuple row avoids",
+        ]
+    )
     if args.profile:
         log("profile")
         text += "\n\n## where kpflow's step spends its time\n\n" + profile_kpflow(configs, episodes)
-    text += (f"\n\n_total run time {time.perf_counter() - t_start:.0f} s; 1-min load average {load_start:.2f} at start, "
-             f"{load_end:.2f} at end on {os.cpu_count()} CPUs (above ~1 means other processes shared the CPUs and "
-             f"timings are noisier)_\n")
+    text += (
+        f"\n\n_total run time {time.perf_counter() - t_start:.0f} s; 1-min load average {load_start:.2f} at start, "
+        f"{load_end:.2f} at end on {os.cpu_count()} CPUs (above ~1 means other processes shared the CPUs and "
+        f"timings are noisier)_\n"
+    )
     print(text)
     write_text(args.out, text)
     log(f"wrote {args.out}")

@@ -87,7 +87,9 @@ def main(argv=None) -> str:
             summary = collect_pusht(Path(tmp) / "demos.zarr", args.collect, workers=args.workers, progress=False)
             wall = time.perf_counter() - start
         ok = "PASS" if wall < 120 else "MISS"
-        verdicts.append(f"collect {args.collect} demonstrations with {args.workers} workers: {wall:.1f} s < 120 s: {ok}")
+        verdicts.append(
+            f"collect {args.collect} demonstrations with {args.workers} workers: {wall:.1f} s < 120 s: {ok}"
+        )
         lines += [
             f"Collection: {summary['episodes']} in-distribution demonstrations ({summary['successes']}/"
             f"{summary['attempts']} attempts succeeded, {summary['steps']} steps) in {wall:.1f} s wall time"

@@ -78,7 +78,9 @@ def replay_tables(results: dict[str, dict]) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"standard replay buffer (default {DEFAULT_DATA})")
     ap.add_argument("--max-episodes", type=int, default=None, help="replay only the first N episodes")
     ap.add_argument("--out", type=Path, default=Path("outputs/benchmarks/pusht_replay.md"), help="markdown output file")

@@ -79,7 +79,9 @@ def served(uri: str, obs: list[dict], clients: int, processes: bool = False) -> 
         workers = [ctx.Process(target=_drive_process, args=(uri, obs, c, start, out)) for c in range(clients)]
     else:
         start, results = threading.Barrier(clients + 1), []
-        workers = [threading.Thread(target=lambda c=c: results.append(drive(uri, obs, c, start))) for c in range(clients)]
+        workers = [
+            threading.Thread(target=lambda c=c: results.append(drive(uri, obs, c, start))) for c in range(clients)
+        ]
     for w in workers:
         w.start()
     start.wait()
@@ -130,14 +132,26 @@ def main() -> None:
              "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     base = None
     for max_batch in (1, args.max_batch):
-        deployment = load_deployment(args.checkpoint, PushTTask(), {"steps": args.steps}, max_batch=max_batch, max_wait_ms=args.max_wait_ms)
-        path = f"server, batching on ({max_batch} rows, {args.max_wait_ms:g} ms)" if max_batch > 1 else "server, batching off"
+        deployment = load_deployment(
+            args.checkpoint, PushTTask(), {"steps": args.steps}, max_batch=max_batch, max_wait_ms=args.max_wait_ms
+        )
+        path = (
+            f"server, batching on ({max_batch} rows, {args.max_wait_ms:g} ms)"
+            if max_batch > 1
+            else "server, batching off"
+        )
         if base is None:
             in_process(deployment, obs[:10])  # warm-up
             base = in_process(deployment, obs)
-            lines.append("| in-process `act()` | 1 | {:.1f} | {:.1f} | {:.1f} | 1.00 | {:.0f} | | 1.00 |".format(*q(base), 1e3 / np.mean(base)))
+            lines.append(
+                "| in-process `act()` | 1 | {:.1f} | {:.1f} | {:.1f} | 1.00 | {:.0f} | | 1.00 |".format(
+                    *q(base), 1e3 / np.mean(base)
+                )
+            )
         with PolicyServer(deployment, port=0).running() as uri:
-            for clients in args.clients:  # warm-up: the policies' traces, one per batch size met (kpflow/policies/kcfm/traced.py)
+            for (
+                clients
+            ) in args.clients:  # warm-up: the policies' traces, one per batch size met (kpflow/policies/kcfm/traced.py)
                 served(uri, obs[:10], clients)
             one = None
             for clients in args.clients:
@@ -153,9 +167,15 @@ def main() -> None:
     if deployment.network is not None:  # what the network allows: the cost of a pass by its rows, traced as served
         net, meta = deployment.network.net, deployment.metadata
         traced = TracedNetwork(net)
-        passes = {rows: forward_ms(traced, meta.horizon, meta.action_shape[1], net.cond_dim, rows) for rows in (1, 2, 4, 8)}
-        lines += ["", "One forward pass of the traced network (median ms) by rows: " + ", ".join(f"{r}: {ms:.2f}" for r, ms in passes.items())
-                  + f". Four clients in batches of 4 rows get at most {4 * passes[1] / passes[4]:.2f} times one client's network-bound rate."]
+        passes = {
+            rows: forward_ms(traced, meta.horizon, meta.action_shape[1], net.cond_dim, rows) for rows in (1, 2, 4, 8)
+        }
+        lines += [
+            "",
+            "One forward pass of the traced network (median ms) by rows: "
+            + ", ".join(f"{r}: {ms:.2f}" for r, ms in passes.items())
+            + f". Four clients in batches of 4 rows get at most {4 * passes[1] / passes[4]:.2f} times one client's network-bound rate.",
+        ]
     lines += ["", "Server: websocket over loopback. requests/s: all clients together; x 1 client: that over the same server's "
               "1-client rate in this run; rows / pass: network rows per forward pass (batching off: 1)."]  # fmt: skip
     publish(args.out, lines)

@@ -156,7 +156,10 @@ def cross_check(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, floa
     """Largest relative difference of kpflow's Frechet and DTW from similaritymeasures' on ``pairs``."""
     fr = dt = 0.0
     for a, b in pairs:
-        ours_f, ours_d = float(metrics.discrete_frechet(torch.as_tensor(a), torch.as_tensor(b))), float(metrics.dtw(torch.as_tensor(a), torch.as_tensor(b)))
+        ours_f, ours_d = (
+            float(metrics.discrete_frechet(torch.as_tensor(a), torch.as_tensor(b))),
+            float(metrics.dtw(torch.as_tensor(a), torch.as_tensor(b))),
+        )
         fr = max(fr, abs(ours_f - similaritymeasures.frechet_dist(a, b)) / ours_f)
         dt = max(dt, abs(ours_d - similaritymeasures.dtw(a, b)[0]) / ours_d)
     return fr, dt
@@ -185,7 +188,9 @@ def run(shapes: list[str], maps: list[str], progress: bool = True):
     return rows, times, zs, checked
 
 
-def table(rows: dict[str, list[dict]], times: dict[str, list[float]], shapes: list[str], check: tuple[float, float]) -> str:
+def table(
+    rows: dict[str, list[dict]], times: dict[str, list[float]], shapes: list[str], check: tuple[float, float]
+) -> str:
     med = {m: {k: float(np.median([r[k] for r in rs])) for k in rs[0]} for m, rs in rows.items()}
     base = med.get(BASELINE)
     lines = [
@@ -207,7 +212,11 @@ def table(rows: dict[str, list[dict]], times: dict[str, list[float]], shapes: li
             f"| {m} | {s['frechet']:.2f} | {s['dtw']:.0f} | {s['area']:.0f} | {s['final_position']:.3f} | {s['final_heading']:.3f}"
             f" | {ratio_f} | {ratio_d} | {calib} | {1e3 * float(np.median(times[m])):.1f} |"
         )
-    lines += ["", f"Metric cross-check against similaritymeasures (first pairs): Frechet within {check[0]:.1e}, DTW within {check[1]:.1e} (relative).", ""]
+    lines += [
+        "",
+        f"Metric cross-check against similaritymeasures (first pairs): Frechet within {check[0]:.1e}, DTW within {check[1]:.1e} (relative).",
+        "",
+    ]
     lines.append("Shapes: " + ", ".join(shapes))
     return "\n".join(lines) + "\n"
 
@@ -228,7 +237,9 @@ def uncertainty_tables(rows: dict[str, list[dict]], zs: dict[str, list[tuple[str
         if c is None:
             lines.append(f"| {m} | - (one shape: nothing held out) | - | - |")
             continue
-        lines.append(f"| {m} | {c['scale']:.1f} | {c['raw_1']:.2f} / {c['raw_2']:.2f} | {c['cal_1']:.2f} / {c['cal_2']:.2f} |")
+        lines.append(
+            f"| {m} | {c['scale']:.1f} | {c['raw_1']:.2f} / {c['raw_2']:.2f} | {c['cal_1']:.2f} / {c['cal_2']:.2f} |"
+        )
     lines += ["", "## Stop and ask: hand the most uncertain transports to a person", "",
               "Transports ranked by their mean sigma; the most uncertain 10 % or 25 % are not executed. Frechet of the"
               " executed ones (mm), median / 90th percentile; Spearman: rank correlation of mean sigma with Frechet.", "",

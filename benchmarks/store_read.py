@@ -77,11 +77,16 @@ def interleaved(fn, a: Path, b: Path, repeats: int) -> tuple[float, float]:
 
 def main(argv=None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--stores", nargs="*", type=Path, default=None, help="sealed episode stores (default: released + human)")
+    parser.add_argument(
+        "--stores", nargs="*", type=Path, default=None, help="sealed episode stores (default: released + human)"
+    )
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", default="outputs/benchmarks/store_read.md")
     args = parser.parse_args(argv)
-    rows = ["| store | episodes | steps | MB on disk | read | checked ms | unchecked ms | ratio |", "|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| store | episodes | steps | MB on disk | read | checked ms | unchecked ms | ratio |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     verdicts = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -100,8 +105,12 @@ def main(argv=None) -> str:
             mb = sum(p.stat().st_size for p in checked.rglob("*") if p.is_file()) / 1e6
             for name, fn in (("every field whole", read_fields), ("every episode", read_episodes)):
                 ours, base = interleaved(fn, checked, unchecked, args.repeats)
-                rows.append(f"| {src.name} | {store.n_episodes} | {store.n_steps} | {mb:.1f} | {name} | {ours:.1f} | {base:.1f} | {ours / base:.3f} |")
-                verdicts.append(f"{src.name}, {name}: {ours / base:.3f} <= {TARGET}: {'PASS' if ours / base <= TARGET else 'MISS'}")
+                rows.append(
+                    f"| {src.name} | {store.n_episodes} | {store.n_steps} | {mb:.1f} | {name} | {ours:.1f} | {base:.1f} | {ours / base:.3f} |"
+                )
+                verdicts.append(
+                    f"{src.name}, {name}: {ours / base:.3f} <= {TARGET}: {'PASS' if ours / base <= TARGET else 'MISS'}"
+                )
     lines = ["## Reading episode stores with checksums", "", *rows, "", "Target (at most 10 % more time with checksums):",
              *[f"- {v}" for v in verdicts], ""]  # fmt: skip
     lines.append(f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one thread; "

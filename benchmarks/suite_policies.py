@@ -51,10 +51,15 @@ def stage_rows(model: KCFM, index: SourceIndex, layout, qs: list[dict]) -> list[
         frames = torch.from_numpy(q["keypoints_history"])
         condition = frames.numpy()[None] if model.hparams.n_obs > 1 else frames.numpy()[-1:]  # the K-CFM's input shape
         source = torch.from_numpy(index.keypoints[policy.last_source].astype(np.float64))
-        prepared.append((q, source, policy.last_map, frames, condition, model.sample(condition, steps=steps)[0].numpy()))
+        prepared.append(
+            (q, source, policy.last_map, frames, condition, model.sample(condition, steps=steps)[0].numpy())
+        )
     stages = [
         ("source search (weighted nearest of every training step)", lambda p: policy.source.choose(p[0]["keypoints"])),
-        ("ILWR fit on the objects' keypoints", lambda p: ILWRMap().fit(p[1][fit], torch.from_numpy(p[0]["keypoints"])[fit])),
+        (
+            "ILWR fit on the objects' keypoints",
+            lambda p: ILWRMap().fit(p[1][fit], torch.from_numpy(p[0]["keypoints"])[fit]),
+        ),
         ("pull-back of both observation frames (phi^-1)", lambda p: p[2].inverse(p[3])),
         (f"K-CFM, {steps} Euler steps", lambda p: model.sample(p[4], steps=steps)),
         ("push-forward of the chunk (positions, polar(J) rotations)", lambda p: transport_chunk(p[2], p[5], 3, True)),
@@ -90,8 +95,14 @@ def main() -> str:
     rows = [
         ("K-CFM, 10 Euler steps (baseline)", make_kcfm(model, layout)),
         ("transported K-CFM, ILWR", make_transported_kcfm(model, index, layout, ILWRMap, fit_on=fit)),
-        ("transported K-CFM, rigid map", make_transported_kcfm(model, index, layout, lambda: AffineMap(kind="rigid"), fit_on=fit)),
-        ("transported K-CFM, ILWR, segment by segment", make_transported_kcfm(model, index, layout, ILWRMap, segments=True)),
+        (
+            "transported K-CFM, rigid map",
+            make_transported_kcfm(model, index, layout, lambda: AffineMap(kind="rigid"), fit_on=fit),
+        ),
+        (
+            "transported K-CFM, ILWR, segment by segment",
+            make_transported_kcfm(model, index, layout, ILWRMap, segments=True),
+        ),
         ("policy transportation, ILWR (8 actions)", TransportPolicy(chunked, ILWRMap, 8, fit_on=fit, layout=layout)),
     ]
     base = None

@@ -47,7 +47,9 @@ class RecordedSegment:
     def keypoints(self, reference_yaw: float) -> np.ndarray:
         """The reference object's keypoints ordered by the turn nearest ``reference_yaw``, then the grip site: ``[N + 1, 3]``."""
         half = None if math.isnan(self.half) else self.half
-        return np.concatenate([object_keypoints(self.kind, self.pos, self.rot, reference_yaw, half), self.gripper[None]])
+        return np.concatenate(
+            [object_keypoints(self.kind, self.pos, self.rot, reference_yaw, half), self.gripper[None]]
+        )
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,18 @@ def record(task_name: str, n_scenes: int, seed: int) -> list[Recording]:
                 name, kind = reference(task_name, seg.name)
                 pos, rot = seg.start.poses[name]
                 half = cube_half(env, name) if spec.kinds[name] == "cube" else math.nan
-                recorded.append(RecordedSegment(name, kind, seg.trajectory.positions, seg.trajectory.rotations, pos, rot, half, seg.start.gripper[0]))
+                recorded.append(
+                    RecordedSegment(
+                        name,
+                        kind,
+                        seg.trajectory.positions,
+                        seg.trajectory.rotations,
+                        pos,
+                        rot,
+                        half,
+                        seg.start.gripper[0],
+                    )
+                )
             out.append(Recording(index, recorded))
         index += 1
     return out
@@ -103,7 +116,10 @@ def _path(cache: Path, task: str, n_scenes: int, seed: int) -> Path:
 
 
 def save(path: Path, recordings: list[Recording]) -> None:
-    arrays = {"index": np.array([r.index for r in recordings]), "n_segments": np.array([len(r.segments) for r in recordings])}
+    arrays = {
+        "index": np.array([r.index for r in recordings]),
+        "n_segments": np.array([len(r.segments) for r in recordings]),
+    }
     for i, rec in enumerate(recordings):
         for k, seg in enumerate(rec.segments):
             for f in FIELDS:
@@ -124,7 +140,11 @@ def load(path: Path, task_name: str) -> list[Recording]:
     for i, k in members:
         v = {f: data[f"{i}/{k}/{f}"] for f in FIELDS}
         name, kind = reference(task_name, segments[k])
-        out[i].segments.append(RecordedSegment(name, kind, v["positions"], v["rotations"], v["pos"], v["rot"], float(v["half"]), v["gripper"]))
+        out[i].segments.append(
+            RecordedSegment(
+                name, kind, v["positions"], v["rotations"], v["pos"], v["rot"], float(v["half"]), v["gripper"]
+            )
+        )
     return out
 
 

@@ -61,11 +61,21 @@ def main(argv=None) -> str:
     variants = {
         "policy transportation (ILWR)": TransportPolicy(index, ILWRMap, EXECUTE, layout=PUSHT),
         "K-CFM at the observation": KCFMPolicy(model, 10, EXECUTE),
-        "transported K-CFM, all keypoints pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "all", layout=PUSHT),
-        "transported K-CFM, all keypoints pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "all", layout=PUSHT),
-        "transported K-CFM, robot pulled back (ILWR)": TransportedKCFMPolicy(model, index, ILWRMap, 10, EXECUTE, "agent", layout=PUSHT),
-        "transported K-CFM, robot pulled back (GP)": TransportedKCFMPolicy(model, index, GPMap, 10, EXECUTE, "agent", layout=PUSHT),
-        "transported K-CFM, rigid map": TransportedKCFMPolicy(model, index, AffineMap, 10, EXECUTE, "agent", layout=PUSHT),
+        "transported K-CFM, all keypoints pulled back (ILWR)": TransportedKCFMPolicy(
+            model, index, ILWRMap, 10, EXECUTE, "all", layout=PUSHT
+        ),
+        "transported K-CFM, all keypoints pulled back (GP)": TransportedKCFMPolicy(
+            model, index, GPMap, 10, EXECUTE, "all", layout=PUSHT
+        ),
+        "transported K-CFM, robot pulled back (ILWR)": TransportedKCFMPolicy(
+            model, index, ILWRMap, 10, EXECUTE, "agent", layout=PUSHT
+        ),
+        "transported K-CFM, robot pulled back (GP)": TransportedKCFMPolicy(
+            model, index, GPMap, 10, EXECUTE, "agent", layout=PUSHT
+        ),
+        "transported K-CFM, rigid map": TransportedKCFMPolicy(
+            model, index, AffineMap, 10, EXECUTE, "agent", layout=PUSHT
+        ),
     }
     rows = np.random.default_rng(0).choice(len(held_out), min(args.queries, len(held_out)), replace=False)
     errors = {name: [] for name in variants}

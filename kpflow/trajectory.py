@@ -23,7 +23,13 @@ class Trajectory:
 
     def __post_init__(self) -> None:
         n = len(self.positions)
-        shapes = (np.shape(self.positions)[1:], np.shape(self.rotations)[1:], len(self.rotations), len(self.grasp), len(self.phases))
+        shapes = (
+            np.shape(self.positions)[1:],
+            np.shape(self.rotations)[1:],
+            len(self.rotations),
+            len(self.grasp),
+            len(self.phases),
+        )
         if shapes != ((3,), (3, 3), n, n, n):
             raise ValueError(
                 "a trajectory needs positions [T, 3], rotations [T, 3, 3], grasp [T] and phases [T] of one length T; got"
@@ -49,7 +55,6 @@ class Trajectory:
         return replace(self, positions=positions, rotations=rotations, std=std)
 
 
-
 @dataclass(frozen=True)
 class Keypoints:
     """Corresponding keypoints of the source scene and of the scene now (``source``, ``target`` ``[N, 3]``), the
@@ -60,4 +65,6 @@ class Keypoints:
 
     def __post_init__(self) -> None:
         if np.shape(self.source) != np.shape(self.target) or np.ndim(self.source) != 2:
-            raise ValueError(f"source and target keypoints must both be [N, D]; got {np.shape(self.source)} and {np.shape(self.target)}")
+            raise ValueError(
+                f"source and target keypoints must both be [N, D]; got {np.shape(self.source)} and {np.shape(self.target)}"
+            )

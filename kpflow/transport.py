@@ -29,13 +29,17 @@ def transport_positions(phi: TransportMap, x: torch.Tensor) -> torch.Tensor:
     return phi(x)
 
 
-def transport_velocities(phi: TransportMap, x: torch.Tensor, v: torch.Tensor, jac: torch.Tensor | None = None) -> torch.Tensor:
+def transport_velocities(
+    phi: TransportMap, x: torch.Tensor, v: torch.Tensor, jac: torch.Tensor | None = None
+) -> torch.Tensor:
     """J(x) v for velocities ``v [..., D]`` at positions ``x [..., D]``."""
     jac = phi.jacobian(x) if jac is None else jac
     return (jac @ v.to(jac).unsqueeze(-1)).squeeze(-1)
 
 
-def transport_orientations(phi: TransportMap, x: torch.Tensor, rot: torch.Tensor, jac: torch.Tensor | None = None) -> torch.Tensor:
+def transport_orientations(
+    phi: TransportMap, x: torch.Tensor, rot: torch.Tensor, jac: torch.Tensor | None = None
+) -> torch.Tensor:
     """polar(J(x)) R for rotation matrices ``rot [..., D, D]`` at positions ``x``."""
     jac = phi.jacobian(x) if jac is None else jac
     return nearest_rotation(jac) @ rot.to(jac)
@@ -46,7 +50,9 @@ def transport_quaternions(phi: TransportMap, x: torch.Tensor, quat: torch.Tensor
     return matrix_to_quat(transport_orientations(phi, x, quat_to_matrix(quat)))
 
 
-def transport_covariances(phi: TransportMap, x: torch.Tensor, cov: torch.Tensor, jac: torch.Tensor | None = None) -> torch.Tensor:
+def transport_covariances(
+    phi: TransportMap, x: torch.Tensor, cov: torch.Tensor, jac: torch.Tensor | None = None
+) -> torch.Tensor:
     """J S J^T for covariance matrices ``cov [..., D, D]``."""
     jac = phi.jacobian(x) if jac is None else jac
     return jac @ cov.to(jac) @ jac.transpose(-1, -2)

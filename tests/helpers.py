@@ -19,7 +19,9 @@ def rotation(d: int, angle: float, dtype=torch.float64) -> torch.Tensor:
     r = torch.eye(d, dtype=dtype)
     r[:2, :2] = torch.tensor([[c, -s], [s, c]], dtype=dtype)
     if d == 3:  # add a tilt so 3-D is not just a planar rotation
-        t = torch.tensor([[1, 0, 0], [0, math.cos(0.4), -math.sin(0.4)], [0, math.sin(0.4), math.cos(0.4)]], dtype=dtype)
+        t = torch.tensor(
+            [[1, 0, 0], [0, math.cos(0.4), -math.sin(0.4)], [0, math.sin(0.4), math.cos(0.4)]], dtype=dtype
+        )
         r = t @ r
     return r
 
@@ -94,8 +96,15 @@ def train_learned_map(tmp_path, sampler, n_keypoints: int, steps: int, dim: int 
     data = KeypointPairDataModule(sampler, n_pairs=64, batch_size=32)
     checkpoints = ModelCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True)
     trainer = lightning.Trainer(
-        max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[checkpoints],
-        plugins=[SafeCheckpointIO()], accelerator="cpu", deterministic=True, num_sanity_val_steps=0,
+        max_steps=steps,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[checkpoints],
+        plugins=[SafeCheckpointIO()],
+        accelerator="cpu",
+        deterministic=True,
+        num_sanity_val_steps=0,
     )
     trainer.fit(model, datamodule=data)
     return str(tmp_path / "checkpoints" / "last.ckpt")
@@ -108,7 +117,9 @@ def compose_config(entry: str, overrides: list[str], tmp_path):
         cfg = compose(entry, overrides=overrides, return_hydra_config=True)
     with open_dict(cfg):  # what Hydra's runtime would fill in
         cfg.hydra.runtime.output_dir = str(tmp_path)
-        cfg.hydra.runtime.choices = OmegaConf.create({k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None})
+        cfg.hydra.runtime.choices = OmegaConf.create(
+            {k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None}
+        )
     HydraConfig.instance().set_config(cfg)
     return cfg
 

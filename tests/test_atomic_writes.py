@@ -110,9 +110,21 @@ def test_killed_overwriting_import_keeps_the_old_store_and_the_next_import_clean
     write_replay_buffer(source, 1500)
     old = import_pusht_replay(source, dest, max_episodes=3, progress=False)
     old_ends = old.episode_ends
-    cmd = [sys.executable, "-m", "kpflow.tasks.pusht.replay_import", str(source), str(dest), "--overwrite", "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "kpflow.tasks.pusht.replay_import",
+        str(source),
+        str(dest),
+        "--overwrite",
+        "--no-progress",
+    ]
     proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    kill_when(proc, lambda: any((t / "meta" / "episode_ends").exists() for t in tmp_path.glob(".demos.zarr.*.tmp.zarr")), after=0.3)
+    kill_when(
+        proc,
+        lambda: any((t / "meta" / "episode_ends").exists() for t in tmp_path.glob(".demos.zarr.*.tmp.zarr")),
+        after=0.3,
+    )
     leftovers = list(tmp_path.glob(".demos.zarr.*.tmp.zarr"))
     assert len(leftovers) == 1
     np.testing.assert_array_equal(EpisodeStore(dest).episode_ends, old_ends)  # the old store, intact
@@ -161,7 +173,9 @@ elif what == "checkpoint":  # how train.py's checkpoints are saved (Lightning's 
 
 
 def write_on_a_full_disk(what: str, path: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", FULL_DISK, what, str(path)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-c", FULL_DISK, what, str(path)], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
 
 
 def test_a_video_cut_short_by_a_full_disk_is_refused_and_nothing_reaches_its_name(tmp_path):
@@ -183,13 +197,19 @@ def test_a_video_cut_short_by_a_full_disk_is_refused_and_nothing_reaches_its_nam
         assert sorted(p.name for p in path.parent.iterdir()) == []  # neither the video nor its temporary
 
 
-@pytest.mark.parametrize("what, name", [("text", "results.md"), ("json", "results.json"), ("figure", "success.png"), ("checkpoint", "last.ckpt")])
+@pytest.mark.parametrize(
+    "what, name",
+    [("text", "results.md"), ("json", "results.json"), ("figure", "success.png"), ("checkpoint", "last.ckpt")],
+)
 def test_results_figures_and_checkpoints_cut_short_by_a_full_disk_leave_nothing(tmp_path, what, name):
     path = tmp_path / name
     done = write_on_a_full_disk(what, path)
     assert done.returncode == 1, done.stderr[-2000:]
     last = done.stderr.strip().splitlines()[-1]  # issue 63.8: one line naming the file and the fix, not a bare [Errno]
-    assert f"{path} was not written: no room left (File too large); nothing reached its name" in last and "Free space" in last, last
+    assert (
+        f"{path} was not written: no room left (File too large); nothing reached its name" in last
+        and "Free space" in last
+    ), last
     assert list(tmp_path.iterdir()) == []
 
 
@@ -224,7 +244,9 @@ def test_a_second_import_into_one_folder_at_once_is_refused_by_name(tmp_path):
     while not any(tmp_path.glob(".demos.zarr.*.tmp.zarr")):
         assert first.poll() is None and time.monotonic() - t0 < 120, first.stderr.read()
         time.sleep(0.02)
-    with pytest.raises(LockHeld, match=rf"demos.zarr is being written by process {first.pid} \(.demos.zarr.lock is held\)"):
+    with pytest.raises(
+        LockHeld, match=rf"demos.zarr is being written by process {first.pid} \(.demos.zarr.lock is held\)"
+    ):
         import_pusht_replay(source, dest, progress=False)
     gate.unlink()
     out, err = first.communicate(timeout=120)

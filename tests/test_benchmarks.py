@@ -12,7 +12,13 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_maps_benchmark_quick_writes_its_tables(tmp_path):
     out = tmp_path / "maps.md"
-    done = subprocess.run([sys.executable, "benchmarks/maps.py", "--quick", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [sys.executable, "benchmarks/maps.py", "--quick", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     text = out.read_text()
     for heading in ("## 1.", "## 2.", "## 3.", "targets"):
@@ -45,7 +51,9 @@ def test_pusht_benchmarks_write_their_tables(tmp_path):
     }
     for name, cmd in runs.items():
         out = tmp_path / name
-        done = subprocess.run([sys.executable, *cmd, "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+        done = subprocess.run(
+            [sys.executable, *cmd, "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         assert "| " in out.read_text() and "steps" in out.read_text()
     assert "kpflow" in (tmp_path / "pusht_env.md").read_text()
@@ -54,9 +62,19 @@ def test_pusht_benchmarks_write_their_tables(tmp_path):
 
 def test_metrics_benchmark_checks_itself_against_the_double_loop(tmp_path):
     out = tmp_path / "metrics.md"
-    done = subprocess.run([sys.executable, "benchmarks/metrics.py", "--sizes", "12", "--repeats", "1", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "benchmarks/metrics.py", "--sizes", "12", "--repeats", "1", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
-    rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| discrete") or line.startswith("| DTW")]
+    rows = [
+        line.split("|")
+        for line in out.read_text().splitlines()
+        if line.startswith("| discrete") or line.startswith("| DTW")
+    ]
     assert len(rows) == 2
     assert all(float(row[6]) < 1e-6 for row in rows)  # kpflow's value agrees with the cell-by-cell recursion
 
@@ -66,7 +84,16 @@ def test_store_read_benchmark_times_checked_against_unchecked_reads(tmp_path):
 
     walk_to_block_store(tmp_path / "demos.zarr")
     out = tmp_path / "store_read.md"
-    cmd = [sys.executable, "benchmarks/store_read.py", "--stores", str(tmp_path / "demos.zarr"), "--repeats", "1", "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "benchmarks/store_read.py",
+        "--stores",
+        str(tmp_path / "demos.zarr"),
+        "--repeats",
+        "1",
+        "--out",
+        str(out),
+    ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| demos.zarr")]
@@ -87,7 +114,19 @@ def test_learned_map_benchmark_writes_its_tables(tmp_path):
 
     ckpt = train_learned_map(tmp_path, pairs, n_keypoints=25, steps=2)
     out = tmp_path / "learned.md"
-    cmd = [sys.executable, "benchmarks/learned_map.py", "--checkpoint", ckpt, "--store", str(store), "--quick", "--batch", "20", "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "benchmarks/learned_map.py",
+        "--checkpoint",
+        ckpt,
+        "--store",
+        str(store),
+        "--quick",
+        "--batch",
+        "20",
+        "--out",
+        str(out),
+    ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     text = out.read_text()
@@ -98,9 +137,23 @@ def test_learned_map_benchmark_writes_its_tables(tmp_path):
 @pytest.mark.slow
 def test_serving_benchmark_writes_its_table(tmp_path):
     out = tmp_path / "serving.md"
-    cmd = [sys.executable, "benchmarks/serving.py", "--requests", "5", "--steps", "2", "--clients", "1", "2", "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "benchmarks/serving.py",
+        "--requests",
+        "5",
+        "--steps",
+        "2",
+        "--clients",
+        "1",
+        "2",
+        "--out",
+        str(out),
+    ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert len(rows) == 5 and rows[0].startswith("| in-process") and all(float(r.split(" | ")[2]) > 0 for r in rows)
-    assert [r.split(" | ")[0] for r in rows[1:]] == ["| server, batching off"] * 2 + ["| server, batching on (8 rows, 5 ms)"] * 2
+    assert [r.split(" | ")[0] for r in rows[1:]] == ["| server, batching off"] * 2 + [
+        "| server, batching on (8 rows, 5 ms)"
+    ] * 2

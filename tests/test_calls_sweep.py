@@ -13,7 +13,9 @@ from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 
 def _run(folder, steps, solver, success, checkpoint="x.ckpt"):
     folder.mkdir(parents=True)
-    (folder / "config.yaml").write_text(yaml.safe_dump({"policy": {"checkpoint": str(checkpoint), "steps": steps, "solver": solver}}))
+    (folder / "config.yaml").write_text(
+        yaml.safe_dump({"policy": {"checkpoint": str(checkpoint), "steps": steps, "solver": solver}})
+    )
     summary = {"condition": "standard", "episodes": 200, "success_085": success + 0.1, "ci_085": [success, success + 0.2],
                "success_095": success, "ci_095": [success - 0.05, success + 0.05], "score": 0.9, "latency_ms": 3.0}  # fmt: skip
     (folder / "results.json").write_text(json.dumps({"summary": [summary]}))

@@ -30,7 +30,14 @@ def looking_down(height: float) -> np.ndarray:
 
 
 def frame(depth: np.ndarray, pose: np.ndarray = None, segmentation=None) -> CameraFrame:
-    return CameraFrame("test", np.zeros((*depth.shape, 3), np.uint8), depth, K, looking_down(2.0) if pose is None else pose, segmentation)
+    return CameraFrame(
+        "test",
+        np.zeros((*depth.shape, 3), np.uint8),
+        depth,
+        K,
+        looking_down(2.0) if pose is None else pose,
+        segmentation,
+    )
 
 
 # ------------------------------------------------------------------------------------------- lifting a frame

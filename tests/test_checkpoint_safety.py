@@ -73,7 +73,11 @@ def test_planted_payload_is_refused_in_process(kcfm_run, tmp_path):
             load()
     t = trainer(tmp_path, 4, plugins=[SafeCheckpointIO()])
     with pytest.raises(UnsafeCheckpointError, match="was refused"):
-        t.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(kcfm_run / "demos.zarr", horizon=H, batch_size=64), ckpt_path=evil)
+        t.fit(
+            KCFM(N_KEYPOINTS, horizon=H),
+            datamodule=ChunkDataModule(kcfm_run / "demos.zarr", horizon=H, batch_size=64),
+            ckpt_path=evil,
+        )
     assert not marker.exists()
     torch.load(evil, weights_only=False)  # control: the payload is live, an unsafe load does run it
     assert marker.exists()
@@ -92,7 +96,14 @@ def test_planted_payload_is_refused_by_evaluate(kcfm_run, tmp_path, policy):
 def test_planted_payload_is_refused_when_resuming_training(tmp_path):
     marker = tmp_path / "pwned"
     run = tmp_path / "run"
-    base = ["kpflow.cli.train", "experiment=frames_field", "logger=none", f"hydra.run.dir={run}", "data.n_points=60", "trainer.enable_progress_bar=false"]
+    base = [
+        "kpflow.cli.train",
+        "experiment=frames_field",
+        "logger=none",
+        f"hydra.run.dir={run}",
+        "data.n_points=60",
+        "trainer.enable_progress_bar=false",
+    ]
     done = run_command(*base, "trainer.max_epochs=1")
     assert done.returncode == 0, done.stderr[-2000:]
     last = run / "checkpoints" / "last.ckpt"
@@ -148,7 +159,9 @@ def test_hyper_parameters_that_ask_for_a_huge_network_are_refused_before_allocat
         "try:\n    load_checkpoint(KCFM, sys.argv[1])\nexcept ValueError as e:\n    print('refused', e)\n"
         "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
     )
-    done = subprocess.run([sys.executable, "-c", script, str(big)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(big)], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0 and "refused" in done.stdout, done.stderr[-2000:]
     grew_mb = int(done.stdout.split("grew_kb ")[1]) / 1024
     assert grew_mb < 300, grew_mb  # building it would have taken about 1900 MB
@@ -161,6 +174,8 @@ def test_hyper_parameters_that_do_not_match_the_weights_name_the_tensors(kcfm_ru
     del checkpoint["state_dict"]["kp_std"]
     odd = tmp_path / "odd.ckpt"
     torch.save(checkpoint, odd)
-    with pytest.raises(ValueError, match=rf"{odd}: .*'kp_std' missing from the file; 'extra.weight' in the file is not in the model"):
+    with pytest.raises(
+        ValueError, match=rf"{odd}: .*'kp_std' missing from the file; 'extra.weight' in the file is not in the model"
+    ):
         load_checkpoint(KCFM, odd)
     assert load_checkpoint(KCFM, kcfm_run / "good.ckpt").hparams.horizon == H

@@ -19,7 +19,9 @@ def store_path(tmp_path_factory) -> Path:
     store = EpisodeStore(path, mode="a")
     rng = np.random.default_rng(0)
     for t in LENGTHS:
-        store.add_episode({"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))})
+        store.add_episode(
+            {"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))}
+        )
     return path
 
 
@@ -48,7 +50,9 @@ def test_padding_repeats_the_last_action(store):
     torch.testing.assert_close(item["actions"][2:], raw[4].expand(2, 2))
     short = ChunkDataset(store, [1], horizon=6)[0]  # an episode shorter than the horizon
     assert short["mask"].tolist() == [True, True] + [False] * 4
-    torch.testing.assert_close(short["actions"][2:], torch.from_numpy(store.episode(1)["action"][-1]).float().expand(4, 2))
+    torch.testing.assert_close(
+        short["actions"][2:], torch.from_numpy(store.episode(1)["action"][-1]).float().expand(4, 2)
+    )
 
 
 def test_items_never_cross_episode_boundaries(store):
@@ -116,7 +120,9 @@ def test_datamodule_batches_and_determinism(store_path):
     same = ChunkDataModule(store_path, horizon=H, val_fraction=0.2, batch_size=16, seed=1)
     same.setup()
     a, b = batches(dm), batches(same)
-    assert all(torch.equal(x["episode"], y["episode"]) and torch.equal(x["t"], y["t"]) for x, y in zip(a, b, strict=True))
+    assert all(
+        torch.equal(x["episode"], y["episode"]) and torch.equal(x["t"], y["t"]) for x, y in zip(a, b, strict=True)
+    )
     assert torch.equal(torch.cat([x["actions"] for x in a]), torch.cat([y["actions"] for y in b]))
 
     other = ChunkDataModule(store_path, horizon=H, val_fraction=0.2, batch_size=16, seed=2)

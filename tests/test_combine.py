@@ -16,7 +16,17 @@ SPLIT = "in_distribution"
 
 def job(folder, first: int, n: int, seed: int = 0):
     trial = PolicyTrial(PushTTask(), StandStill(), PushTReport(), "still", max_steps=5)
-    run_trials(folder, trial, SPLIT, n_trials={SPLIT: n}, first_index={SPLIT: first}, seed=seed, workers=1, videos=0, progress=False)
+    run_trials(
+        folder,
+        trial,
+        SPLIT,
+        n_trials={SPLIT: n},
+        first_index={SPLIT: first},
+        seed=seed,
+        workers=1,
+        videos=0,
+        progress=False,
+    )
     config = {"seed": seed, "policy": "still", "output_dir": str(folder), "n_configs": n,
               "experiment": {"trial": {"report": {"_target_": "kpflow.eval.reports.pusht.PushTReport"}, "max_steps": 5},
                              "first_index": {SPLIT: first}, "n_trials": {SPLIT: n}}}  # fmt: skip

@@ -28,15 +28,45 @@ ENTRIES = {
     "trainer": dict.fromkeys(["cpu", "gpu", "ddp", "ddp_cpu"], "train"),
     "hydra/launcher": dict.fromkeys(["pool", "local", "slurm"], "train"),
     "callbacks": {"default": "train"},
-    "data": dict.fromkeys(["frames_transported", "pusht_expert", "pusht_human", "pusht_store", "pusht_pairs", "frames_pairs", "suite_store", "store"], "train"),
+    "data": dict.fromkeys(
+        [
+            "frames_transported",
+            "pusht_expert",
+            "pusht_human",
+            "pusht_store",
+            "pusht_pairs",
+            "frames_pairs",
+            "suite_store",
+            "store",
+        ],
+        "train",
+    ),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "keypoints": dict.fromkeys(["sim", "camera", "camera_clean"], "generate"),
     "source_search": dict.fromkeys(["default", "pusht"], "evaluate"),
-    "task": {**dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"), **dict.fromkeys(["lift", "stack", "can", "square"], "generate")},
+    "task": {
+        **dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
+        **dict.fromkeys(["lift", "stack", "can", "square"], "generate"),
+    },
     "experiment": {
-        **dict.fromkeys(["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"], "evaluate"),
-        **dict.fromkeys(["frames_field", "frames_map", "pusht_kcfm", "pusht_kcfm_fast", "pusht_kcfm_gpu", "pusht_map", "suite_kcfm", "kcfm"], "train"),
+        **dict.fromkeys(
+            ["frames", "packing", "pusht", "pusht_demo", "stacking", "suite_policy", "gym_policy", "offline"],
+            "evaluate",
+        ),
+        **dict.fromkeys(
+            [
+                "frames_field",
+                "frames_map",
+                "pusht_kcfm",
+                "pusht_kcfm_fast",
+                "pusht_kcfm_gpu",
+                "pusht_map",
+                "suite_kcfm",
+                "kcfm",
+            ],
+            "train",
+        ),
     },
 }
 
@@ -65,12 +95,16 @@ def test_submitit_launchers_compose(name, tmp_path):
 
 def test_the_joblib_launcher_composes(tmp_path):
     launcher = compose_config("train", ["hydra/launcher=pool"], tmp_path).hydra.launcher
-    assert launcher._target_ == "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher" and launcher.n_jobs >= 1
+    assert (
+        launcher._target_ == "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+        and launcher.n_jobs >= 1
+    )
 
 
 @pytest.fixture(scope="module")
 def learned_checkpoint(tmp_path_factory):
     """A learned map for 25 2-D keypoints, trained for a few steps (the map option's checkpoint)."""
+
     def pairs(n, rng):
         src, tgt = keypoint_pair(2)
         return src.expand(n, -1, -1).numpy(), tgt.expand(n, -1, -1).numpy()
@@ -147,7 +181,9 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
     from kpflow.tasks.pusht import PushTEnv, split_config
 
     checkpoint = [f"policy.checkpoint={RELEASED}"] if "kcfm" in name else []
-    cfg = compose_config("evaluate", [f"policy={name}", "data=pusht_store", f"data.path={store}", "logger=none", *checkpoint], tmp_path)
+    cfg = compose_config(
+        "evaluate", [f"policy={name}", "data=pusht_store", f"data.path={store}", "logger=none", *checkpoint], tmp_path
+    )
     policy = instantiate(cfg.policy)
     env = PushTEnv()
     obs, _ = env.reset(options={"config": split_config("in_distribution", 0)})
@@ -160,7 +196,11 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
 def test_source_search_options_reach_the_transporting_policy(name, store, tmp_path):
     from kpflow.policies.source_search import SourceSearch
 
-    cfg = compose_config("evaluate", [f"source_search={name}", "policy=transport", "data=pusht_store", f"data.path={store}", "logger=none"], tmp_path)
+    cfg = compose_config(
+        "evaluate",
+        [f"source_search={name}", "policy=transport", "data=pusht_store", f"data.path={store}", "logger=none"],
+        tmp_path,
+    )
     search = SourceSearch.of(cfg.source_search)
     policy = instantiate(cfg.policy)
     assert policy.source.stuck_decisions == search.stuck_decisions == (5 if name == "pusht" else None)
@@ -200,7 +240,9 @@ KEYPOINT_ENTRIES = [
 ]
 
 
-@pytest.mark.parametrize(("entry", "overrides"), KEYPOINT_ENTRIES, ids=lambda v: v if isinstance(v, str) else "-".join(v))
+@pytest.mark.parametrize(
+    ("entry", "overrides"), KEYPOINT_ENTRIES, ids=lambda v: v if isinstance(v, str) else "-".join(v)
+)
 @pytest.mark.parametrize("keypoints", sorted(ENTRIES["keypoints"]))
 def test_keypoint_options_switch_every_entry_points_task(entry, overrides, keypoints, tmp_path):
     from kpflow.tasks.packing.perception import PackingCamera
@@ -227,7 +269,13 @@ def square_kcfm(tmp_path) -> Path:
     from kpflow.tasks.suite.task import SuiteTask
 
     layout = SuiteTask("square").policy_layout
-    model = KCFM(n_keypoints=layout.n_keypoints, keypoint_dim=layout.keypoint_dim, action_dim=layout.action_dim, horizon=16, down_dims=[16, 32])
+    model = KCFM(
+        n_keypoints=layout.n_keypoints,
+        keypoint_dim=layout.keypoint_dim,
+        action_dim=layout.action_dim,
+        horizon=16,
+        down_dims=[16, 32],
+    )
     torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}, tmp_path / "square.ckpt")
     return tmp_path / "square.ckpt"
 
@@ -265,5 +313,7 @@ def test_evaluate_takes_condition_and_still_reads_split_its_old_spelling(tmp_pat
     read_old_spellings(new), read_old_spellings(old)
     assert new.condition == old.condition == "standard" and old.split is None
     assert OmegaConf.to_container(old.experiment, resolve=True)["conditions"] == "standard"
-    with pytest.raises(ValueError, match="split=robot_ood \\(the old spelling of condition\\) contradicts condition=standard"):
+    with pytest.raises(
+        ValueError, match="split=robot_ood \\(the old spelling of condition\\) contradicts condition=standard"
+    ):
         read_old_spellings(compose_config("evaluate", ["split=robot_ood", "condition=standard"], tmp_path))

@@ -93,7 +93,13 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
         return NearestNeighbourPolicy(index, execute=8)
 
     reports = collect_corrections(
-        path, make_policy, rounds=2, episodes_per_round=2, max_steps=150, stuck_steps=15, takeover_steps=30,
+        path,
+        make_policy,
+        rounds=2,
+        episodes_per_round=2,
+        max_steps=150,
+        stuck_steps=15,
+        takeover_steps=30,
         progress=False,
     )
     with EpisodeStore(path, mode="a", wait=0):  # writable again at once: `kpflow-correct` reopens it
@@ -122,8 +128,9 @@ def test_collect_corrections_grows_a_readable_store(tmp_path):
     assert len({c for _, c in configs}) == len(configs)  # configurations do not repeat across rounds
 
     # A second call continues the round numbering.
-    more = collect_corrections(path, lambda s: HoldStill(), 1, 1, max_steps=40, stuck_steps=5, takeover_steps=10,
-                               progress=False)
+    more = collect_corrections(
+        path, lambda s: HoldStill(), 1, 1, max_steps=40, stuck_steps=5, takeover_steps=10, progress=False
+    )
     assert more[0]["round"] == 2 and more[0]["chunks_added"] > 0
 
 
@@ -136,7 +143,9 @@ def test_takeover_is_an_override_of_the_one_episode_loop():
     takeover = Takeover(PushTExpert(), stuck_steps=10, takeover_steps=15)
     result = run_episode(PushTEnv(), HoldStill(), config, 60, seed=0, record=True, override=takeover)
     assert result.overridden.shape == (result.steps,) and result.overridden.sum() == takeover.steps > 0
-    assert not result.overridden[:10].any() and result.overridden[10:25].all()  # stuck from the start: 10 steps, then 15
+    assert (
+        not result.overridden[:10].any() and result.overridden[10:25].all()
+    )  # stuck from the start: 10 steps, then 15
     segments = _segments(result.episode, result.overridden)
     assert sum(len(s["action"]) for s in segments) == takeover.steps and len(segments) <= takeover.n_takeovers
     np.testing.assert_array_equal(segments[0]["action"], result.episode["action"][10 : 10 + len(segments[0]["action"])])

@@ -29,7 +29,10 @@ def test_a_data_folder_that_is_a_file_is_refused_in_one_line(monkeypatch, tmp_pa
 
     (tmp_path / "data").write_text("not a folder")
     monkeypatch.setenv(ENV, str(tmp_path / "data"))
-    with pytest.raises(ValueError, match=rf"KPFLOW_DATA_DIR={tmp_path / 'data'} is not a folder \(it is a file\): point KPFLOW_DATA_DIR at a folder"):
+    with pytest.raises(
+        ValueError,
+        match=rf"KPFLOW_DATA_DIR={tmp_path / 'data'} is not a folder \(it is a file\): point KPFLOW_DATA_DIR at a folder",
+    ):
         data_dir()
     with pytest.raises(SystemExit) as stop:
         main([str(tmp_path / "replay.zarr")])  # the import's default destination is in the data folder

@@ -14,7 +14,9 @@ from tests.helpers import StandStill
 def test_points_table_and_figure_from_real_runs(tmp_path):
     for policy, n, make in (("still", 5, StandStill), ("still", 20, StandStill), ("expert", 5, PushTExpert)):
         trial = PolicyTrial(PushTTask(), make(), PushTReport(), policy, max_steps=6)
-        run_trials(tmp_path / "runs" / policy / str(n), trial, "all", *protocol_counts(2), workers=1, videos=0, progress=False)
+        run_trials(
+            tmp_path / "runs" / policy / str(n), trial, "all", *protocol_counts(2), workers=1, videos=0, progress=False
+        )
     points = read_points(tmp_path / "runs")
     assert {(p.policy, p.n_demos) for p in points} == {("still", 5), ("still", 20), ("expert", 5)}
     assert len(points) == 9 and all(p.episodes == 2 and 0 <= p.ci[0] <= p.success <= p.ci[1] <= 1 for p in points)

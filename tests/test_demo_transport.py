@@ -12,7 +12,9 @@ from kpflow.trajectory import Keypoints, Trajectory
 
 def _line_demo(n: int = 41):
     x = torch.linspace(0.0, 4.0, n, dtype=torch.float64)
-    positions = torch.stack([0.15 + x, 0.15 + 0.2 * x, 0.15 + 0 * x], -1).numpy()  # from the keypoints' centre out to x = 4
+    positions = torch.stack(
+        [0.15 + x, 0.15 + 0.2 * x, 0.15 + 0 * x], -1
+    ).numpy()  # from the keypoints' centre out to x = 4
     rotations = np.repeat(np.eye(3)[None], n, 0)
     return Trajectory(positions, rotations, np.zeros(n, bool), np.array(["move"] * n))
 
@@ -50,7 +52,10 @@ def test_stop_ends_the_plan_before_the_first_uncertain_step():
     first = int(np.flatnonzero(u > 0.5 * u.max())[0])
     assert policy.stopped_at == first == len(stopped) and 0 < first < len(demo)
     np.testing.assert_allclose(stopped.positions, plain.positions[:first], atol=1e-12)
-    assert DemoTransportPolicy(GPMap, max_std=10 * u.max(), on_uncertain="stop").plan(demo, kp)[0].positions.shape == plain.positions.shape
+    assert (
+        DemoTransportPolicy(GPMap, max_std=10 * u.max(), on_uncertain="stop").plan(demo, kp)[0].positions.shape
+        == plain.positions.shape
+    )
     with pytest.raises(ValueError, match="on_uncertain must be one of"):
         DemoTransportPolicy(GPMap, max_std=1.0, on_uncertain="ask")
     with pytest.raises(ValueError, match="max_std must be > 0"):

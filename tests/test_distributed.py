@@ -12,11 +12,20 @@ import torch
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-BASE = ["experiment=frames_field", "logger=csv", "data.n_points=60", "trainer.enable_progress_bar=false", "trainer.max_epochs=3", "data.batch_size=4096"]
+BASE = [
+    "experiment=frames_field",
+    "logger=csv",
+    "data.n_points=60",
+    "trainer.enable_progress_bar=false",
+    "trainer.max_epochs=3",
+    "data.batch_size=4096",
+]
 
 
 def train(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    done = subprocess.run([sys.executable, "train.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    done = subprocess.run(
+        [sys.executable, "train.py", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return done
 
@@ -36,7 +45,15 @@ def test_ddp_on_cpu_trains_like_one_process(tmp_path):
 
 @pytest.mark.slow
 def test_submitit_local_launcher_runs_a_train_sweep(tmp_path):
-    train("-m", "hydra/launcher=local", *BASE, "trainer.max_epochs=1", "seed=0,1", f"hydra.sweep.dir={tmp_path}", timeout=600)
+    train(
+        "-m",
+        "hydra/launcher=local",
+        *BASE,
+        "trainer.max_epochs=1",
+        "seed=0,1",
+        f"hydra.sweep.dir={tmp_path}",
+        timeout=600,
+    )
     for job in (0, 1):
         assert (tmp_path / str(job) / "checkpoints" / "last.ckpt").exists()
         assert yaml.safe_load((tmp_path / str(job) / "config.yaml").read_text())["seed"] == job

@@ -179,7 +179,9 @@ def exercised_by_pages() -> tuple[set[Path], str]:
 def example_files() -> list[Path]:
     """The examples' files: scripts and template files (kpflow/examples/__init__.py, the command ``kpflow-example``
     itself, is tests/test_examples.py's)."""
-    return sorted(p for p in EXAMPLES.rglob("*") if p.is_file() and "__pycache__" not in p.parts and p != EXAMPLES / "__init__.py")
+    return sorted(
+        p for p in EXAMPLES.rglob("*") if p.is_file() and "__pycache__" not in p.parts and p != EXAMPLES / "__init__.py"
+    )
 
 
 def module_of(path: Path) -> str:
@@ -201,12 +203,18 @@ def named_by(path: Path, run_text: str) -> bool:
         return re.search(rf"kpflow-example\s+{template}\b", run_text) is not None
     module = module_of(path)
     command = console_scripts().get(module)
-    return module in run_text or str(path.relative_to(ROOT)) in run_text or (command is not None and re.search(rf"{command}\b", run_text) is not None)
+    return (
+        module in run_text
+        or str(path.relative_to(ROOT)) in run_text
+        or (command is not None and re.search(rf"{command}\b", run_text) is not None)
+    )
 
 
 def examples_to_run_directly() -> list[Path]:
     included, run_text = exercised_by_pages()
-    return [p for p in example_files() if p.suffix == ".py" and p.resolve() not in included and not named_by(p, run_text)]
+    return [
+        p for p in example_files() if p.suffix == ".py" and p.resolve() not in included and not named_by(p, run_text)
+    ]
 
 
 def test_site_builds_strict(tmp_path):
@@ -234,7 +242,10 @@ def test_page_code_runs(page: Path, tmp_path):
 
 def test_the_long_pages_run_from_their_own_files():
     for name in OWN_FILE:
-        assert f'check_page(DOCS / "tutorials" / "{name}.md"' in (ROOT / "tests" / f"test_tutorial_{name.replace('-', '_')}.py").read_text()
+        assert (
+            f'check_page(DOCS / "tutorials" / "{name}.md"'
+            in (ROOT / "tests" / f"test_tutorial_{name.replace('-', '_')}.py").read_text()
+        )
 
 
 @pytest.mark.parametrize(
@@ -266,10 +277,16 @@ def test_every_example_is_run():
     """A .py under kpflow/examples/ is included in a tested page, named by its code or run directly above; any other
     file (a template's config) must be included or named by a tested page's code (its template copied)."""
     included, run_text = exercised_by_pages()
-    unused = [str(p.relative_to(ROOT)) for p in example_files() if p.suffix != ".py" and p.resolve() not in included and not named_by(p, run_text)]
+    unused = [
+        str(p.relative_to(ROOT))
+        for p in example_files()
+        if p.suffix != ".py" and p.resolve() not in included and not named_by(p, run_text)
+    ]
     assert not unused, f"files under kpflow/examples/ that no tested page uses: {unused}"
     assert {p.name for p in EXAMPLES.glob("*.py")} >= {"connect.py", "train_on_store.py", "transport_trajectory.py"}
-    assert named_by(EXAMPLES / "connect.py", "kpflow-connect --uri ws://x") and not named_by(EXAMPLES / "connect.py", "kpflow-connected")
+    assert named_by(EXAMPLES / "connect.py", "kpflow-connect --uri ws://x") and not named_by(
+        EXAMPLES / "connect.py", "kpflow-connected"
+    )
     assert named_by(TEMPLATES / "reach_task" / "drive.py", "kpflow-example reach_task my_project")
 
 

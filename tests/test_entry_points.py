@@ -14,8 +14,15 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "experiment=frames", "map=ilwr", "logger=csv", "seed=3",
-        "experiment.n_configs=3", "task.n_points=60", f"hydra.run.dir={tmp_path}",
+        sys.executable,
+        "evaluate.py",
+        "experiment=frames",
+        "map=ilwr",
+        "logger=csv",
+        "seed=3",
+        "experiment.n_configs=3",
+        "task.n_points=60",
+        f"hydra.run.dir={tmp_path}",
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -35,7 +42,16 @@ def test_evaluate_frames_writes_config_table_and_plots(tmp_path):
 @pytest.mark.slow
 def test_same_seed_same_numbers(tmp_path):
     def run(d):
-        cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=gp", "logger=none", "experiment.n_configs=2", "task.n_points=50", f"hydra.run.dir={d}"]
+        cmd = [
+            sys.executable,
+            "evaluate.py",
+            "experiment=frames",
+            "map=gp",
+            "logger=none",
+            "experiment.n_configs=2",
+            "task.n_points=50",
+            f"hydra.run.dir={d}",
+        ]
         subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, timeout=300)
         return json.loads((d / "results.json").read_text())
 
@@ -45,8 +61,15 @@ def test_same_seed_same_numbers(tmp_path):
 @pytest.mark.slow
 def test_multirun_sweep_writes_one_run_per_map(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "-m", "experiment=frames", "map=affine,ilwr", "logger=none", "experiment.n_configs=2",
-        "task.n_points=40", f"hydra.sweep.dir={tmp_path}",
+        sys.executable,
+        "evaluate.py",
+        "-m",
+        "experiment=frames",
+        "map=affine,ilwr",
+        "logger=none",
+        "experiment.n_configs=2",
+        "task.n_points=40",
+        f"hydra.sweep.dir={tmp_path}",
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -67,7 +90,9 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["split"] == "all"
     results = json.loads((run / "results.json").read_text())
-    assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(results["trials"]) == 6
+    assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(
+        results["trials"]
+    ) == 6
     for s in results["summary"]:
         lo, hi = s["ci_085"]
         assert 0.0 <= lo <= s["success_085"] <= hi <= 1.0 and s["latency_ms"] > 0

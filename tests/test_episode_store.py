@@ -57,7 +57,12 @@ def test_round_trip(filled):
     np.testing.assert_array_equal(store.field("state"), concat(episodes, "state"))
     assert store.field("keypoints").dtype == np.float32 and store.field("state").dtype == np.float64
     assert store.episode_attrs(2) == {"seed": 2, "success": True}
-    assert f"{path}" in repr(store) and "episodes=4" in repr(store) and "steps=23" in repr(store) and "keypoints" in repr(store)
+    assert (
+        f"{path}" in repr(store)
+        and "episodes=4" in repr(store)
+        and "steps=23" in repr(store)
+        and "keypoints" in repr(store)
+    )
     with pytest.raises(IndexError, match=r"episode 4 out of range.*4 episodes"):
         store.episode(4)
     with pytest.raises(IndexError, match="-4..3"):
@@ -263,11 +268,19 @@ DAMAGE = {
 def test_damaged_index_is_refused_and_left_as_it_is(filled, how):
     path, _ = filled
     damage(path, how)
-    before = {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and p.name != ".kpflow-write.lock"}
+    before = {
+        p.relative_to(path): p.read_bytes()
+        for p in sorted(path.rglob("*"))
+        if p.is_file() and p.name != ".kpflow-write.lock"
+    }
     for mode in ("r", "a"):
         with pytest.raises(ValueError, match=DAMAGE[how]):
             EpisodeStore(path, mode=mode)
-    after = {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file() and p.name != ".kpflow-write.lock"}
+    after = {
+        p.relative_to(path): p.read_bytes()
+        for p in sorted(path.rglob("*"))
+        if p.is_file() and p.name != ".kpflow-write.lock"
+    }
     assert after == before  # nothing was "repaired"
 
 
@@ -278,7 +291,9 @@ def test_missing_chunk_is_an_error_naming_the_field(tmp_path):
             store.add_episode({"obs": np.ones((700, 2), np.float32) * seed, "action": np.ones((700, 1))})
     (path / "data" / "obs" / "1.0").unlink()  # rows 1024..2047 of obs
     for mode in ("r", "a"):
-        with pytest.raises(ValueError, match=r"field 'obs' is missing chunk\(s\) of its first 2100 rows \(data/obs/1.0\)"):
+        with pytest.raises(
+            ValueError, match=r"field 'obs' is missing chunk\(s\) of its first 2100 rows \(data/obs/1.0\)"
+        ):
             EpisodeStore(path, mode=mode)
 
 
@@ -293,7 +308,9 @@ def test_damaged_chunk_and_metadata_name_the_field(filled):
     good = (path / "data" / "state" / ".zarray").read_text()
     (path / "data" / "state" / ".zarray").write_text("{not json")
     for mode in ("r", "a"):
-        with pytest.raises(ValueError, match=f"{path}: field 'state' has damaged metadata \\(data/state/.zarray: JSONDecodeError"):
+        with pytest.raises(
+            ValueError, match=f"{path}: field 'state' has damaged metadata \\(data/state/.zarray: JSONDecodeError"
+        ):
             EpisodeStore(path, mode=mode)
     (path / "data" / "state" / ".zarray").write_text(good)
     (path / "meta" / ".zattrs").write_text("[[[")
@@ -318,7 +335,9 @@ def test_second_writer_fails_clearly_or_waits(filled):
     path, episodes = filled
     holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(path), "1.5"], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "holding"
-    with pytest.raises(TimeoutError, match=rf"{path} cannot be opened for writing: .*held by process {holder.pid}: wait"):
+    with pytest.raises(
+        TimeoutError, match=rf"{path} cannot be opened for writing: .*held by process {holder.pid}: wait"
+    ):
         EpisodeStore(path, mode="a")
     with pytest.raises(TimeoutError, match=rf"held by process {holder.pid} after 0.2 s"):
         EpisodeStore(path, mode="a", wait=0.2)

@@ -24,7 +24,9 @@ def test_a_template_is_copied_whole_into_a_new_or_empty_folder(tmp_path, capsys)
     main(["reach_task", str(tmp_path / "my_task")])
     copied = sorted(str(p.relative_to(tmp_path / "my_task")) for p in (tmp_path / "my_task").rglob("*") if p.is_file())
     assert copied == ["conf/task/reach.yaml", "drive.py", "reach/__init__.py", "reach/task.py"]
-    assert (tmp_path / "my_task" / "reach" / "task.py").read_text() == (TEMPLATES / "reach_task" / "reach" / "task.py").read_text()
+    assert (tmp_path / "my_task" / "reach" / "task.py").read_text() == (
+        TEMPLATES / "reach_task" / "reach" / "task.py"
+    ).read_text()
     assert f"copied the reach_task template into {tmp_path / 'my_task'}" in capsys.readouterr().out
     (tmp_path / "empty").mkdir()
     assert (copy_template("reach_task", tmp_path / "empty") / "drive.py").is_file()
@@ -64,19 +66,31 @@ def test_a_dangling_link_or_read_only_folder_is_refused_in_one_line(tmp_path, ca
     with pytest.raises(SystemExit) as stop:
         main(["reach_task", str(tmp_path / "link")])
     err = capsys.readouterr().err
-    assert stop.value.code == 1 and err.strip().splitlines()[1:] == ["(set KPFLOW_TRACEBACK=1 for the full traceback)"], err
-    assert f"error: {tmp_path / 'link'} is a symbolic link to {tmp_path / 'gone'}, which does not exist: name a new or empty folder" in err
+    assert stop.value.code == 1 and err.strip().splitlines()[1:] == [
+        "(set KPFLOW_TRACEBACK=1 for the full traceback)"
+    ], err
+    assert (
+        f"error: {tmp_path / 'link'} is a symbolic link to {tmp_path / 'gone'}, which does not exist: name a new or empty folder"
+        in err
+    )
     dest = _read_only_folder(tmp_path) / "kpflow_template"
     with pytest.raises(SystemExit) as stop:
         main(["reach_task", str(dest)])
     err = capsys.readouterr().err
-    assert stop.value.code == 1 and err.strip().splitlines()[1:] == ["(set KPFLOW_TRACEBACK=1 for the full traceback)"], err
-    assert re.match(rf"error: {dest} could not be written \((Permission denied|Operation not permitted|Read-only file system)\), so nothing was copied", err), err
+    assert stop.value.code == 1 and err.strip().splitlines()[1:] == [
+        "(set KPFLOW_TRACEBACK=1 for the full traceback)"
+    ], err
+    assert re.match(
+        rf"error: {dest} could not be written \((Permission denied|Operation not permitted|Read-only file system)\), so nothing was copied",
+        err,
+    ), err
     assert not dest.exists()
 
 
 def test_connect_without_a_server_fails_in_one_line():
     done = subprocess.run([sys.executable, "-m", "kpflow.examples.connect", "--uri", "ws://127.0.0.1:9", "--wait", "0"],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert done.returncode == 1 and done.stderr.startswith("error: ConnectionError: no policy server at ws://127.0.0.1:9"), done.stderr
+    assert done.returncode == 1 and done.stderr.startswith(
+        "error: ConnectionError: no policy server at ws://127.0.0.1:9"
+    ), done.stderr
     assert "Traceback" not in done.stderr

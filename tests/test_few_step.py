@@ -38,7 +38,9 @@ def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(walk_st
     model = KCFM(N_KEYPOINTS, objective="meanflow", sample_steps=1, **SMALL)
     path, batch = _fit(model, walk_store, tmp_path, 150, "meanflow")
     fresh = KCFM(**model.hparams)
-    fresh.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False)
+    fresh.load_state_dict(
+        {k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False
+    )
     one_step, untrained = _error(model, batch, 1), _error(fresh, batch, 1)
     assert one_step < 0.45 * untrained, (one_step, untrained)  # measured: 86 px against 258 px untrained
     loaded = load_checkpoint(KCFM, path)
@@ -81,7 +83,10 @@ def test_the_checkpoints_sampling_settings_are_the_policys_defaults():
     model = KCFM(N_KEYPOINTS, horizon=H, down_dims=(16, 32), time_dim=16, sample_steps=3, solver="heun")
     policy = KCFMPolicy(model)
     assert (policy.steps, policy.solver) == (3, "heun")
-    assert (KCFMPolicy(model, steps=4, solver="midpoint").steps, KCFMPolicy(model, steps=4, solver="midpoint").solver) == (4, "midpoint")
+    assert (
+        KCFMPolicy(model, steps=4, solver="midpoint").steps,
+        KCFMPolicy(model, steps=4, solver="midpoint").solver,
+    ) == (4, "midpoint")
     assert KCFM(N_KEYPOINTS, horizon=H, objective="ddpm").sampler() == (10, "ddim")  # the objective's first solver
     with pytest.raises(ValueError, match=r"solver must be one of \('ddim',\)"):
         KCFM(N_KEYPOINTS, horizon=H, objective="ddpm", solver="midpoint")

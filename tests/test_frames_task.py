@@ -45,9 +45,7 @@ def test_keypoints_2d_layout():
 def test_keypoints_3d_layout():
     f = Frame.from_3d([1.0, 0.0, 0.0], torch.eye(3), dtype=torch.float64)
     kp = frame_keypoints(f, size=2.0)
-    expected = torch.tensor(
-        [[1, 0, 0], [3, 0, 0], [1, 2, 0], [1, 0, 2], [-1, 0, 0]], dtype=torch.float64
-    )
+    expected = torch.tensor([[1, 0, 0], [3, 0, 0], [1, 2, 0], [1, 0, 2], [-1, 0, 0]], dtype=torch.float64)
     torch.testing.assert_close(kp, expected)
 
 
@@ -81,8 +79,10 @@ def test_frame_constructors_and_validation():
     torch.testing.assert_close(f.x_axis, torch.tensor([0.0, 1.0, 0.0]), atol=1e-6, rtol=0)
     f64 = Frame.from_2d(np.float64(1.0), 0.0, 0.3, dtype=torch.float64)
     assert f64.dtype == torch.float64
-    torch.testing.assert_close(f64.inverse().transform(f64.transform(torch.tensor([0.2, -0.4], dtype=torch.float64))),
-                               torch.tensor([0.2, -0.4], dtype=torch.float64))
+    torch.testing.assert_close(
+        f64.inverse().transform(f64.transform(torch.tensor([0.2, -0.4], dtype=torch.float64))),
+        torch.tensor([0.2, -0.4], dtype=torch.float64),
+    )
     with pytest.raises(ValueError, match="not orthonormal"):
         Frame(torch.zeros(2), torch.tensor([[1.0, 0.5], [0.0, 1.0]]))
     with pytest.raises(ValueError, match="reflection"):
@@ -234,8 +234,12 @@ def test_frames_task_scenes_and_keypoints():
     task = FramesTask(n_points=40)
     lasa = task.sample_scenes("lasa", len(LASA_MOVES))
     source = task.source_scene()
-    assert all(torch.equal(s.demo.positions, source.demo.positions) for s in lasa)  # moved frames, the same demonstration
-    assert task.keypoints(lasa[0]).shape == (10, 2) and not torch.allclose(task.keypoints(lasa[0]), task.keypoints(source))
+    assert all(
+        torch.equal(s.demo.positions, source.demo.positions) for s in lasa
+    )  # moved frames, the same demonstration
+    assert task.keypoints(lasa[0]).shape == (10, 2) and not torch.allclose(
+        task.keypoints(lasa[0]), task.keypoints(source)
+    )
     assert task.sample_scene("random", 2, seed=1).as_dict() == task.sample_scenes("random", 3, seed=1)[2].as_dict()
     with pytest.raises(ValueError, match="lasa condition has 2 scenes"):
         task.sample_scenes("lasa", 3)

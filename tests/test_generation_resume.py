@@ -185,7 +185,10 @@ def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_
     assert resumed.returncode == 0, resumed.stderr[-3000:]
 
     reference = tmp_path / "reference"  # uninterrupted, two workers sharing the attempts out as they come
-    families = {"mimicgen": SegmentTransport(None, in_hand=False), "rigid": SegmentTransport(partial(AffineMap, kind="rigid"))}
+    families = {
+        "mimicgen": SegmentTransport(None, in_hand=False),
+        "rigid": SegmentTransport(partial(AffineMap, kind="rigid")),
+    }
     generate(reference, SuiteTask("lift"), families, variants, n=n, workers=2, videos=0, export=False, progress=False)
 
     assert json.loads((run / "generation.json").read_text()) == json.loads((reference / "generation.json").read_text())
@@ -200,7 +203,10 @@ def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_
     for v in variants:
         for f in names:
             assert (run / v / f / "attempts.jsonl").read_text() == (reference / v / f / "attempts.jsonl").read_text()
-            with EpisodeStore(run / v / f / "episodes.zarr") as a, EpisodeStore(reference / v / f / "episodes.zarr") as b:
+            with (
+                EpisodeStore(run / v / f / "episodes.zarr") as a,
+                EpisodeStore(reference / v / f / "episodes.zarr") as b,
+            ):
                 assert a.n_episodes == b.n_episodes
                 for i in range(a.n_episodes):
                     assert a.episode_attrs(i) == b.episode_attrs(i)
@@ -208,5 +214,7 @@ def test_a_killed_generate_command_resumes_to_the_uninterrupted_runs_stores_and_
     table = [line.rsplit("|", 3)[0] for line in (run / "results.md").read_text().splitlines()[4:]]
     assert table == [line.rsplit("|", 3)[0] for line in (reference / "results.md").read_text().splitlines()[4:]]
     # the last line the kill left may have been a success whose episode was not stored yet: then it was run again
-    resumed_from = int(re.search(rf"Resumed: (\d+) of the {n * len(names)} attempts", (run / "results.md").read_text())[1])
+    resumed_from = int(
+        re.search(rf"Resumed: (\d+) of the {n * len(names)} attempts", (run / "results.md").read_text())[1]
+    )
     assert resumed_from in (committed - 1, committed)

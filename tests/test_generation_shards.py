@@ -30,7 +30,11 @@ N, FAMILIES = 4, ("mimicgen", "rigid")
 
 def files(folder: Path) -> dict[str, bytes]:
     """Every file under ``folder`` (but the write lock, which holds its writer's pid) by relative path."""
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file() and p.name != ".kpflow-write.lock"}
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ".kpflow-write.lock"
+    }
 
 
 def assert_same_store(a: Path, b: Path) -> None:
@@ -49,7 +53,11 @@ def assert_same_store(a: Path, b: Path) -> None:
 def assert_same_hdf5(a: Path, b: Path) -> None:
     def walk(f: h5py.File) -> dict:
         out = {"/": dict(f.attrs)}
-        f.visititems(lambda name, node: out.__setitem__(name, (dict(node.attrs), node[()] if isinstance(node, h5py.Dataset) else None)))
+        f.visititems(
+            lambda name, node: out.__setitem__(
+                name, (dict(node.attrs), node[()] if isinstance(node, h5py.Dataset) else None)
+            )
+        )
         return out
 
     with h5py.File(a, "r") as x, h5py.File(b, "r") as y:
@@ -105,7 +113,9 @@ def test_a_merge_of_stores_that_do_not_fit_together_is_refused_and_leaves_nothin
     with EpisodeStore(tmp_path / "c.zarr", mode="a") as c:
         c.attrs["task"] = "probe"
         c.add_episode({"action": np.zeros((2, 7)), "state": np.zeros((2, 5))}, attrs={"index": 9})  # float64 actions
-    with pytest.raises(ValueError, match=r"fields differ \(action: \('<f4', \(7,\)\) in .*a.zarr, \('<f8', \(7,\)\) in .*c.zarr"):
+    with pytest.raises(
+        ValueError, match=r"fields differ \(action: \('<f4', \(7,\)\) in .*a.zarr, \('<f8', \(7,\)\) in .*c.zarr"
+    ):
         merge_stores(out, [a, tmp_path / "c.zarr"], key="index")
     other = write_store(tmp_path / "other.zarr", [5])
     with EpisodeStore(other, mode="a") as s:
@@ -153,11 +163,16 @@ def test_the_shards_of_a_sweep_compose_with_every_launcher_into_folders_named_by
 
     from tests.helpers import compose_config
 
-    cfg = compose_config("generate", [f"hydra/launcher={launcher}", "task=square", "shards=4", "shard=3", "run_name=NAME"], tmp_path)
+    cfg = compose_config(
+        "generate", [f"hydra/launcher={launcher}", "task=square", "shards=4", "shard=3", "run_name=NAME"], tmp_path
+    )
     with read_write(cfg.hydra.job):
         cfg.hydra.job.num = 7
     assert (cfg.hydra.sweep.dir, cfg.hydra.sweep.subdir) == ("multirun/generate/square/NAME", "7_shard3")
-    assert cfg.hydra.launcher._target_.rsplit(".", 1)[-1] == {"pool": "JoblibLauncher", "local": "LocalLauncher", "slurm": "SlurmLauncher"}[launcher]
+    assert (
+        cfg.hydra.launcher._target_.rsplit(".", 1)[-1]
+        == {"pool": "JoblibLauncher", "local": "LocalLauncher", "slurm": "SlurmLauncher"}[launcher]
+    )
     if launcher != "pool":
         assert cfg.hydra.launcher.submitit_folder == "multirun/generate/square/NAME/.submitit/%j"
 
@@ -166,7 +181,10 @@ def families() -> dict:
     from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
 
-    return {"mimicgen": SegmentTransport(None, in_hand=False), "rigid": SegmentTransport(partial(AffineMap, kind="rigid"))}
+    return {
+        "mimicgen": SegmentTransport(None, in_hand=False),
+        "rigid": SegmentTransport(partial(AffineMap, kind="rigid")),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -194,9 +212,14 @@ def test_two_shards_merged_are_the_unsharded_run_to_the_bit(runs, tmp_path):
         assert [r["index"] for r in shard["attempts"]] == [k, k + 2] * len(FAMILIES) and shard["shards"] == 2
     merged = merge_shards([runs / "shard1", runs / "shard0"], out)  # in any order
     ours, theirs = (json.loads((d / "results.json").read_text()) for d in (out, single))
-    assert json.loads(json.dumps(merged)) == ours and ours["merged_from"] == [str(runs / "shard0"), str(runs / "shard1")]
+    assert json.loads(json.dumps(merged)) == ours and ours["merged_from"] == [
+        str(runs / "shard0"),
+        str(runs / "shard1"),
+    ]
     assert without_throughput(ours) == without_throughput(theirs)
-    assert [r["trials"] for r in ours["summary"]] == [N] * len(FAMILIES) and sum(r["successes"] for r in ours["summary"]) >= N
+    assert [r["trials"] for r in ours["summary"]] == [N] * len(FAMILIES) and sum(
+        r["successes"] for r in ours["summary"]
+    ) >= N
     assert [r["attempts_run"] for r in ours["summary"]] == [N] * len(FAMILIES)  # the shards' attempts, pooled
     assert (out / "generation.json").read_bytes() == (single / "generation.json").read_bytes()
     for family in FAMILIES:
@@ -238,14 +261,30 @@ def test_the_merge_refuses_anything_but_the_finished_shards_of_one_run_and_write
     (tmp_path / "empty").mkdir()
     for folders, error, match in [
         ([s0], ValueError, r"the run has 2 shards but shard\(s\) \[1\] are missing: given 0 \(.*shard0\)"),
-        ([s0, s1, copy_shard(runs, 0, tmp_path / "again")], ValueError, r"shard 0 of 2 is given twice: .*shard0 and .*again"),
+        (
+            [s0, s1, copy_shard(runs, 0, tmp_path / "again")],
+            ValueError,
+            r"shard 0 of 2 is given twice: .*shard0 and .*again",
+        ),
         ([s0, s1, s0], ValueError, r"shard0 is given twice"),
-        ([s0, other], ValueError, r"shard0 and .*other_seed are not shards of one run: their settings \(generation.json\) differ "
-                                  r"\(seed: 0 in .*shard0, 1 in .*other_seed\)"),
+        (
+            [s0, other],
+            ValueError,
+            r"shard0 and .*other_seed are not shards of one run: their settings \(generation.json\) differ "
+            r"\(seed: 0 in .*shard0, 1 in .*other_seed\)",
+        ),
         ([s0, runs / "single"], ValueError, r"differ \(shards: 2 in .*shard0, 1 in .*single\)"),
         ([s0, unfinished], ValueError, r"unfinished \(shard 1 of 2\) has not finished: it has no results.json"),
-        ([s0, torn], ValueError, r"torn/d0/rigid/attempts.jsonl records 1 of the cell's 2 attempts: the cell is unfinished"),
-        ([s0, damaged], ValueError, r"damaged/d0/rigid/episodes.zarr: field 'action' could not be read: a chunk is damaged"),
+        (
+            [s0, torn],
+            ValueError,
+            r"torn/d0/rigid/attempts.jsonl records 1 of the cell's 2 attempts: the cell is unfinished",
+        ),
+        (
+            [s0, damaged],
+            ValueError,
+            r"damaged/d0/rigid/episodes.zarr: field 'action' could not be read: a chunk is damaged",
+        ),
         ([s0, tmp_path / "empty"], FileNotFoundError, r"empty is not a generation run folder"),
     ]:
         with pytest.raises(error, match=match):
@@ -255,7 +294,19 @@ def test_the_merge_refuses_anything_but_the_finished_shards_of_one_run_and_write
     with pytest.raises(FileExistsError, match="exists already"):
         merge_shards([s0, s1], out)
     with pytest.raises(ValueError, match=r"these differ \(shard: 0 there, 1 now\)"):  # a resume keeps its shard
-        generate(s0, SuiteTask("lift"), families(), ["d0"], n=N, workers=1, videos=0, progress=False, resume=True, shards=2, shard=1)
+        generate(
+            s0,
+            SuiteTask("lift"),
+            families(),
+            ["d0"],
+            n=N,
+            workers=1,
+            videos=0,
+            progress=False,
+            resume=True,
+            shards=2,
+            shard=1,
+        )
 
 
 # ------------------------------------------------------------------------------------------ the commands
@@ -281,7 +332,9 @@ def test_a_multirun_over_the_joblib_launcher_then_kpflow_merge_gives_the_unshard
     assert "lift d0 mimicgen: " in done.stdout and "merged 2 shards into outputs/generate/lift/NAME" in done.stdout
     out, single = tmp_path / "outputs" / "generate" / "lift" / "NAME", runs / "single"
     # the module's unsharded run has two families and the export: the mimicgen cell is the same
-    assert (out / "d0" / "mimicgen" / "attempts.jsonl").read_bytes() == (single / "d0" / "mimicgen" / "attempts.jsonl").read_bytes()
+    assert (out / "d0" / "mimicgen" / "attempts.jsonl").read_bytes() == (
+        single / "d0" / "mimicgen" / "attempts.jsonl"
+    ).read_bytes()
     assert_same_store(out / "d0" / "mimicgen" / "episodes.zarr", single / "d0" / "mimicgen" / "episodes.zarr")
     assert not (out / "d0" / "mimicgen" / "demos.hdf5").exists()  # the shards exported nothing
     ours, theirs = (json.loads((d / "results.json").read_text()) for d in (out, single))
@@ -292,4 +345,8 @@ def test_a_multirun_over_the_joblib_launcher_then_kpflow_merge_gives_the_unshard
     again = run(merge, tmp_path)  # the merged folder is there: refused, with one line
     assert again.returncode == 1 and "error: outputs/generate/lift/NAME exists already" in again.stderr
     bad = run(["kpflow-generate", "task=lift", "n=4", "shards=2", "shard=2", "hydra.run.dir=bad"], tmp_path)
-    assert bad.returncode == 1 and "shard must be in 0..shards-1 = 0..1; got 2" in bad.stderr and not (tmp_path / "bad").exists()
+    assert (
+        bad.returncode == 1
+        and "shard must be in 0..shards-1 = 0..1; got 2" in bad.stderr
+        and not (tmp_path / "bad").exists()
+    )

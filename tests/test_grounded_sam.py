@@ -41,22 +41,39 @@ def checkpoints(tmp_path_factory):
     root = tmp_path_factory.mktemp("segmenter")
     (root / "vocab.txt").write_text("\n".join(VOCAB))
     torch.manual_seed(0)
-    swin = SwinConfig(embed_dim=8, depths=[1, 1, 1, 1], num_heads=[1, 1, 1, 1], window_size=4, out_features=["stage2", "stage3", "stage4"])
-    bert = BertConfig(vocab_size=len(VOCAB), hidden_size=32, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32, max_position_embeddings=32)
+    swin = SwinConfig(
+        embed_dim=8,
+        depths=[1, 1, 1, 1],
+        num_heads=[1, 1, 1, 1],
+        window_size=4,
+        out_features=["stage2", "stage3", "stage4"],
+    )
+    bert = BertConfig(
+        vocab_size=len(VOCAB),
+        hidden_size=32,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=32,
+        max_position_embeddings=32,
+    )
     detector = GroundingDinoForObjectDetection(GroundingDinoConfig(
         backbone_config=swin, text_config=bert, d_model=32, encoder_layers=1, decoder_layers=2, encoder_attention_heads=2,
         decoder_attention_heads=2, encoder_ffn_dim=32, decoder_ffn_dim=32, num_queries=5, encoder_n_points=1, decoder_n_points=1,
         max_text_len=16))  # fmt: skip
     detector.save_pretrained(root / "dino")
     tokenizer = BertTokenizerFast(vocab_file=str(root / "vocab.txt"))
-    GroundingDinoProcessor(GroundingDinoImageProcessor(size={"shortest_edge": 64, "longest_edge": 96}), tokenizer).save_pretrained(root / "dino")
+    GroundingDinoProcessor(
+        GroundingDinoImageProcessor(size={"shortest_edge": 64, "longest_edge": 96}), tokenizer
+    ).save_pretrained(root / "dino")
     sam = SamModel(SamConfig(
         vision_config=SamVisionConfig(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, mlp_dim=16, output_channels=16,
                                       image_size=64, patch_size=16, global_attn_indexes=[0], window_size=0, num_pos_feats=8),
         prompt_encoder_config=SamPromptEncoderConfig(hidden_size=16, image_size=64, patch_size=16, mask_input_channels=4),
         mask_decoder_config=SamMaskDecoderConfig(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, mlp_dim=16, iou_head_hidden_dim=16)))  # fmt: skip
     sam.save_pretrained(root / "sam")
-    SamProcessor(SamImageProcessor(size={"longest_edge": 64}, pad_size={"height": 64, "width": 64})).save_pretrained(root / "sam")
+    SamProcessor(SamImageProcessor(size={"longest_edge": 64}, pad_size={"height": 64, "width": 64})).save_pretrained(
+        root / "sam"
+    )
     return root / "dino", root / "sam"
 
 
@@ -101,7 +118,12 @@ def test_the_segmenter_names_what_is_missing_or_wrong(tmp_path, checkpoints):
 def test_keypoint_sources_are_checked():
     assert KeypointSource().kind == "sim" and not KeypointSource().camera
     source = KeypointSource("camera", cameras=["frontview"], noise={"mask_px": 0})
-    assert source.camera and source.cameras == ("frontview",) and source.noise.mask_px == 0 and source.noise.pose_deg == 0.25
+    assert (
+        source.camera
+        and source.cameras == ("frontview",)
+        and source.noise.mask_px == 0
+        and source.noise.pose_deg == 0.25
+    )
     with pytest.raises(ValueError, match="keypoints must come from one of \\['sim', 'camera'\\]"):
         KeypointSource("lidar")
     with pytest.raises(ValueError, match="cameras must be a non-empty list"):

@@ -24,7 +24,10 @@ def test_the_expert_episode_records_what_it_saw_and_did():
     env = task.make_env("wide", render=True)
     episode = rollout(env, task.expert(), task.max_steps, 3, {"seed": 3}, ("keypoints",), render=True, action_dim=2)
     assert episode.success and episode.steps < task.max_steps and episode.decisions == -(-episode.steps // 8)
-    assert episode.records["keypoints"].shape == (episode.steps, 5, 2) and episode.records["action"].shape == (episode.steps, 2)
+    assert episode.records["keypoints"].shape == (episode.steps, 5, 2) and episode.records["action"].shape == (
+        episode.steps,
+        2,
+    )
     assert len(episode.frames) == episode.steps + 1 and episode.frames[0].shape == (96, 96, 3)
     again = rollout(task.make_env("wide"), task.expert(), task.max_steps, 3, {"seed": 3}, ("keypoints",))
     np.testing.assert_array_equal(again.records["keypoints"], episode.records["keypoints"])  # the seed is the scene
@@ -67,7 +70,15 @@ def test_the_loop_ends_on_a_stop_and_marks_what_an_override_took():
     assert stopped.steps == 3 and stopped.decisions == 3 and not stopped.success  # one step per decision, then Enter
     override = _TakeOver()
     taken = rollout(task.make_env("default"), _StopAfter(6), 50, 0, {"seed": 0}, override=override)
-    assert override.started and taken.overridden.tolist() == [False, False, True, True, False, False, False]  # 5 decisions
+    assert override.started and taken.overridden.tolist() == [
+        False,
+        False,
+        True,
+        True,
+        False,
+        False,
+        False,
+    ]  # 5 decisions
     with pytest.raises(ValueError, match="max_steps must be >= 1"):
         rollout(task.make_env("default"), _StopAfter(2), 0)
 
@@ -76,7 +87,10 @@ def test_collection_stores_the_experts_successes(tmp_path):
     summary = collect_gym_episodes(ReachTask(), tmp_path / "demos.zarr", 4, progress=False)
     store = EpisodeStore(tmp_path / "demos.zarr")
     assert summary["episodes"] == store.n_episodes == 4 and summary["successes"] == summary["attempts"] == 4
-    assert store.field("keypoints").shape[1:] == (5, 2) and dict(store.attrs) == {"task": "reach", "condition": "default"}
+    assert store.field("keypoints").shape[1:] == (5, 2) and dict(store.attrs) == {
+        "task": "reach",
+        "condition": "default",
+    }
 
 
 def test_the_trial_scores_a_policy_on_evaluation_seeds():
@@ -106,7 +120,10 @@ def test_success_within_a_shorter_horizon_counts_the_episodes_that_succeeded_by_
                      videos=0, progress=False)  # fmt: skip
     (row,) = out["summary"]
     assert row["successes"] == 6 and row[f"successes_within_{steps[-1]}"] == 6
-    assert row[f"successes_within_{h}"] == sum(s <= h for s in steps) < 6 and row[f"success_within_{h}"] == row[f"successes_within_{h}"] / 6
+    assert (
+        row[f"successes_within_{h}"] == sum(s <= h for s in steps) < 6
+        and row[f"success_within_{h}"] == row[f"successes_within_{h}"] / 6
+    )
     assert out["metrics"][f"default/expert/success_within_{h}"] == row[f"success_within_{h}"]
     assert f"within {h} steps [95% CI]" in out["table"] and f"| {sum(s <= h for s in steps)}/6 = " in out["table"]
     with pytest.raises(ValueError, match="at least 1 control step"):

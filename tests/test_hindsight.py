@@ -23,7 +23,9 @@ def store(tmp_path_factory) -> EpisodeStore:
     store = EpisodeStore(tmp_path_factory.mktemp("hindsight") / "demos.zarr", mode="a")
     rng = np.random.default_rng(0)
     for t in LENGTHS:
-        store.add_episode({"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))})
+        store.add_episode(
+            {"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))}
+        )
     return EpisodeStore(store.path)
 
 
@@ -37,7 +39,9 @@ def test_relabel_in_closed_form(store):
         np.testing.assert_array_equal(out[rows][:, 12:24], np.broadcast_to(raw[-1, :12], (len(raw), 12, 2)))
         np.testing.assert_array_equal(out[rows][:, :12], raw[:, :12])
         np.testing.assert_array_equal(out[rows][:, 24], raw[:, 24])
-    assert not np.shares_memory(out, obs) and np.array_equal(obs, store.field("keypoints"))  # a copy: the input is untouched
+    assert not np.shares_memory(out, obs) and np.array_equal(
+        obs, store.field("keypoints")
+    )  # a copy: the input is untouched
 
 
 def test_chunks_and_index_read_hindsight_goals(store):
@@ -49,7 +53,9 @@ def test_chunks_and_index_read_hindsight_goals(store):
         np.testing.assert_array_equal(ds[k]["actions"].numpy(), plain[k]["actions"].numpy())
     np.testing.assert_array_equal(ds.history(np.arange(len(ds)))[:, 0, 12:24], ds.arrays()[0][:, 12:24])
     index = SourceIndex.from_store(store, 3, hindsight=PUSHT_HINDSIGHT)
-    np.testing.assert_array_equal(index.keypoints, PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends))
+    np.testing.assert_array_equal(
+        index.keypoints, PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends)
+    )
 
 
 def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
@@ -58,8 +64,10 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
     store = EpisodeStore(tmp_path / "corrected.zarr", mode="a")
     rng = np.random.default_rng(1)
     for t, attrs in zip(LENGTHS, [{}, {"source": "correction", "round": 0}, {"source": "demo"}]):
-        store.add_episode({"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))},
-                          attrs=attrs)
+        store.add_episode(
+            {"keypoints": rng.normal(size=(t, 25, 2)).astype(np.float32), "action": rng.normal(size=(t, 2))},
+            attrs=attrs,
+        )
     store = EpisodeStore(store.path)
     np.testing.assert_array_equal(fragment_episodes(store), [False, True, False])
     obs = store.field("keypoints")
@@ -73,13 +81,20 @@ def test_correction_takeovers_keep_their_recorded_goals(tmp_path):
     # A source index relabels the takeover too: it is then a source that ends exactly on its goal.
     everything = PUSHT_HINDSIGHT.relabel(obs, store.episode_ends)
     np.testing.assert_array_equal(SourceIndex.from_store(store, 2, hindsight=PUSHT_HINDSIGHT).keypoints, everything)
-    np.testing.assert_array_equal(ChunkDataset(store, range(3), 2, hindsight=PUSHT_HINDSIGHT, relabel_fragments=True).obs, everything)
+    np.testing.assert_array_equal(
+        ChunkDataset(store, range(3), 2, hindsight=PUSHT_HINDSIGHT, relabel_fragments=True).obs, everything
+    )
     assert not np.array_equal(everything, out)
     with pytest.raises(ValueError, match="fragments must be one bool per episode"):
         PUSHT_HINDSIGHT.relabel(obs, store.episode_ends, np.array([True, False]))
     # The data node says which reading a learned policy trains on: data.relabel_fragments (default: as recorded).
     for relabel, want in ((False, out), (True, everything)):
-        overrides = ["~experiment", "data=pusht_store", f"data.path={store.path}", f"data.relabel_fragments={str(relabel).lower()}"]
+        overrides = [
+            "~experiment",
+            "data=pusht_store",
+            f"data.path={store.path}",
+            f"data.relabel_fragments={str(relabel).lower()}",
+        ]
         dm = hydra.utils.instantiate(compose_config("train", overrides, tmp_path).data)
         dm.setup()
         np.testing.assert_array_equal(dm.train_set.obs, want)  # the store's rows, whichever episodes train
@@ -117,7 +132,10 @@ def test_human_demonstrations_reach_their_goals_only_in_hindsight(tmp_path):
     store = import_pusht_replay(PUSHT, tmp_path / "human.zarr", progress=False)
     obs = PUSHT_HINDSIGHT.relabel(store.field("keypoints"), store.episode_ends)
     last = store.episode_ends - 1
-    blocks, goals = store.field("block_pose")[last].astype(np.float64), store.field("goal_pose")[last].astype(np.float64)
+    blocks, goals = (
+        store.field("block_pose")[last].astype(np.float64),
+        store.field("goal_pose")[last].astype(np.float64),
+    )
     recorded = np.array([coverage(b, g) for b, g in zip(blocks, goals)])
     assert store.n_episodes == 206 and recorded.max() < 0.95
     goal_kp = torch.from_numpy(obs[last, 12:24].astype(np.float64))

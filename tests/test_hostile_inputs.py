@@ -53,7 +53,9 @@ def test_a_store_lock_that_is_a_link_is_refused_and_its_target_untouched(store, 
         EpisodeStore(store, mode="a")  # what kpflow-verify seal=true opens
     assert target.read_text() == "do not touch"
     done = run_command("kpflow.cli.verify", f"store={store}", "seal=true")
-    assert done.returncode == 1 and "is a symbolic link" in done.stderr and len(done.stderr.strip().splitlines()) == 2, done.stderr
+    assert (
+        done.returncode == 1 and "is a symbolic link" in done.stderr and len(done.stderr.strip().splitlines()) == 2
+    ), done.stderr
     assert target.read_text() == "do not touch"
 
 
@@ -78,7 +80,10 @@ def test_a_store_lock_hard_linked_to_its_own_metadata_is_refused_and_the_store_i
     before = zattrs.read_bytes()
     (store / LOCK_NAME).unlink(missing_ok=True)
     os.link(zattrs, store / LOCK_NAME)
-    with pytest.raises(UnsafeLockFile, match=rf"{LOCK_NAME} is a hard link \(2 names for one file\): a lock file is never written through"):
+    with pytest.raises(
+        UnsafeLockFile,
+        match=rf"{LOCK_NAME} is a hard link \(2 names for one file\): a lock file is never written through",
+    ):
         EpisodeStore(store, mode="a")  # what kpflow-verify seal=true opens
     assert zattrs.read_bytes() == before
     (store / LOCK_NAME).unlink()
@@ -111,7 +116,10 @@ def test_a_damaged_field_record_is_named(store):
     path, attrs = _zattrs(store)
     attrs["fields"] = {name: "float32" for name in attrs["fields"]}  # each spec damaged to a string
     path.write_text(json.dumps(attrs))
-    with pytest.raises(ValueError, match=r"demos.zarr: meta/.zattrs' field record is damaged: it must map each field to \{dtype, shape\}"):
+    with pytest.raises(
+        ValueError,
+        match=r"demos.zarr: meta/.zattrs' field record is damaged: it must map each field to \{dtype, shape\}",
+    ):
         EpisodeStore(store)
     attrs["fields"] = "keypoints"
     path.write_text(json.dumps(attrs))
@@ -201,7 +209,10 @@ def test_a_broken_yaml_under_the_config_dir_is_one_line(tmp_path):
     done = run_command("kpflow.cli.evaluate", "--config-dir", str(tmp_path), "task=broken")
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and len(lines) == 2, done.stderr
-    assert lines[0] == f"error: {tmp_path / 'task' / 'broken.yaml'}, line 2 column 2: not valid YAML (expected ',' or ']', but got ':')"
+    assert (
+        lines[0]
+        == f"error: {tmp_path / 'task' / 'broken.yaml'}, line 2 column 2: not valid YAML (expected ',' or ']', but got ':')"
+    )
 
 
 # 16: an unknown camera is refused before any attempt
@@ -231,7 +242,10 @@ def test_a_checkpoint_asking_beyond_the_limits_is_refused_before_building(tmp_pa
     from kpflow import load_policy
 
     path = _checkpoint(hparams, tmp_path / "big.ckpt")
-    with pytest.raises(ValueError, match=rf"big.ckpt: hyper-parameter {key} = {value} is beyond kpflow's limit \d+ \(kpflow/utils/limits.py\)"):
+    with pytest.raises(
+        ValueError,
+        match=rf"big.ckpt: hyper-parameter {key} = {value} is beyond kpflow's limit \d+ \(kpflow/utils/limits.py\)",
+    ):
         load_policy(path)
 
 
@@ -306,7 +320,9 @@ def test_compressed_entries_that_would_expand_are_refused_before_decompressing(t
     from kpflow.data.source_index import SourceIndex
 
     ckpt = _zip_bomb(tmp_path / "bomb.ckpt", "archive/data/0", BOMB)
-    with pytest.raises(ValueError, match=r"bomb.ckpt: member 'archive/data/0' claims 1073741824 bytes from \d+ stored, beyond 64 times"):
+    with pytest.raises(
+        ValueError, match=r"bomb.ckpt: member 'archive/data/0' claims 1073741824 bytes from \d+ stored, beyond 64 times"
+    ):
         from kpflow import load_policy
 
         load_policy(ckpt)
@@ -320,7 +336,9 @@ def test_a_sparse_zarr_chunk_of_gigabytes_is_refused_unread(store):
 
     chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
     os.truncate(chunk, 8 << 30)  # 8 GiB on disk, sparse: nothing written
-    with pytest.raises(UnsafeStoreError, match=rf"keypoints/{chunk.name} is 8589934592 bytes on disk, more than it can hold"):
+    with pytest.raises(
+        UnsafeStoreError, match=rf"keypoints/{chunk.name} is 8589934592 bytes on disk, more than it can hold"
+    ):
         EpisodeStore(store).field("keypoints")
 
 
@@ -339,7 +357,9 @@ def test_a_small_parquet_declaring_millions_of_frames_is_refused(dataset, tmp_pa
     assert files[0].stat().st_size < 1_000_000  # against hundreds of MB decoded
     info["total_frames"], info["total_episodes"] = n, 1
     info_path.write_text(json.dumps(info))
-    with pytest.raises(ValueError, match=rf"{files[0].name} declares 2000000 frames of \d+ values \(\d+ bytes\) in a \d+-byte file"):
+    with pytest.raises(
+        ValueError, match=rf"{files[0].name} declares 2000000 frames of \d+ values \(\d+ bytes\) in a \d+-byte file"
+    ):
         import_lerobot(dataset, tmp_path / "x.zarr")
 
 
@@ -356,7 +376,10 @@ def test_a_parquet_list_column_holding_more_values_per_row_than_declared_is_refu
         f.unlink()
     pq.write_table(pa.table(columns), files[0], compression="zstd")
     assert files[0].stat().st_size < 100_000
-    with pytest.raises(ValueError, match=rf"{files[0].name} declares {n * per_row} values in column observation.state over {n} rows, more than the 50 per row"):
+    with pytest.raises(
+        ValueError,
+        match=rf"{files[0].name} declares {n * per_row} values in column observation.state over {n} rows, more than the 50 per row",
+    ):
         import_lerobot(dataset, tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()
 
@@ -370,7 +393,9 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
     _npz_bomb(tmp_path / "bomb.npz")
     chunk = next(p for p in (store / "data" / "keypoints").iterdir() if not p.name.startswith("."))
     os.truncate(chunk, 8 << 30)
-    _checkpoint({"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**8}}, tmp_path / "steps.ckpt")
+    _checkpoint(
+        {"n_keypoints": 25, "objective": "ddpm", "objective_options": {"train_steps": 10**8}}, tmp_path / "steps.ckpt"
+    )
     _checkpoint({"n_keypoints": 25, "horizon": 1 << 27}, tmp_path / "horizon.ckpt")
     import torch
 
@@ -387,8 +412,17 @@ def test_refusals_keep_memory_bounded(tmp_path, store):
         "    try:\n        load()\n    except ValueError as e:\n        print('refused', str(e)[:60])\n"
         "print('grew_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n"
     )
-    files = [tmp_path / "bomb.ckpt", tmp_path / "bomb.npz", store, tmp_path / "steps.ckpt", tmp_path / "horizon.ckpt", tmp_path / "tensor.ckpt"]
-    done = subprocess.run([sys.executable, "-c", script, *map(str, files)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    files = [
+        tmp_path / "bomb.ckpt",
+        tmp_path / "bomb.npz",
+        store,
+        tmp_path / "steps.ckpt",
+        tmp_path / "horizon.ckpt",
+        tmp_path / "tensor.ckpt",
+    ]
+    done = subprocess.run(
+        [sys.executable, "-c", script, *map(str, files)], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0 and done.stdout.count("refused") == 6, done.stdout + done.stderr[-2000:]
     grew = int(done.stdout.rsplit("grew_kb", 1)[1])
     assert grew < 200_000, done.stdout
@@ -399,7 +433,12 @@ def test_3d_keypoint_names_in_lerobots_spellings_import_as_keypoints(tmp_path, s
     """``k0.x, k0.y, k0.z, ...`` reads as 3-D keypoints whichever way LeRobot spells a feature's names."""
     with EpisodeStore(tmp_path / "s.zarr", mode="a") as s:
         for _ in range(2):
-            s.add_episode({"keypoints": np.random.default_rng(0).random((5, 4, 3), np.float32), "action": np.zeros((5, 10), np.float32)})
+            s.add_episode(
+                {
+                    "keypoints": np.random.default_rng(0).random((5, 4, 3), np.float32),
+                    "action": np.zeros((5, 10), np.float32),
+                }
+            )
     with EpisodeStore(tmp_path / "s.zarr") as s:
         root = export_lerobot(s, tmp_path / "lr", fps=10.0, task="t", robot_type="r")
     info_path = root / "meta" / "info.json"

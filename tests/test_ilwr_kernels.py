@@ -57,7 +57,9 @@ def test_the_compiled_alignment_is_reflection_safe_and_names_coincident_sources(
     mirrored = src * torch.tensor([-1.0, 1.0], dtype=torch.float64)  # a reflection: the rigid fit must not mirror
     phi = ILWRMap(n_steps=1).fit(src, mirrored)
     assert torch.linalg.det(phi.alignment.A[0]) > 0
-    torch.testing.assert_close(phi.alignment.A, ILWRMap(n_steps=1, fused=False).fit(src, mirrored).alignment.A, atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        phi.alignment.A, ILWRMap(n_steps=1, fused=False).fit(src, mirrored).alignment.A, atol=1e-12, rtol=0
+    )
     same = torch.full((5, 2), 3.0, dtype=torch.float64)
     with pytest.raises(ValueError, match="all source keypoints coincide"):
         ILWRMap().fit(same, same + 1.0)  # one point five times: the rotation is undetermined

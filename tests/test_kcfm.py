@@ -28,7 +28,9 @@ def pusht_kcfm(goal_frame: bool = False, **kwargs) -> KCFM:
 # ------------------------------------------------------------------------------------------------ U-Net
 
 
-@pytest.mark.parametrize(("down_dims", "horizon"), [((32, 64), 16), ((32, 64), 20), ((32, 64, 128), 20), ((32, 64, 128), 18), ((32, 64), 7)])
+@pytest.mark.parametrize(
+    ("down_dims", "horizon"), [((32, 64), 16), ((32, 64), 20), ((32, 64, 128), 20), ((32, 64, 128), 18), ((32, 64), 7)]
+)
 def test_unet_shape_and_conditioning(down_dims, horizon):
     torch.manual_seed(0)
     net = ConditionalUnet1D(action_dim=2, cond_dim=50, down_dims=down_dims)
@@ -70,12 +72,21 @@ def test_masked_mse_and_fill_padding_by_hand():
 def _chunk_batch(b: int = 6, h: int = 8, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     obs = np.stack(
-        [observation_keypoints((*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256, 256, 0.8), rng.uniform(50, 450, 2)) for _ in range(b)]
+        [
+            observation_keypoints(
+                (*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256, 256, 0.8), rng.uniform(50, 450, 2)
+            )
+            for _ in range(b)
+        ]
     )
     actions = obs[:, None, -1] + np.cumsum(rng.normal(0, 10, (b, h, 2)), axis=1)
     mask = np.arange(h)[None] < rng.integers(1, h + 1, b)[:, None]
     mask[0] = True
-    return {"obs": torch.tensor(obs, dtype=torch.float32), "actions": torch.tensor(actions, dtype=torch.float32), "mask": torch.tensor(mask)}
+    return {
+        "obs": torch.tensor(obs, dtype=torch.float32),
+        "actions": torch.tensor(actions, dtype=torch.float32),
+        "mask": torch.tensor(mask),
+    }
 
 
 @pytest.mark.parametrize("goal_frame", [False, True])
@@ -132,7 +143,9 @@ def test_goal_pose_is_exact():
     kp = torch.tensor(np.stack([observation_keypoints((300.0, 100.0, 1.0), pose, (5.0, 6.0)) for pose in poses]))
     rot, origin = model.goal_pose(kp)
     torch.testing.assert_close(origin, torch.tensor(poses, dtype=torch.float64)[:, :2], atol=1e-9, rtol=0)
-    np.testing.assert_allclose(torch.atan2(rot[:, 1, 0], rot[:, 0, 0]).numpy(), [p[2] for p in poses], atol=1e-12, rtol=0)
+    np.testing.assert_allclose(
+        torch.atan2(rot[:, 1, 0], rot[:, 0, 0]).numpy(), [p[2] for p in poses], atol=1e-12, rtol=0
+    )
 
 
 def test_the_goal_frame_names_the_goal_keypoints_and_their_template():
@@ -197,7 +210,9 @@ def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
     rng = np.random.default_rng(0)
     k, d, a = 6, 3, 10
     train_kp = rng.uniform(-0.3, 0.3, (64, k, d))
-    chunks = np.concatenate([train_kp[:, None, -3] + rng.normal(0, 0.05, (64, 8, d)), rng.normal(0, 1, (64, 8, a - d))], -1)
+    chunks = np.concatenate(
+        [train_kp[:, None, -3] + rng.normal(0, 0.05, (64, 8, d)), rng.normal(0, 1, (64, 8, a - d))], -1
+    )
     model = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a, origin=-3).eval()
     model.set_normalisation(train_kp, chunks)
     kp, shift = train_kp[:4], np.array([20.0, -15.0, 7.0])  # moved far outside the training box
@@ -219,7 +234,11 @@ def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
     with pytest.raises(ValueError, match="far outside the range"):
         world.sample(kp + shift, steps=1, input_margin=INPUT_MARGIN)
     assert world.sample(kp + shift, steps=1).shape == (4, 8, a)  # and nothing without one
-    for kwargs, message in (({"origin": 6}, "keypoint index"), ({"origin": True}, "keypoint index"), ({"origin": 0, "relative": True}, "without goal_frame")):
+    for kwargs, message in (
+        ({"origin": 6}, "keypoint index"),
+        ({"origin": True}, "keypoint index"),
+        ({"origin": 0, "relative": True}, "without goal_frame"),
+    ):
         with pytest.raises(ValueError, match=message):
             KCFM(k, keypoint_dim=2, action_dim=2, **kwargs)
 
@@ -231,14 +250,22 @@ def test_sample_validates_steps_and_keypoints():
     model = pusht_kcfm(horizon=6).eval()
     kp = _scene_keypoints(2, seed=0)
     assert model.sample(kp[0], steps=1).shape == (1, 6, 2)  # an unbatched observation gives a batch of one
-    out = model.sample(torch.tensor(kp, dtype=torch.float32), steps=MAX_STEPS, generator=torch.Generator().manual_seed(0))
+    out = model.sample(
+        torch.tensor(kp, dtype=torch.float32), steps=MAX_STEPS, generator=torch.Generator().manual_seed(0)
+    )
     assert out.shape == (2, 6, 2) and out.dtype == torch.float32
     torch.testing.assert_close(model.sample(kp, steps=MAX_STEPS, generator=torch.Generator().manual_seed(0)), out)
     assert not torch.equal(model.sample(kp, steps=MAX_STEPS, generator=torch.Generator().manual_seed(1)), out)
     for steps in (0, MAX_STEPS + 1, -3, 2.5, True, "10"):
         with pytest.raises(ValueError, match="steps must be an integer"):
             model.sample(kp, steps=steps)
-    for bad in (kp[0, :24], kp[..., :1], kp[0, :, 0], np.zeros((0, 25, 2)), np.zeros((1, 2, 25, 2))):  # n_obs = 1: one frame per item
+    for bad in (
+        kp[0, :24],
+        kp[..., :1],
+        kp[0, :, 0],
+        np.zeros((0, 25, 2)),
+        np.zeros((1, 2, 25, 2)),
+    ):  # n_obs = 1: one frame per item
         with pytest.raises(ValueError, match="keypoints must have shape"):
             model.sample(bad)
     nan = kp.copy()
@@ -281,7 +308,9 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
 
     # the normalisation came from the training episodes only
     train_set = datamodule.train_set
-    rows = np.concatenate([np.arange(s.start, s.stop) for s in map(EpisodeStore(path).episode_slice, datamodule.train_episodes)])
+    rows = np.concatenate(
+        [np.arange(s.start, s.stop) for s in map(EpisodeStore(path).episode_slice, datamodule.train_episodes)]
+    )
     lo, hi = train_set.actions[rows].min(0), train_set.actions[rows].max(0)
     torch.testing.assert_close(model.action_center, torch.tensor((lo + hi) / 2))
     torch.testing.assert_close(model.action_scale, torch.tensor((hi - lo) / 2))
@@ -292,7 +321,9 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
 
     # the loss falls clearly: trained vs. the same model untrained (same normalisation, same noise draws)
     fresh = KCFM(**model.hparams)
-    fresh.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False)
+    fresh.load_state_dict(
+        {k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False
+    )
     with torch.no_grad():
         before = fresh.loss(batch, generator=torch.Generator().manual_seed(1)).item()
         after = model.loss(batch, net=model.ema_net, generator=torch.Generator().manual_seed(1)).item()
@@ -315,7 +346,10 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
     loaded = load_checkpoint(KCFM, ckpt)
     assert not loaded.training and loaded.hparams.horizon == H
     kp = batch["obs"][:5]
-    assert torch.equal(loaded.sample(kp, generator=torch.Generator().manual_seed(7)), model.sample(kp, generator=torch.Generator().manual_seed(7)))
+    assert torch.equal(
+        loaded.sample(kp, generator=torch.Generator().manual_seed(7)),
+        model.sample(kp, generator=torch.Generator().manual_seed(7)),
+    )
     for name, p in model.ema_net.state_dict().items():
         assert torch.equal(p, loaded.ema_net.state_dict()[name])  # the EMA weights travel in the checkpoint
 

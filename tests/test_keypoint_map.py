@@ -34,7 +34,9 @@ EPISODES, STEPS = 10, 20
 
 def documented_data_config() -> str:
     """The data config of the page's worked example (between its keypoint-map markers), as written."""
-    block = re.search(r"<!-- keypoint-map:start -->\n```yaml\n(.*?)```\n<!-- keypoint-map:end -->", PAGE.read_text(), re.S)
+    block = re.search(
+        r"<!-- keypoint-map:start -->\n```yaml\n(.*?)```\n<!-- keypoint-map:end -->", PAGE.read_text(), re.S
+    )
     assert block, f"{PAGE} lost its keypoint-map example"
     return block[1]
 
@@ -63,7 +65,9 @@ def named_state_dataset(root: Path, names: list[str] = NAMES, seed: int = 0) -> 
     with EpisodeStore(root.with_suffix(".zarr"), mode="a") as store:
         for e in range(EPISODES):
             rows = slice(e * STEPS, (e + 1) * STEPS)
-            store.add_episode({"state": np.array(states[rows], np.float32), "action": np.array(actions[rows], np.float32)})
+            store.add_episode(
+                {"state": np.array(states[rows], np.float32), "action": np.array(actions[rows], np.float32)}
+            )
         export_lerobot(store, root, fps=10, task="walk to the target")
     info_path = root / "meta" / "info.json"
     info = json.loads(info_path.read_text())
@@ -81,14 +85,28 @@ def dataset(tmp_path_factory):
 def test_the_documented_map_reads_the_state_as_kpflows_keypoints_robot_last(dataset, tmp_path):
     root, keypoints = dataset
     spec = documented_map()
-    assert list(spec["keypoints"]) == ["target_nw", "target_ne", "target_se", "target_sw"]  # the keypoints' order is the map's
+    assert list(spec["keypoints"]) == [
+        "target_nw",
+        "target_ne",
+        "target_se",
+        "target_sw",
+    ]  # the keypoints' order is the map's
     store = import_lerobot(root, tmp_path / "mapped.zarr", keypoint_map=spec)
     assert store.fields == ("action", "keypoints") and store.n_episodes == EPISODES
     np.testing.assert_array_equal(store.field("keypoints"), keypoints)  # every value where kpflow expects it, eef last
     kmap = KeypointMap.from_config(spec)
-    assert kmap.names == ("target_nw", "target_ne", "target_se", "target_sw", "robot") and kmap.dim == 2 and kmap.robot == 1
-    unnamed = {"keypoints": [list(c) for c in kmap.columns[:-1]], "robot": [list(kmap.columns[-1])]}  # the list spelling
-    np.testing.assert_array_equal(import_lerobot(root, tmp_path / "listed.zarr", keypoint_map=unnamed).field("keypoints"), keypoints)
+    assert (
+        kmap.names == ("target_nw", "target_ne", "target_se", "target_sw", "robot")
+        and kmap.dim == 2
+        and kmap.robot == 1
+    )
+    unnamed = {
+        "keypoints": [list(c) for c in kmap.columns[:-1]],
+        "robot": [list(kmap.columns[-1])],
+    }  # the list spelling
+    np.testing.assert_array_equal(
+        import_lerobot(root, tmp_path / "listed.zarr", keypoint_map=unnamed).field("keypoints"), keypoints
+    )
     state = EpisodeStore(root.with_suffix(".zarr")).field("state")
     np.testing.assert_array_equal(kmap.apply(state, NAMES), keypoints)  # on the robot: a state vector -> keypoints
 
@@ -102,7 +120,11 @@ def test_a_3d_map(tmp_path):
     info = json.loads((root / "meta" / "info.json").read_text())
     info["features"]["observation.state"]["names"] = {"motors": names}  # LeRobot's dict spelling
     (root / "meta" / "info.json").write_text(json.dumps(info))
-    store = import_lerobot(root, tmp_path / "b.zarr", keypoint_map={"keypoints": {"cup": ["cup.x", "cup.y", "cup.z"]}, "robot": ["tcp.x", "tcp.y", "tcp.z"]})
+    store = import_lerobot(
+        root,
+        tmp_path / "b.zarr",
+        keypoint_map={"keypoints": {"cup": ["cup.x", "cup.y", "cup.z"]}, "robot": ["tcp.x", "tcp.y", "tcp.z"]},
+    )
     state = EpisodeStore(tmp_path / "s.zarr").field("state")
     np.testing.assert_array_equal(store.field("keypoints"), state[:, [[1, 3, 0], [2, 4, 5]]])
 
@@ -118,7 +140,9 @@ def test_a_kcfm_trains_through_the_documented_map_with_kpflow_train(dataset, tmp
     cmd = [sys.executable, "-m", "kpflow.cli.train", "--config-dir", "conf", "experiment=kcfm", "data=mine", "logger=none",
            "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "data.batch_size=32", "model.down_dims=[8,16]",
            "hydra.run.dir=run"]  # fmt: skip
-    done = subprocess.run(cmd, cwd=tmp_path, env=child_env(OMP_NUM_THREADS="1"), capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        cmd, cwd=tmp_path, env=child_env(OMP_NUM_THREADS="1"), capture_output=True, text=True, timeout=600
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     checkpoint = read_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt")
     hp = checkpoint["hyper_parameters"]
@@ -126,7 +150,9 @@ def test_a_kcfm_trains_through_the_documented_map_with_kpflow_train(dataset, tmp
     data = ChunkDataModule(root, keypoint_map=documented_map())  # training's split (seed 0)
     data.setup()
     rows = np.concatenate([np.arange(e * STEPS, (e + 1) * STEPS) for e in data.train_episodes])
-    np.testing.assert_allclose(checkpoint["state_dict"]["kp_mean"].numpy().reshape(5, 2), keypoints[rows].mean(0), atol=1e-5)
+    np.testing.assert_allclose(
+        checkpoint["state_dict"]["kp_mean"].numpy().reshape(5, 2), keypoints[rows].mean(0), atol=1e-5
+    )
     assert "keypoint_map" in (tmp_path / "run" / "config.yaml").read_text()  # the run records the map
     policy = kpflow.load_policy(tmp_path / "run" / "checkpoints" / "last.ckpt")
     policy.reset(0)
@@ -146,11 +172,22 @@ def test_a_column_the_state_lacks_is_named_with_the_columns_found(dataset):
 @pytest.mark.parametrize(
     "spec, message",
     [
-        ({"keypoint": {"a": ["x", "y"]}}, r"takes the keys keypoints and robot, e.g. data.keypoint_map='\{keypoints:.*it has the keys \['keypoint'\]"),
-        ({"keypoints": ["target_nw_x", "target_nw_y"]}, r"keypoints lists column names \['target_nw_x', 'target_nw_y'\]: give each keypoint its own list"),
-        ({"keypoints": {"a": ["target_nw_x", "target_nw_y"]}, "robot": ["eef_x", "eef_y", "gripper"]},
-         r"the same number of columns, 2 \(x, y\) or 3 \(x, y, z\); it gives a: \['target_nw_x', 'target_nw_y'\], robot: \['eef_x'"),
-        ({"keypoints": {"a": ["target_nw_x", "eef_x"]}, "robot": ["eef_x", "eef_y"]}, r"names the columns \['eef_x'\] more than once"),
+        (
+            {"keypoint": {"a": ["x", "y"]}},
+            r"takes the keys keypoints and robot, e.g. data.keypoint_map='\{keypoints:.*it has the keys \['keypoint'\]",
+        ),
+        (
+            {"keypoints": ["target_nw_x", "target_nw_y"]},
+            r"keypoints lists column names \['target_nw_x', 'target_nw_y'\]: give each keypoint its own list",
+        ),
+        (
+            {"keypoints": {"a": ["target_nw_x", "target_nw_y"]}, "robot": ["eef_x", "eef_y", "gripper"]},
+            r"the same number of columns, 2 \(x, y\) or 3 \(x, y, z\); it gives a: \['target_nw_x', 'target_nw_y'\], robot: \['eef_x'",
+        ),
+        (
+            {"keypoints": {"a": ["target_nw_x", "eef_x"]}, "robot": ["eef_x", "eef_y"]},
+            r"names the columns \['eef_x'\] more than once",
+        ),
         ({"keypoints": {"a": "target_nw_x"}}, r"keypoint_map.keypoints: a must be a list of its 2 or 3 column names"),
     ],
 )
@@ -169,9 +206,15 @@ def test_without_a_map_other_names_are_refused_naming_expected_found_and_the_ove
 
 def test_a_map_for_an_episode_store_is_refused_and_a_store_without_keypoints_named(dataset):
     root, _ = dataset
-    with pytest.raises(ValueError, match=r"my_dataset.zarr has no field 'keypoints' \(it has \['action', 'state'\]\): .* data.obs_key=FIELD"):
+    with pytest.raises(
+        ValueError,
+        match=r"my_dataset.zarr has no field 'keypoints' \(it has \['action', 'state'\]\): .* data.obs_key=FIELD",
+    ):
         ChunkDataModule(root.with_suffix(".zarr")).setup()
-    with pytest.raises(ValueError, match=r"maps a LeRobot dataset's observation.state, but .*my_dataset.zarr is not one .*leave keypoint_map out"):
+    with pytest.raises(
+        ValueError,
+        match=r"maps a LeRobot dataset's observation.state, but .*my_dataset.zarr is not one .*leave keypoint_map out",
+    ):
         ChunkDataModule(root.with_suffix(".zarr"), keypoint_map={"keypoints": [["eef_x", "eef_y"]]}).setup()
 
 
@@ -180,7 +223,13 @@ def raw_pusht_replay(path: Path) -> Path:
     meta/episode_ends), small."""
     with EpisodeStore(path, mode="a") as store:
         for _ in range(2):
-            store.add_episode({"state": np.zeros((5, 5), np.float32), "action": np.zeros((5, 2), np.float32), "keypoint": np.zeros((5, 9, 2), np.float32)})
+            store.add_episode(
+                {
+                    "state": np.zeros((5, 5), np.float32),
+                    "action": np.zeros((5, 2), np.float32),
+                    "keypoint": np.zeros((5, 9, 2), np.float32),
+                }
+            )
     return path
 
 
@@ -198,6 +247,10 @@ def test_diffusion_policys_raw_zarr_is_refused_naming_its_importer(tmp_path):
     if shared.is_dir():
         with pytest.raises(ValueError, match="is Diffusion Policy's raw Push-T replay buffer"):
             ChunkDataModule(shared).setup()
-    done = run_command("kpflow.cli.train", "experiment=kcfm", f"data.path={raw}", "logger=none", f"hydra.run.dir={tmp_path / 'run'}")
+    done = run_command(
+        "kpflow.cli.train", "experiment=kcfm", f"data.path={raw}", "logger=none", f"hydra.run.dir={tmp_path / 'run'}"
+    )
     lines = done.stderr.strip().splitlines()
-    assert done.returncode == 1 and re.fullmatch(f"error: {expected}.*", lines[0]) and len(lines) == 2, done.stderr[-3000:]
+    assert done.returncode == 1 and re.fullmatch(f"error: {expected}.*", lines[0]) and len(lines) == 2, done.stderr[
+        -3000:
+    ]

@@ -41,7 +41,13 @@ def imported(source: str, module: str, is_package: bool = False) -> list[str]:
 
 def task_imports(names: list[str]) -> list[str]:
     """Of the imported modules, those of ``kpflow.tasks`` other than ``kpflow.tasks.base``."""
-    return sorted({n for n in names if (n == "kpflow.tasks" or n.startswith("kpflow.tasks.")) and n.split(".")[:3] != ALLOWED.split(".")})
+    return sorted(
+        {
+            n
+            for n in names
+            if (n == "kpflow.tasks" or n.startswith("kpflow.tasks.")) and n.split(".")[:3] != ALLOWED.split(".")
+        }
+    )
 
 
 def generic_files() -> list[Path]:
@@ -74,4 +80,6 @@ def test_the_import_reader_resolves_relative_imports():
 @pytest.mark.parametrize("path", generic_files(), ids=lambda p: str(p.relative_to(KPFLOW)))
 def test_generic_modules_import_no_task(path):
     names = imported(path.read_text(), module_name(path), path.name == "__init__.py")
-    assert not task_imports(names), f"{path.relative_to(KPFLOW.parent)} imports {task_imports(names)} (only {ALLOWED} is allowed)"
+    assert not task_imports(names), (
+        f"{path.relative_to(KPFLOW.parent)} imports {task_imports(names)} (only {ALLOWED} is allowed)"
+    )

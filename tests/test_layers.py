@@ -14,11 +14,21 @@ LAYERS = [
     {"maps"},
     {"transport", "trajectory"},
     {"vision"},
-    {"data"},  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
-    {"tasks", "policies.base"},  # the policy contract (base.py, phases.py, symmetry.py) sits beside the task contract: tasks declare their layout with it
+    {
+        "data"
+    },  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
+    {
+        "tasks",
+        "policies.base",
+    },  # the policy contract (base.py, phases.py, symmetry.py) sits beside the task contract: tasks declare their layout with it
     {"policies"},
     {"eval", "serving", "generation"},  # generation: segment transport and whole datasets, beside evaluation
-    {"cli", "conf", "examples", "__init__"},  # the commands (kpflow/cli/), the installed examples and the package's front door
+    {
+        "cli",
+        "conf",
+        "examples",
+        "__init__",
+    },  # the commands (kpflow/cli/), the installed examples and the package's front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 
@@ -58,7 +68,9 @@ def import_graph() -> dict[str, set[str]]:
 
 
 def test_every_module_has_a_layer():
-    assert {layer(m) for m in import_graph()} <= set(LEVEL), "a new top-level module: give it a layer here and in docs/architecture.md"
+    assert {layer(m) for m in import_graph()} <= set(LEVEL), (
+        "a new top-level module: give it a layer here and in docs/architecture.md"
+    )
 
 
 def test_no_import_points_up_the_stack():

@@ -134,7 +134,12 @@ def _one_pair(n, rng):
 
 
 def test_datamodule_is_seeded_and_checks_its_sampler():
-    a, b = (KeypointPairDataModule(lambda n, rng: (rng.random((n, 5, 2)), rng.random((n, 5, 2))), n_pairs=20, n_queries=4, seed=3) for _ in range(2))
+    a, b = (
+        KeypointPairDataModule(
+            lambda n, rng: (rng.random((n, 5, 2)), rng.random((n, 5, 2))), n_pairs=20, n_queries=4, seed=3
+        )
+        for _ in range(2)
+    )
     for dm in (a, b):
         dm.setup()
     torch.testing.assert_close(a.train_set.queries, b.train_set.queries)

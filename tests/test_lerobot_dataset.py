@@ -27,7 +27,9 @@ def store(tmp_path_factory):
 def dataset(store, tmp_path_factory):
     """Exported with tiny files and chunks so that episodes spread over several files and chunks."""
     root = tmp_path_factory.mktemp("lerobot_out") / "pusht_walk"
-    return export_lerobot(store, root, fps=FPS, task="push the T", robot_type="pusht", data_files_size_in_mb=0.01, chunks_size=3)
+    return export_lerobot(
+        store, root, fps=FPS, task="push the T", robot_type="pusht", data_files_size_in_mb=0.01, chunks_size=3
+    )
 
 
 def data_table(root):
@@ -57,9 +59,16 @@ def test_info_json_describes_the_data(store, dataset):
                 assert str(column) == {"float32": "float", "int64": "int64"}[feature["dtype"]]
             else:
                 assert column.list_size == feature["shape"][0] and str(column.value_type) == "float"
-    assert features["observation.state"]["shape"] == [50] and features["observation.state"]["names"][:3] == ["k0.x", "k0.y", "k1.x"]
+    assert features["observation.state"]["shape"] == [50] and features["observation.state"]["names"][:3] == [
+        "k0.x",
+        "k0.y",
+        "k1.x",
+    ]
     assert features["action"] == {"dtype": "float32", "shape": [2], "names": None}
-    rows = {k: np.concatenate([t[k].to_numpy() for t in tables]) for k in ("index", "episode_index", "frame_index", "timestamp")}
+    rows = {
+        k: np.concatenate([t[k].to_numpy() for t in tables])
+        for k in ("index", "episode_index", "frame_index", "timestamp")
+    }
     np.testing.assert_array_equal(rows["index"], np.arange(info["total_frames"]))
     np.testing.assert_array_equal(rows["episode_index"], np.repeat(np.arange(WALK_EPISODES), WALK_LEN))
     np.testing.assert_array_equal(rows["frame_index"], np.tile(np.arange(WALK_LEN), WALK_EPISODES))
@@ -73,19 +82,25 @@ def test_episodes_tasks_and_stats_tables(store, dataset):
     assert episodes["dataset_from_index"] == [e * WALK_LEN for e in range(WALK_EPISODES)]
     assert episodes["dataset_to_index"] == [(e + 1) * WALK_LEN for e in range(WALK_EPISODES)]
     for e in range(WALK_EPISODES):  # each episode's rows are in the file its row says
-        path = dataset / DATA_PATH.format(chunk_index=episodes["data/chunk_index"][e], file_index=episodes["data/file_index"][e])
+        path = dataset / DATA_PATH.format(
+            chunk_index=episodes["data/chunk_index"][e], file_index=episodes["data/file_index"][e]
+        )
         assert (pq.read_table(path)["episode_index"].to_numpy() == e).sum() == WALK_LEN
     first = store.episode(0)["action"].astype(np.float64)
     np.testing.assert_allclose(episodes["stats/action/mean"][0], first.mean(0))
     np.testing.assert_allclose(episodes["stats/action/q50"][0], np.median(first, 0))
     tasks = pq.read_table(dataset / "meta" / "tasks.parquet")
     assert tasks["task_index"].to_pylist() == [0] and tasks["__index_level_0__"].to_pylist() == ["push the T"]
-    assert json.loads(tasks.schema.metadata[b"pandas"])["index_columns"] == ["__index_level_0__"]  # lerobot reads it with pandas
+    assert json.loads(tasks.schema.metadata[b"pandas"])["index_columns"] == [
+        "__index_level_0__"
+    ]  # lerobot reads it with pandas
     stats = json.loads((dataset / "meta" / "stats.json").read_text())
     keypoints = store.field("keypoints").reshape(len(store.field("keypoints")), -1).astype(np.float64)
     np.testing.assert_allclose(stats["observation.state"]["min"], keypoints.min(0))
     np.testing.assert_allclose(stats["observation.state"]["std"], keypoints.std(0))
-    assert stats["index"]["count"] == [WALK_EPISODES * WALK_LEN] and stats["episode_index"]["max"] == [WALK_EPISODES - 1]
+    assert stats["index"]["count"] == [WALK_EPISODES * WALK_LEN] and stats["episode_index"]["max"] == [
+        WALK_EPISODES - 1
+    ]
     assert set(stats["action"]) == {"min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"}
 
 

@@ -86,7 +86,11 @@ def test_map_suite_quick_writes_one_table_against_the_authors_gp(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     text = out.read_text()
     summary = text.split("## Per benchmark")[0]
-    rows = {line.split(" | ")[0][2:]: line.split(" | ")[1:] for line in summary.splitlines() if line.startswith("| ") and "---" not in line}
+    rows = {
+        line.split(" | ")[0][2:]: line.split(" | ")[1:]
+        for line in summary.splitlines()
+        if line.startswith("| ") and "---" not in line
+    }
     assert rows["authors' GP"][0].strip(" |") == "1.00"  # its own reference
     assert all(float(r[0].strip(" |")) > 0 for name, r in rows.items() if name != "map")
     assert "### multiframe (72 transports per map)" in text

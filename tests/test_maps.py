@@ -56,7 +56,12 @@ def test_recovers_rigid_and_similarity_motion(name, kind):
     src, _ = keypoint_pair(3)
     scale = 1.0 if kind == "rigid" else 1.7
     tgt = scale * src @ rotation(3, 2.0).T + torch.tensor([0.5, -1.0, 2.0], dtype=src.dtype)
-    phi = {"ilwr": ILWRMap, "gp": GPMap, "flow": functools.partial(FlowMap, steps=50), "mlp": functools.partial(MLPMap, steps=50)}[name](alignment=kind).fit(src, tgt)
+    phi = {
+        "ilwr": ILWRMap,
+        "gp": GPMap,
+        "flow": functools.partial(FlowMap, steps=50),
+        "mlp": functools.partial(MLPMap, steps=50),
+    }[name](alignment=kind).fit(src, tgt)
     x = grid(3, n=5)
     expected = scale * x @ rotation(3, 2.0).T + torch.tensor([0.5, -1.0, 2.0], dtype=src.dtype)
     torch.testing.assert_close(phi(x), expected, atol=1e-5, rtol=0)
@@ -321,7 +326,9 @@ def test_flow_log_det_matches_jacobian():
     src, tgt = keypoint_pair(2)
     phi = FlowMap(steps=50).fit(src, tgt)
     x = grid(2, n=6)
-    torch.testing.assert_close(phi.log_det_jacobian(x), torch.linalg.slogdet(phi.jacobian(x)).logabsdet, atol=1e-8, rtol=0)
+    torch.testing.assert_close(
+        phi.log_det_jacobian(x), torch.linalg.slogdet(phi.jacobian(x)).logabsdet, atol=1e-8, rtol=0
+    )
 
 
 # ------------------------------------------------------------------ bad input: dtypes, scale, hyper-parameters
@@ -422,7 +429,8 @@ def test_truly_coincident_keypoints_still_raise(name, dtype):
     cases = {
         "all equal": p.expand(4, 2).clone(),
         "all zero": torch.zeros(4, 2, dtype=dtype),
-        "equal up to a few ulps": torch.stack([_ulp_steps(p, k) for k in range(4)]) * torch.tensor([1.0, -1.0], dtype=dtype),
+        "equal up to a few ulps": torch.stack([_ulp_steps(p, k) for k in range(4)])
+        * torch.tensor([1.0, -1.0], dtype=dtype),
         "tiny and equal up to a few ulps": torch.stack([_ulp_steps(p * 1e-6, k) for k in (0, 1, 3, 4)]),
     }
     for case, src in cases.items():
@@ -444,12 +452,25 @@ def test_duplicates_are_found_among_many_keypoints_far_from_the_origin():
 
 @pytest.mark.parametrize(
     "arg, value",
-    [("lengthscale", -1), ("lengthscale", 0.0), ("lengthscale", float("nan")), ("lengthscale", float("inf")),
-     ("noise", -1e-3), ("noise", 0), ("min_noise", -1.0), ("min_noise", 0.0), ("iters", -1), ("iters", 2.5),
-     ("max_sample_bytes", 0), ("max_sample_bytes", -5)],
+    [
+        ("lengthscale", -1),
+        ("lengthscale", 0.0),
+        ("lengthscale", float("nan")),
+        ("lengthscale", float("inf")),
+        ("noise", -1e-3),
+        ("noise", 0),
+        ("min_noise", -1.0),
+        ("min_noise", 0.0),
+        ("iters", -1),
+        ("iters", 2.5),
+        ("max_sample_bytes", 0),
+        ("max_sample_bytes", -5),
+    ],
 )
 def test_gp_hyperparameters_are_checked_at_construction(arg, value):
-    with pytest.raises(ValueError, match=rf"^{arg} must be (a positive finite number|an integer >= 0).*; got {value!r}"):
+    with pytest.raises(
+        ValueError, match=rf"^{arg} must be (a positive finite number|an integer >= 0).*; got {value!r}"
+    ):
         GPMap(**{arg: value})
 
 
@@ -466,9 +487,11 @@ def test_gp_sample_refuses_a_joint_covariance_over_the_memory_limit():
     src, tgt = keypoint_pair(2)
     phi = GPMap(max_sample_bytes=10_000).fit(src, tgt)
     x = grid(2, n=6)  # 36 points: 2 x 36 x 36 float64 = 20736 B > 10000 B
-    msg = (r"sample\(\) at 36 points needs a joint posterior covariance of 2 x 36 x 36 torch.float64 \(20\.\d KiB.*"
-           r"over the limit of 9\.77 KiB \(max_sample_bytes\): the cost is quadratic in the number of points\. "
-           r"Sample fewer points, or in chunks.*use predict\(\)")
+    msg = (
+        r"sample\(\) at 36 points needs a joint posterior covariance of 2 x 36 x 36 torch.float64 \(20\.\d KiB.*"
+        r"over the limit of 9\.77 KiB \(max_sample_bytes\): the cost is quadratic in the number of points\. "
+        r"Sample fewer points, or in chunks.*use predict\(\)"
+    )
     with pytest.raises(ValueError, match=msg):
         phi.sample(x, 3)
     assert phi.sample(x[:25], 3).shape == (3, 25, 2)  # 2 x 25 x 25 x 8 = 10000 B: within the limit
@@ -488,8 +511,14 @@ def test_outputs_carry_no_autograd_graph_unless_the_query_requires_grad(fitted, 
     assert not any(p.requires_grad for p in phi.parameters())
     x = grid(2, n=5)
     mean, var = phi.predict(x)
-    for label, out in {"forward": phi(x), "inverse": phi.inverse(x), "jacobian": phi.jacobian(x), "mean": mean,
-                       "variance": var, "sample": phi.sample(x, 2)}.items():
+    for label, out in {
+        "forward": phi(x),
+        "inverse": phi.inverse(x),
+        "jacobian": phi.jacobian(x),
+        "mean": mean,
+        "variance": var,
+        "sample": phi.sample(x, 2),
+    }.items():
         assert out.requires_grad is False and out.grad_fn is None, label
     xg = x.clone().requires_grad_(True)
     y = phi(xg)

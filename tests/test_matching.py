@@ -28,15 +28,26 @@ BOX = torch.tensor(
 HANDLE = torch.tensor([[0.03, 0.05, 0.0]], dtype=torch.float64)  # off-centre, outside the box
 BOX_WITH_HANDLE = torch.cat([BOX, HANDLE])
 # the proper rotations that map the box's corner set onto itself: identity and half turns about x, y, z
-BOX_SYMMETRIES = [torch.diag(torch.tensor(s, dtype=torch.float64)) for s in ([1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1])]
+BOX_SYMMETRIES = [
+    torch.diag(torch.tensor(s, dtype=torch.float64)) for s in ([1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1])
+]
 
 # a T shape, 0.12 m wide and 0.10 m tall: its 8 outline vertices and 4 edge midpoints. Only mirror-symmetric,
 # and a mirror is not a rotation, so its order under any rotation is unique.
 T_SHAPE = torch.tensor(
     [
-        [-0.06, 0.04], [0.06, 0.04], [0.06, 0.02], [0.015, 0.02],
-        [0.015, -0.06], [-0.015, -0.06], [-0.015, 0.02], [-0.06, 0.02],
-        [0.0, 0.04], [0.015, -0.02], [-0.015, -0.02], [0.0, -0.06],
+        [-0.06, 0.04],
+        [0.06, 0.04],
+        [0.06, 0.02],
+        [0.015, 0.02],
+        [0.015, -0.06],
+        [-0.015, -0.06],
+        [-0.015, 0.02],
+        [-0.06, 0.02],
+        [0.0, 0.04],
+        [0.015, -0.02],
+        [-0.015, -0.02],
+        [0.0, -0.06],
     ],
     dtype=torch.float64,
 )
@@ -50,7 +61,9 @@ def yaw_rotation(angle: float, d: int = 3) -> torch.Tensor:
     return r
 
 
-def shuffled_observation(points: torch.Tensor, seed: int, lo: float = -math.pi, hi: float = math.pi, noise: float = NOISE):
+def shuffled_observation(
+    points: torch.Tensor, seed: int, lo: float = -math.pi, hi: float = math.pi, noise: float = NOISE
+):
     """Rotate ``points`` by a yaw drawn uniformly from [lo, hi), translate, add Gaussian noise and shuffle.
 
     Returns the shuffled target, the shuffle ``p`` (target[j] is the image of points[p[j]]), the yaw and the
@@ -86,7 +99,9 @@ def check_result(result: MatchResult, n: int, d: int) -> None:
     assert result.perm.dtype == torch.long and result.perm.shape == (n,)
     assert torch.equal(result.perm.sort().values, torch.arange(n))  # a permutation
     assert result.rotation.shape == (d, d) and result.translation.shape == (d,)
-    torch.testing.assert_close(result.rotation.T @ result.rotation, torch.eye(d, dtype=result.rotation.dtype), atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        result.rotation.T @ result.rotation, torch.eye(d, dtype=result.rotation.dtype), atol=1e-9, rtol=0
+    )
     assert torch.linalg.det(result.rotation) > 0
 
 

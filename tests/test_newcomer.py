@@ -27,7 +27,9 @@ def walking_dataset(root: Path) -> None:
 
 def newcomer_commands() -> list[str]:
     """The command lines of the README's newcomer block, comments dropped."""
-    block = re.search(r"<!-- newcomer:start -->\n```bash\n(.*?)```\n<!-- newcomer:end -->", (ROOT / "README.md").read_text(), re.S)
+    block = re.search(
+        r"<!-- newcomer:start -->\n```bash\n(.*?)```\n<!-- newcomer:end -->", (ROOT / "README.md").read_text(), re.S
+    )
     assert block, "README.md lost its newcomer block"
     return [line.split("  #")[0].strip() for line in block[1].splitlines() if line.strip()]
 
@@ -48,7 +50,9 @@ def test_newcomer_trains_evaluates_and_serves_a_lerobot_dataset(tmp_path):
     done = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     run = tmp_path / "outputs" / "kcfm" / "mine"
-    assert (run / "checkpoints" / "last.ckpt").is_file() and "n_keypoints: 5" in (run / "config.yaml").read_text()  # read from the data
+    assert (run / "checkpoints" / "last.ckpt").is_file() and "n_keypoints: 5" in (
+        run / "config.yaml"
+    ).read_text()  # read from the data
     offline = next((tmp_path / "outputs" / "offline").iterdir())
     assert (offline / "offline.png").is_file() and "| K-CFM |" in (offline / "results.md").read_text()
     assert "server: kcfm, observes {'keypoints_history': [2, 5, 2]}, returns [8, 2] actions" in done.stdout

@@ -114,8 +114,12 @@ def test_one_ddim_step_on_a_one_point_dataset_returns_the_point():
         return (x - a.sqrt() * star) / (1 - a).sqrt()
 
     noise = torch.randn(3, 6, 2, generator=torch.Generator().manual_seed(0))
-    torch.testing.assert_close(objective.sample(ideal, noise, steps=1), star.expand(3, 6, 2), atol=1e-3, rtol=0)  # float32: alpha_bar_99 = 2.4e-7
-    torch.testing.assert_close(objective.sample(ideal, noise, steps=10), star.expand(3, 6, 2), atol=1e-3, rtol=0)  # float32: alpha_bar_99 = 2.4e-7
+    torch.testing.assert_close(
+        objective.sample(ideal, noise, steps=1), star.expand(3, 6, 2), atol=1e-3, rtol=0
+    )  # float32: alpha_bar_99 = 2.4e-7
+    torch.testing.assert_close(
+        objective.sample(ideal, noise, steps=10), star.expand(3, 6, 2), atol=1e-3, rtol=0
+    )  # float32: alpha_bar_99 = 2.4e-7
     with pytest.raises(ValueError, match="DDIM steps must be in 1..100"):
         objective.sample(ideal, noise, steps=101)
 
@@ -164,7 +168,10 @@ def test_solver_order_on_a_linear_ode(solver, order):
     # closed form; halving the step divides the global error by 2^order
     a, b, x0 = -1.5, 2.0, torch.tensor([[[1.0]]], dtype=torch.float64)
     exact = (x0 + b / a**2) * math.exp(a) - b / a**2 - b / a
-    errors = [(integrate(lambda x, t: a * x + b * t[:, None, None], x0, calls, solver) - exact).abs().item() for calls in (32, 64, 128, 256)]
+    errors = [
+        (integrate(lambda x, t: a * x + b * t[:, None, None], x0, calls, solver) - exact).abs().item()
+        for calls in (32, 64, 128, 256)
+    ]
     ratios = [e0 / e1 for e0, e1 in zip(errors, errors[1:])]
     assert all(abs(math.log2(r) - order) < 0.15 for r in ratios), (errors, ratios)
 
@@ -183,7 +190,9 @@ def test_meanflow_target_is_the_exact_average_velocity_on_a_one_point_dataset():
     # the target the objective builds by a Jacobian-vector product equals the network's own output
     star = torch.tensor([[[0.3, -0.7]] * 5], dtype=torch.float64)
     x1 = star.expand(64, 5, 2).clone()
-    target = MeanFlow(flow_fraction=0.25).training_target(x1, None, torch.Generator().manual_seed(0), _point_field(star))
+    target = MeanFlow(flow_fraction=0.25).training_target(
+        x1, None, torch.Generator().manual_seed(0), _point_field(star)
+    )
     s, t = target.t[:, 0], target.t[:, 1]
     assert target.t.shape == (64, 2) and (s <= t).all() and (s < t).any() and (s == t).any()
     torch.testing.assert_close(target.target, _point_field(star)(target.x_t, target.t))
@@ -229,7 +238,10 @@ def test_reflow_regresses_the_straight_line_to_its_teachers_sample():
     # on the grid of a 2-step sampler, t is 0 or 1/2 only
     grid = Reflow(teacher="unused.ckpt", t_grid=2)
     grid.attach(lambda x0, c: mu + sigma * x0)
-    assert set(grid.training_target(torch.zeros(200, 2, 2), None, torch.Generator().manual_seed(0)).t.tolist()) == {0.0, 0.5}
+    assert set(grid.training_target(torch.zeros(200, 2, 2), None, torch.Generator().manual_seed(0)).t.tolist()) == {
+        0.0,
+        0.5,
+    }
 
 
 def test_reflow_needs_its_teacher_and_checks_its_options():

@@ -55,8 +55,12 @@ def test_scenes_are_seeded_and_follow_their_condition():
         assert x0 <= x <= x1 and y0 <= y <= y1 and -np.pi <= yaw <= np.pi
         gap = np.hypot(x - s.container_pose[0], y - s.container_pose[1])
         assert gap > np.hypot(*CONTAINER_SIZE[:2]) / 2  # never on the container
-    assert all(s.object_type == SOURCE_SCENE.object_type and s.container_pose == SOURCE_SCENE.container_pose for s in relocated)
-    assert all(s.object_type != SOURCE_SCENE.object_type and s.container_pose != SOURCE_SCENE.container_pose for s in full)
+    assert all(
+        s.object_type == SOURCE_SCENE.object_type and s.container_pose == SOURCE_SCENE.container_pose for s in relocated
+    )
+    assert all(
+        s.object_type != SOURCE_SCENE.object_type and s.container_pose != SOURCE_SCENE.container_pose for s in full
+    )
     assert len({s.object_type for s in full}) >= 4
     with pytest.raises(ValueError, match="unknown object type"):
         Scene("sphere", (0, 0, 0), (0, 0.3, 0))
@@ -119,7 +123,9 @@ def test_object_box_from_the_camera_matches_the_simulator(env, kind):
     assert np.linalg.norm(box["centre"] - centre[:2]) < 4e-3
     if kind.startswith("box") or kind == "cereal":  # boxes: every corner within a few mm
         assert 1e3 * box_corner_error(box["corners"], env.object_box()) < 3.0
-    np.testing.assert_allclose(kp["keypoints"][GROUPS["lifted"]] - kp["keypoints"][GROUPS["object"]], np.tile([0, 0, LIFT], (8, 1)))
+    np.testing.assert_allclose(
+        kp["keypoints"][GROUPS["lifted"]] - kp["keypoints"][GROUPS["object"]], np.tile([0, 0, LIFT], (8, 1))
+    )
 
 
 def test_keypoints_from_the_simulator_or_the_noisy_camera(env):
@@ -129,7 +135,9 @@ def test_keypoints_from_the_simulator_or_the_noisy_camera(env):
 
     scene, other = sample_scene("full", 3), sample_scene("full", 4)
     view = TASK._view(env, scene, 0.0)
-    assert box_corner_error(view.box["corners"], view.true_box) < 5e-4  # the bottom at the table top, the object 0.1 mm off it
+    assert (
+        box_corner_error(view.box["corners"], view.true_box) < 5e-4
+    )  # the bottom at the table top, the object 0.1 mm off it
     camera = PackingTask(keypoints=KeypointSource("camera", seed=2))
     assert camera.keypoint_sources == ("camera",)
     seen = camera._view(env, scene, 0.0, view.container_yaw)

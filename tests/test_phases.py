@@ -58,7 +58,9 @@ def _scene(rng, holding: bool) -> tuple[np.ndarray, np.ndarray]:
     keypoints = np.concatenate([_cube(a, yaw), _cube(b, rng.uniform(-0.7, 0.7)), _gripper(grip, yaw, gap)])
     path = grip + np.linspace(0, 1, H)[:, None] * (goal - grip)
     jaws = _yaw(yaw) @ np.diag([1.0, -1.0, -1.0])
-    chunk = np.concatenate([path, np.repeat(matrix_to_rot6d(jaws)[None], H, 0), np.full((H, 1), 1.0 if holding else -1.0)], 1)
+    chunk = np.concatenate(
+        [path, np.repeat(matrix_to_rot6d(jaws)[None], H, 0), np.full((H, 1), 1.0 if holding else -1.0)], 1
+    )
     return keypoints, chunk
 
 
@@ -66,7 +68,9 @@ def _scene(rng, holding: bool) -> tuple[np.ndarray, np.ndarray]:
 def index() -> SourceIndex:
     rng = np.random.default_rng(0)
     scenes = [_scene(rng, holding=i % 2 == 1) for i in range(60)]
-    return SourceIndex(np.stack([s[0] for s in scenes]), np.stack([s[1] for s in scenes]), LAYOUT.weights({"robot": 4.0}), CUBE_A)
+    return SourceIndex(
+        np.stack([s[0] for s in scenes]), np.stack([s[1] for s in scenes]), LAYOUT.weights({"robot": 4.0}), CUBE_A
+    )
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +92,14 @@ def test_a_grip_on_a_segment_holds_anywhere_along_it():
     to its side, they do not (closed form: the distance to the segment)."""
     grip = Grip((1, 2), (3,), (4,), closed_below=0.07, empty_below=0.01, reach=0.02)
     handle = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
-    cases = {(0.0, 0.0): True, (0.05, 0.0): True, (0.025, 0.0): True, (0.065, 0.0): True, (0.075, 0.0): False, (0.025, 0.03): False}
+    cases = {
+        (0.0, 0.0): True,
+        (0.05, 0.0): True,
+        (0.025, 0.0): True,
+        (0.065, 0.0): True,
+        (0.075, 0.0): False,
+        (0.025, 0.03): False,
+    }
     keypoints = np.stack([np.concatenate([_gripper(np.array([x, y, 0.0]), 0.0, 0.037), handle]) for x, y in cases])
     np.testing.assert_array_equal(grip.holding(keypoints), list(cases.values()))
 
@@ -117,9 +128,13 @@ def test_phases_that_do_not_cover_both_states_or_name_unknown_groups_are_refused
     with pytest.raises(ValueError, match="distinct names"):
         Phases(GRIP, (pick, Phase("pick", ("cubeB",), ("cubeB",), holding=True)))
     with pytest.raises(ValueError, match="unknown keypoint group 'cube'"):
-        PolicyLayout(K, 3, 10, GROUPS, ROLES, rotation=True, phases=Phases(GRIP, (Phase("all", ("cube",), ("cubeA",)),)))
+        PolicyLayout(
+            K, 3, 10, GROUPS, ROLES, rotation=True, phases=Phases(GRIP, (Phase("all", ("cube",), ("cubeA",)),))
+        )
     with pytest.raises(ValueError, match="grip's keypoints"):
-        PolicyLayout(4, 3, 10, phases=Phases(Grip((2, 3), (7,), (0,), 0.07, 0.01, 0.02), (Phase("all", ("all",), ("all",)),)))
+        PolicyLayout(
+            4, 3, 10, phases=Phases(Grip((2, 3), (7,), (0,), 0.07, 0.01, 0.02), (Phase("all", ("all",), ("all",)),))
+        )
     with pytest.raises(ValueError, match="empty_below < closed_below"):
         Grip((17, 18), CUBE_A, CUBE_A, closed_below=0.01, empty_below=0.02, reach=0.02)
 
@@ -199,11 +214,17 @@ def test_after_the_grasp_the_map_follows_the_target_and_the_held_object_is_carri
     moved_b = scene.copy()
     moved_b[list(CUBE_B)] += [0.3, -0.1, 0.0]
     policy.act({"keypoints": moved_b})
-    assert policy.last_phase == "place" and _fitted_exactly_on(policy.last_map, policy.index.keypoints[policy.last_source], moved_b, CUBE_B)
+    assert policy.last_phase == "place" and _fitted_exactly_on(
+        policy.last_map, policy.index.keypoints[policy.last_source], moved_b, CUBE_B
+    )
     with torch.no_grad():
         held = policy.last_map.inverse(torch.from_numpy(moved_b[list(CUBE_A)])).numpy()
-    np.testing.assert_allclose(policy.last_pullback[list(CUBE_A)], held, atol=1e-9)  # carried: pulled back, not the source's
-    assert policy.transports[1].members.tolist() == list(range(1, 60, 2))  # place sources are searched among place ones only
+    np.testing.assert_allclose(
+        policy.last_pullback[list(CUBE_A)], held, atol=1e-9
+    )  # carried: pulled back, not the source's
+    assert policy.transports[1].members.tolist() == list(
+        range(1, 60, 2)
+    )  # place sources are searched among place ones only
 
 
 def test_without_segments_one_map_is_fitted_on_every_object(model, index):
@@ -233,7 +254,13 @@ def _symmetric_layout() -> PolicyLayout:
 
 def test_a_turn_relabels_a_squares_corners_and_each_phase_admits_the_symmetries_of_what_it_is_fitted_on():
     square = np.array([[1.0, 1.0, 0.0], [-1.0, 1.0, 0.0], [-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 0.0, 2.0]])
-    assert turn_permutation(square, np.zeros(3), np.pi / 2) == (1, 2, 3, 0, 4)  # corner i turns onto corner i + 1; the axis stays
+    assert turn_permutation(square, np.zeros(3), np.pi / 2) == (
+        1,
+        2,
+        3,
+        0,
+        4,
+    )  # corner i turns onto corner i + 1; the axis stays
     assert turn_permutation(square + 5.0, np.full(3, 5.0), np.pi) == (2, 3, 0, 1, 4)
     with pytest.raises(ValueError, match="does not map these 5 keypoints onto themselves"):
         turn_permutation(square, np.zeros(3), 0.3)
@@ -242,8 +269,16 @@ def test_a_turn_relabels_a_squares_corners_and_each_phase_admits_the_symmetries_
     layout = _symmetric_layout()
     pick = [s.name for s in phase_correspondences(layout.symmetries, K, CUBE_A, holding=False)]
     place = [s.name for s in phase_correspondences(layout.symmetries, K, CUBE_B, holding=True)]
-    assert pick == ["identity", "jaws turned 1/2"]  # cube B's turns do not touch the pick's map; the jaws turn while empty
-    assert place == ["identity", "cubeB turned 1/4", "cubeB turned 2/4", "cubeB turned 3/4"]  # not the jaws: they hold cube A
+    assert pick == [
+        "identity",
+        "jaws turned 1/2",
+    ]  # cube B's turns do not touch the pick's map; the jaws turn while empty
+    assert place == [
+        "identity",
+        "cubeB turned 1/4",
+        "cubeB turned 2/4",
+        "cubeB turned 3/4",
+    ]  # not the jaws: they hold cube A
     with pytest.raises(ValueError, match="relabels 19 keypoints; the layout has 20"):
         PolicyLayout(20, 3, 10, symmetries=layout.symmetries)
 
@@ -258,24 +293,43 @@ def test_a_chunk_the_arm_cannot_follow_is_replaced_by_the_symmetric_corresponden
     scene = index.keypoints[4].astype(np.float64) @ _yaw(0.8).T + [0.1, -0.15, 0.0]  # a pick configuration, turned
     pick = policy.transports[0]
     policy.reset(3)
-    chunks = [policy._transported(pick, 4, c, [scene])[0] for c in pick.correspondences]  # the draws act() makes, in order
+    chunks = [
+        policy._transported(pick, 4, c, [scene])[0] for c in pick.correspondences
+    ]  # the draws act() makes, in order
     pads = scene[17] - scene[18]
     now = np.arctan2(pads[1], pads[0]) + np.pi  # the jaws' yaw
     turns = [np.sum(wrap_angle(np.diff([now, *(yaw_of(r) for r in rot6d_to_matrix(c[:, 3:9]))]))) for c in chunks]
     assert 2.0 < abs(turns[1] - turns[0]) < 4.3  # the half turn's chunk turns the jaws about the other way round
-    wrist = turns[0] + 2.8 * np.sign(turns[1] - turns[0])  # the identity's turn takes the last joint 2.8 rad away: past its stop
+    wrist = turns[0] + 2.8 * np.sign(
+        turns[1] - turns[0]
+    )  # the identity's turn takes the last joint 2.8 rad away: past its stop
     obs = {"keypoints": scene, "joints": np.r_[np.zeros(6), wrist]}
     assert arm.cost(obs, chunks[0]) == np.inf and np.isfinite(arm.cost(obs, chunks[1]))
     policy.reset(3)
     sent = policy.act(obs)
     assert policy.last_correspondence.name == "jaws turned 1/2" and policy.last_source == 4 and policy.unfollowable == 0
     np.testing.assert_allclose(sent, chunks[1], atol=1e-12)
-    np.testing.assert_allclose(policy.last_pullback[[17, 18]], index.keypoints[4][[18, 17]], atol=1e-6)  # the pads, relabelled
+    np.testing.assert_allclose(
+        policy.last_pullback[[17, 18]], index.keypoints[4][[18, 17]], atol=1e-6
+    )  # the pads, relabelled
     policy.act(obs)
-    assert policy.last_correspondence.name == "jaws turned 1/2" and policy.kept == {0: 1}  # kept while it can be followed
-    far = TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=SuiteArmLimits((17, 18), reach=0.01))
+    assert policy.last_correspondence.name == "jaws turned 1/2" and policy.kept == {
+        0: 1
+    }  # kept while it can be followed
+    far = TransportedKCFMPolicy(
+        model,
+        index,
+        ILWRMap,
+        steps=2,
+        execute=H,
+        layout=layout,
+        segments=True,
+        arm=SuiteArmLimits((17, 18), reach=0.01),
+    )
     far.reset(3)
-    np.testing.assert_allclose(far.act(obs), chunks[0], atol=1e-12)  # nothing within 1 cm of the base: the first, counted
+    np.testing.assert_allclose(
+        far.act(obs), chunks[0], atol=1e-12
+    )  # nothing within 1 cm of the base: the first, counted
     assert far.unfollowable == 1 and far.last_correspondence.name == "identity"
 
 
@@ -292,7 +346,9 @@ class _RefusesFirst:
 
 def test_when_no_correspondence_of_the_chosen_source_can_be_followed_the_next_nearest_source_is_tried(model, index):
     layout = _symmetric_layout()
-    policy = TransportedKCFMPolicy(model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=_RefusesFirst(2))
+    policy = TransportedKCFMPolicy(
+        model, index, ILWRMap, steps=2, execute=H, layout=layout, segments=True, arm=_RefusesFirst(2)
+    )
     scene = index.keypoints[4].astype(np.float64)
     policy.act({"keypoints": scene})
     near, _ = policy.transports[0].choice.index.query_k(scene, 2)

@@ -41,7 +41,14 @@ def test_a_value_given_wins_then_the_checkpoints_then_the_tasks_then_the_built_i
     stored = TransportConfig(map="affine", pull_back="all", search={"candidates": 2, "temperature": 0.5})
     task = {"fit_on": ["objects", "robot"], "search": {"stuck_decisions": 5, "temperature": 9.0}}
     got = given.over(stored, defaults=task)
-    assert (got.map, got.pull_back, got.fit_on, got.segments, got.arm, got.alternatives) == ("gp", "all", ("objects", "robot"), False, False, 3)
+    assert (got.map, got.pull_back, got.fit_on, got.segments, got.arm, got.alternatives) == (
+        "gp",
+        "all",
+        ("objects", "robot"),
+        False,
+        False,
+        3,
+    )
     assert got.search == {**DEFAULTS["search"], "stuck_decisions": 5, "temperature": 0.5, "candidates": 5}
     assert TransportConfig().over().record() == {**DEFAULTS, "fit_on": "all"}
 
@@ -94,7 +101,9 @@ def test_a_map_is_built_from_the_packages_own_files_only():
         map_factory("spline")
 
 
-@pytest.mark.parametrize("task", [PushTTask(), *(SuiteTask(name) for name in ("lift", "can", "square", "stack"))], ids=lambda t: t.name)
+@pytest.mark.parametrize(
+    "task", [PushTTask(), *(SuiteTask(name) for name in ("lift", "can", "square", "stack"))], ids=lambda t: t.name
+)
 def test_a_layout_record_reads_back_as_the_same_layout(task):
     layout = task.policy_layout
     back = PolicyLayout.from_record(layout.record())
@@ -126,14 +135,22 @@ def test_a_checkpoint_from_before_the_record_migrates_on_read(tmp_path):
     torch.save(old, tmp_path / "old.ckpt")
     config = PolicyConfig.of_checkpoint(old)
     assert config.kind == "kcfm" and config.transport is None and config.layout is None
-    assert type(kpflow.load_policy(tmp_path / "old.ckpt")).__name__ == "KCFMPolicy"  # its bare shape, no groups: the K-CFM
-    (tmp_path / "old.source_index.npz").write_bytes((ROOT / "release" / "suite_lift_kcfm.source_index.npz").read_bytes())
-    policy = kpflow.load_policy(tmp_path / "old.ckpt", task=SuiteTask("lift"), kind="transported_kcfm")  # the task's defaults: segments
+    assert (
+        type(kpflow.load_policy(tmp_path / "old.ckpt")).__name__ == "KCFMPolicy"
+    )  # its bare shape, no groups: the K-CFM
+    (tmp_path / "old.source_index.npz").write_bytes(
+        (ROOT / "release" / "suite_lift_kcfm.source_index.npz").read_bytes()
+    )
+    policy = kpflow.load_policy(
+        tmp_path / "old.ckpt", task=SuiteTask("lift"), kind="transported_kcfm"
+    )  # the task's defaults: segments
     assert isinstance(policy, TransportedKCFMPolicy) and policy.phases is not None
 
 
 def test_a_kcfm_given_transport_options_or_a_malformed_record_is_refused(tmp_path):
-    with pytest.raises(ValueError, match=r"kind=kcfm is the K-CFM as it is, not transported: transport options \['map'\]"):
+    with pytest.raises(
+        ValueError, match=r"kind=kcfm is the K-CFM as it is, not transported: transport options \['map'\]"
+    ):
         kpflow.load_policy("release:pusht_standard_fast", kind="kcfm", transport={"map": "gp"})
     with pytest.raises(ValueError, match="unknown policy option"):
         kpflow.load_policy("release:pusht_standard_fast", segments=True)
@@ -209,9 +226,15 @@ def test_the_map_group_and_policy_options_reach_the_transport_and_a_silent_ignor
     base = ["experiment=suite_policy", "task=lift", "policy=transported_kcfm", "checkpoint=release:suite_lift_kcfm"]
     cfg = compose_config("evaluate", [*base, "map=affine", "policy.transport.search={candidates: 2}"], tmp_path)
     policy = instantiate(cfg.policy)
-    assert isinstance(policy.make_map(), kpflow.maps.AffineMap) and policy.source.candidates == 2 and policy.phases is not None
+    assert (
+        isinstance(policy.make_map(), kpflow.maps.AffineMap)
+        and policy.source.candidates == 2
+        and policy.phases is not None
+    )
     cfg = compose_config("evaluate", [*base, "policy.transport.fit_on=[objects]"], tmp_path)
     with pytest.raises(InstantiationException, match="the transport ignores fit_on"):
         instantiate(cfg.policy)
-    cfg = compose_config("evaluate", [*base, "policy.transport.segments=false", "policy.transport.fit_on=[objects]"], tmp_path)
+    cfg = compose_config(
+        "evaluate", [*base, "policy.transport.segments=false", "policy.transport.fit_on=[objects]"], tmp_path
+    )
     assert instantiate(cfg.policy).phases is None

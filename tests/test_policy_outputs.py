@@ -63,11 +63,16 @@ def tiny(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
+    trainer.fit(
+        KCFM(N_KEYPOINTS, horizon=H),
+        datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
+    )
     good = root / "good" / "kcfm.ckpt"
     good.parent.mkdir()
     trainer.save_checkpoint(good)
-    index = SourceIndex.from_store(EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
+    index = SourceIndex.from_store(
+        EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK
+    )
     index.save(source_index_path(good))
     checkpoint = torch.load(good, weights_only=True)
     checkpoint["state_dict"]["ema_net.final.1.weight"] *= 1e37
@@ -96,11 +101,17 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
     agent_away = scene()["keypoints"].copy()
     agent_away[24] = (1e5, 200.0)
     for policy in policies:
-        for obs, match in ((HUGE, "keypoint 0 at \\(1e\\+300, 1e\\+300\\)"), ({"keypoints": agent_away}, "keypoint 24 at \\(1e\\+05, 200\\)")):
+        for obs, match in (
+            (HUGE, "keypoint 0 at \\(1e\\+300, 1e\\+300\\)"),
+            ({"keypoints": agent_away}, "keypoint 24 at \\(1e\\+05, 200\\)"),
+        ):
             with pytest.raises(ValueError, match=f"{FAR}: {match}"):
                 policy.act(obs)
     turned = SubgoalPolicy(KCFMPolicy(model, 2, 4), PUSHT_BLOCK, PUSHT_GOAL, 60.0, 30.0)
-    with pytest.raises(ValueError, match=r"obs\['keypoints'\] is too large to move its goal within reach and turn: it overflowed \(largest coordinate 1e\+300\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"obs\['keypoints'\] is too large to move its goal within reach and turn: it overflowed \(largest coordinate 1e\+300\)",
+    ):
         turned.act(HUGE)  # the goal's turn overflows float64 before the K-CFM sees it
     with pytest.raises(ValueError, match=f"{FAR}: keypoint 24"):
         turned.act({"keypoints": agent_away})
@@ -112,7 +123,9 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
         released.act(HUGE)  # in its goal's frame this scene is ordinary: the world check refuses it
     # every coordinate within the widened box in the world, but the agent 7920 px from the goal in the goal's frame
     apart = observation_keypoints((250.0, 250.0, 0.0), (-2800.0, -2800.0, np.pi / 4), (2800.0, 2800.0))
-    with pytest.raises(ValueError, match=f"{FAR}: keypoint 24 at \\(2800, 2800\\) has coordinate 0 = 7920 in the goal's frame"):
+    with pytest.raises(
+        ValueError, match=f"{FAR}: keypoint 24 at \\(2800, 2800\\) has coordinate 0 = 7920 in the goal's frame"
+    ):
         released.act({"keypoints": apart})
 
 
@@ -151,14 +164,26 @@ def test_the_wrapper_checks_what_any_policy_returns():
     the steps."""
     wrapped = SubgoalPolicy(StandStill(), PUSHT_BLOCK, PUSHT_GOAL, 60.0)
     obs = {**scene(), "agent_pos": np.array([[0.0, 1.0], [np.inf, 2.0]])}
-    with pytest.raises(ValueError, match=r"the policy within reach and turn produced 1 NaN or inf action value\(s\) of 4 \(steps \[1\]\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"the policy within reach and turn produced 1 NaN or inf action value\(s\) of 4 \(steps \[1\]\)",
+    ):
         wrapped.act(obs)
     np.testing.assert_array_equal(wrapped.act({**obs, "agent_pos": np.zeros((2, 2))}), np.zeros((2, 2)))
-    apart = np.concatenate([np.full((12, 2), -1e308), np.full((12, 2), 1e308), np.zeros((1, 2))])  # goal - block overflows
-    with pytest.raises(ValueError, match=r"obs\['keypoints'\] is too large to move its goal within reach and turn: it overflowed"):
+    apart = np.concatenate(
+        [np.full((12, 2), -1e308), np.full((12, 2), 1e308), np.zeros((1, 2))]
+    )  # goal - block overflows
+    with pytest.raises(
+        ValueError, match=r"obs\['keypoints'\] is too large to move its goal within reach and turn: it overflowed"
+    ):
         wrapped.act({"keypoints": apart, "agent_pos": np.zeros((2, 2))})
     with pytest.raises(ValueError, match=r"obs\['keypoints'\] holds 1 NaN or inf value\(s\)"):
-        wrapped.act({"keypoints": np.where(np.arange(50).reshape(25, 2) == 7, np.nan, scene()["keypoints"]), "agent_pos": np.zeros((2, 2))})
+        wrapped.act(
+            {
+                "keypoints": np.where(np.arange(50).reshape(25, 2) == 7, np.nan, scene()["keypoints"]),
+                "agent_pos": np.zeros((2, 2)),
+            }
+        )
     with pytest.raises(ValueError, match=r"x produced 1 NaN or inf action value\(s\) of 3 \(steps \[2\]\)"):
         check_actions([1.0, 2.0, np.nan], "x")
 
@@ -196,7 +221,10 @@ def test_released_checkpoints_accept_the_evaluation_splits(checkpoint):
         for i in range(10000, 10200):
             c = split_config(split, i)
             model.check_in_range(observation_keypoints(c.block_pose, c.goal_pose, c.agent_pos), INPUT_MARGIN)
-    for block, goal, agent in (((1000.0, 1000.0, 2.0), (24.0, 24.0, 0.0), (0.0, 1024.0)), ((24.0, 1000.0, -1.0), (1000.0, 24.0, 3.0), (1024.0, 0.0))):
+    for block, goal, agent in (
+        ((1000.0, 1000.0, 2.0), (24.0, 24.0, 0.0), (0.0, 1024.0)),
+        ((24.0, 1000.0, -1.0), (1000.0, 24.0, 3.0), (1024.0, 0.0)),
+    ):
         model.check_in_range(observation_keypoints(block, goal, agent), INPUT_MARGIN)
     policy = KCFMPolicy(model, steps=2, execute=8)
     for split in ("object_ood", "robot_ood"):

@@ -55,17 +55,31 @@ def test_settings_are_checked_and_given_values_win():
 
 
 def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
-    with pytest.raises(ValueError, match="no keypoint layout names them: pass the task"):  # a goal limit needs the task's groups
+    with pytest.raises(
+        ValueError, match="no keypoint layout names them: pass the task"
+    ):  # a goal limit needs the task's groups
         release(trained, tmp_path / "r.ckpt", settings={"reach": 50})
     assert not (tmp_path / "r.ckpt").exists()
     settings = {"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40}
     dst = release(trained, tmp_path / "r.ckpt", settings=settings, layout=PushTTask.policy_layout)
-    assert torch.load(dst, weights_only=True)[CHECKPOINT_KEY] == {"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40}
+    assert torch.load(dst, weights_only=True)[CHECKPOINT_KEY] == {
+        "steps": 3,
+        "solver": "midpoint",
+        "execute": 4,
+        "reach": 50,
+        "turn_deg": 40,
+    }
     task = PushTTask()
     policy = kcfm(str(dst), task)  # evaluate's policy=kcfm with no overrides
     assert isinstance(policy, SubgoalPolicy) and (policy.reach, policy.turn_deg) == (50.0, 40.0)
     assert (policy.policy.steps, policy.policy.solver, policy.policy.execute) == (3, "midpoint", 4)
-    assert effective_settings(policy) == {"steps": 3, "solver": "midpoint", "execute": 4, "reach": 50.0, "turn_deg": 40.0}
+    assert effective_settings(policy) == {
+        "steps": 3,
+        "solver": "midpoint",
+        "execute": 4,
+        "reach": 50.0,
+        "turn_deg": 40.0,
+    }
     given = kcfm(str(dst), task, steps=5, execute=2, reach=False)  # what is given wins; False drops the reach
     assert (given.reach, given.turn_deg, given.policy.steps, given.policy.execute) == (None, 40.0, 5, 2)
     assert isinstance(kcfm(str(dst), task, reach=False, turn_deg=False), KCFMPolicy)
@@ -82,7 +96,9 @@ def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
     assert record[CHECKPOINT_KEY] == {"steps": 6, "solver": "midpoint", "execute": 4, "reach": 50, "turn_deg": 40}
     assert record["release"]["source"] == str(trained)  # where the weights came from, not the file re-released
 
-    obs = {"keypoints": np.asarray(torch.load(dst, weights_only=True)["state_dict"]["kp_mean"].reshape(-1, 2), np.float64)}
+    obs = {
+        "keypoints": np.asarray(torch.load(dst, weights_only=True)["state_dict"]["kp_mean"].reshape(-1, 2), np.float64)
+    }
     a, b = kcfm(str(dst), task), kcfm(str(again), task, steps=3)
     a.reset(1), b.reset(1)
     np.testing.assert_array_equal(a.act(obs), b.act(obs))  # the same settings act the same
@@ -102,7 +118,9 @@ def test_a_damaged_settings_record_is_refused_naming_the_file(trained, tmp_path)
     checkpoint = torch.load(trained, weights_only=True)
     checkpoint[CHECKPOINT_KEY] = {"stepz": 3}
     torch.save(checkpoint, tmp_path / "damaged.ckpt")
-    with pytest.raises(ValueError, match=r"damaged.ckpt is not a readable KCFM checkpoint .*unknown setting\(s\) \['stepz'\]"):
+    with pytest.raises(
+        ValueError, match=r"damaged.ckpt is not a readable KCFM checkpoint .*unknown setting\(s\) \['stepz'\]"
+    ):
         load_policy(tmp_path / "damaged.ckpt")
 
 
@@ -128,7 +146,14 @@ def test_the_run_config_records_the_values_used():
     results = {"policy_settings": {"steps": 2, "solver": "euler", "execute": 8, "reach": 60.0},
                "max_steps": {"in_distribution": 1200, "standard": 300}, "summary": [{"condition": "standard"}]}  # fmt: skip
     record_used(cfg, results)
-    assert OmegaConf.to_container(cfg.policy) == {"steps": 2, "solver": "euler", "execute": 8, "reach": 60.0, "turn_deg": False, "checkpoint": "x"}
+    assert OmegaConf.to_container(cfg.policy) == {
+        "steps": 2,
+        "solver": "euler",
+        "execute": 8,
+        "reach": 60.0,
+        "turn_deg": False,
+        "checkpoint": "x",
+    }
     assert cfg.experiment.trial.max_steps == 300  # the standard protocol's limit, not the splits'
     mixed = {"max_steps": {"a": 1200, "b": 300}, "summary": [{"condition": "a"}, {"condition": "b"}]}
     record_used(cfg, mixed)  # conditions with different limits: the config's value stays

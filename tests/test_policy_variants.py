@@ -38,15 +38,33 @@ VARIANTS = [
 def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
     lightning.seed_everything(0, verbose=False)
     small = dict(down_dims=[16, 32], d_model=32, n_layers=2, n_heads=2, time_dim=16)
-    model = KCFM(N_KEYPOINTS, horizon=H, n_obs=n_obs, objective=objective, network=network, lr=3e-3, goal_frame=goal_frame(), **small)
+    model = KCFM(
+        N_KEYPOINTS,
+        horizon=H,
+        n_obs=n_obs,
+        objective=objective,
+        network=network,
+        lr=3e-3,
+        goal_frame=goal_frame(),
+        **small,
+    )
     datamodule = ChunkDataModule(store_path, horizon=H, batch_size=64, n_obs=n_obs, val_fraction=0.0)
-    trainer = lightning.Trainer(max_steps=40, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
-                                enable_progress_bar=False, enable_model_summary=False)
+    trainer = lightning.Trainer(
+        max_steps=40,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        default_root_dir=tmp_path,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     trainer.fit(model, datamodule=datamodule)
     items = [datamodule.train_set[i] for i in range(0, len(datamodule.train_set), 3)]
     batch = {k: torch.stack([it[k] for it in items]) for k in ("history", "actions", "mask")}
     fresh = KCFM(**model.hparams)
-    fresh.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False)
+    fresh.load_state_dict(
+        {k: v for k, v in model.state_dict().items() if not k.startswith(("net.", "ema_net."))}, strict=False
+    )
     with torch.no_grad():
         g = lambda: torch.Generator().manual_seed(1)  # noqa: E731
         assert model.loss(batch, generator=g()).item() < 0.7 * fresh.loss(batch, generator=g()).item()  # it learned
@@ -82,7 +100,9 @@ def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
 def test_history_length_must_match_the_data():
     model = KCFM(N_KEYPOINTS, horizon=H, n_obs=2)
     with pytest.raises(ValueError, match="needs 'history'"):
-        model.loss({"obs": torch.zeros(2, 25, 2), "actions": torch.zeros(2, H, 2), "mask": torch.ones(2, H, dtype=torch.bool)})
+        model.loss(
+            {"obs": torch.zeros(2, 25, 2), "actions": torch.zeros(2, H, 2), "mask": torch.ones(2, H, dtype=torch.bool)}
+        )
     with pytest.raises(ValueError, match="keypoints must have shape"):
         model.sample(np.zeros((25, 2)))  # one frame where two are needed
     with pytest.raises(ValueError, match="network must be one of"):
@@ -106,4 +126,8 @@ def test_training_experiments_compose_into_a_matching_model(experiment):
     # the task's experiment gives the layout and the goal frame (kpflow/conf/model/kcfm.yaml has neither)
     assert model.hparams.n_keypoints == N_KEYPOINTS and model.hparams.goal_frame == goal_frame()
     if experiment == "pusht_kcfm_gpu":
-        assert cfg.trainer.accelerator == "gpu" and model.hparams.down_dims == [256, 512, 1024] and model.hparams.n_obs == 2
+        assert (
+            cfg.trainer.accelerator == "gpu"
+            and model.hparams.down_dims == [256, 512, 1024]
+            and model.hparams.n_obs == 2
+        )

@@ -33,7 +33,9 @@ def test_one_outlier_is_rejected_and_a_moved_object_is_followed():
     np.testing.assert_allclose(pose_filter.update("cube", there, 0.0, 4, 0.021).pos, there)  # two in a row: it moved
     pose_filter.forget("cube")
     np.testing.assert_allclose(pose_filter.update("cube", here, 0.0, 4).pos, here)  # forgotten: the first read again
-    assert pose_filter.update("cube", here, np.radians(30), 4).yaw == pytest.approx(0.0)  # 30 degrees: outside the yaw gate
+    assert pose_filter.update("cube", here, np.radians(30), 4).yaw == pytest.approx(
+        0.0
+    )  # 30 degrees: outside the yaw gate
 
 
 def test_symmetric_yaws_average_across_their_wrap():

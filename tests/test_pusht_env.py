@@ -242,7 +242,7 @@ def test_keypoint_order_matches_the_names_and_the_documented_coordinates():
     assert KEYPOINT_NAMES[0].startswith("block_bar") and KEYPOINT_NAMES[12].startswith("goal_bar")
     assert KEYPOINT_NAMES[24] == "agent"
     assert all(n.startswith("block_") for n in KEYPOINT_NAMES[:12])
-    assert [n[len("block_"):] for n in KEYPOINT_NAMES[:12]] == [n[len("goal_"):] for n in KEYPOINT_NAMES[12:24]]
+    assert [n[len("block_") :] for n in KEYPOINT_NAMES[:12]] == [n[len("goal_") :] for n in KEYPOINT_NAMES[12:24]]
     np.testing.assert_array_equal(T_KEYPOINTS, np.array(DOCUMENTED, float))
     np.testing.assert_array_equal(t_keypoints((0.0, 0.0, 0.0)), T_KEYPOINTS)
     np.testing.assert_allclose(t_keypoints((10.0, 20.0, math.pi / 2))[8], (10.0 - 120.0, 20.0 + 15.0), atol=1e-12)
@@ -413,7 +413,11 @@ def test_registered_ids_make_checked_envs_with_a_time_limit(env_id):
 
     kwargs, limit = ENV_IDS[env_id]
     env = gym.make(env_id, render_mode="rgb_array")
-    assert env.spec.max_episode_steps == limit and env.unwrapped.split == kwargs["split"] and env.render_mode == "rgb_array"
+    assert (
+        env.spec.max_episode_steps == limit
+        and env.unwrapped.split == kwargs["split"]
+        and env.render_mode == "rgb_array"
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(env.unwrapped, skip_render_check=False)
@@ -532,14 +536,27 @@ def test_reset_to_a_state():
     obs, _ = env.reset(options={"state": [100.0, 120.0, 300.0, 250.0, 0.5], "goal_pose": (200.0, 210.0, 1.0)})
     np.testing.assert_allclose(obs["goal_pose"], (200.0, 210.0, 1.0), atol=1e-12)
     np.testing.assert_allclose(obs["keypoints"][12:24], t_keypoints((200.0, 210.0, 1.0)), atol=1e-9)
-    for bad in ([1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], [1.0, np.nan, 3.0, 4.0, 0.0],
-                [1.0, 2.0, np.inf, 4.0, 0.0]):
+    for bad in (
+        [1.0, 2.0, 3.0, 4.0],
+        [1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+        [1.0, np.nan, 3.0, 4.0, 0.0],
+        [1.0, 2.0, np.inf, 4.0, 0.0],
+    ):
         with pytest.raises(ValueError, match="state"):
             env.reset(options={"state": bad})
 
 
 @pytest.mark.parametrize(
-    "bad", [(np.nan, 256.0, 0.0), (256.0, np.inf, 0.0), (256.0, 256.0, -np.inf), (256.0, 256.0), (1.0, 2.0, 3.0, 4.0), "goal", None]
+    "bad",
+    [
+        (np.nan, 256.0, 0.0),
+        (256.0, np.inf, 0.0),
+        (256.0, 256.0, -np.inf),
+        (256.0, 256.0),
+        (1.0, 2.0, 3.0, 4.0),
+        "goal",
+        None,
+    ],
 )
 def test_reset_rejects_a_bad_goal_pose(bad):
     env = PushTEnv()
@@ -563,10 +580,14 @@ def test_reset_rejects_positions_outside_the_arena(split, size):
     for i, label in enumerate(["goal x", "goal y"]):
         goal = [256.0, 256.0, 0.0]
         goal[i] = size + 0.5
-        with pytest.raises(ValueError, match=rf"goal_pose\[{i}\] \({label}\) = {size + 0.5:g} is outside the {name} arena"):
+        with pytest.raises(
+            ValueError, match=rf"goal_pose\[{i}\] \({label}\) = {size + 0.5:g} is outside the {name} arena"
+        ):
             env.reset(options={"state": good, "goal_pose": goal})
     config = Config((float(size) * 2, 100.0), (300.0, 250.0, 0.0), FIXED_GOAL, name)
-    with pytest.raises(ValueError, match=rf"config.agent_pos\[0\] \(agent x\) = {2 * size} is outside the {name} arena"):
+    with pytest.raises(
+        ValueError, match=rf"config.agent_pos\[0\] \(agent x\) = {2 * size} is outside the {name} arena"
+    ):
         env.reset(options={"config": config})
     with pytest.raises(ValueError, match=r"config.block_pose must be 3 finite numbers"):
         env.reset(options={"config": Config((100.0, 100.0), (300.0, np.nan, 0.0), FIXED_GOAL, name)})
@@ -600,7 +621,9 @@ def test_reset_rejects_unknown_and_conflicting_options():
     with pytest.raises(ValueError, match=r"unknown reset option\(s\) \['goal', 'seed'\]; " + known):
         env.reset(options={"state": [100.0, 120.0, 300.0, 250.0, 0.5], "seed": 3, "goal": (1, 2, 3)})
     config = make_split("in_distribution", 1, seed=0)[0]
-    with pytest.raises(ValueError, match=r"options\['config'\] already sets the whole configuration: drop \['goal_pose'\]"):
+    with pytest.raises(
+        ValueError, match=r"options\['config'\] already sets the whole configuration: drop \['goal_pose'\]"
+    ):
         env.reset(options={"config": config, "goal_pose": FIXED_GOAL})
     with pytest.raises(ValueError, match=r"drop \['state'\]"):
         env.reset(options={"config": config, "state": [100.0, 120.0, 300.0, 250.0, 0.5]})
@@ -628,8 +651,12 @@ def test_success_termination_and_reward(threshold):
     env = PushTEnv(success_threshold=threshold)
     g = np.array(FIXED_GOAL)
     agent = (60.0, 450.0)  # well away from the goal T
-    cases = [(g, True), (g + (2.0, 0.0, 0.0), threshold <= 0.9468), (g + (0, 0, math.radians(5)), threshold <= 0.85),
-             (g + (30.0, 0.0, 0.0), False)]
+    cases = [
+        (g, True),
+        (g + (2.0, 0.0, 0.0), threshold <= 0.9468),
+        (g + (0, 0, math.radians(5)), threshold <= 0.85),
+        (g + (30.0, 0.0, 0.0), False),
+    ]
     for pose, success in cases:
         env.reset(options={"state": [*agent, *pose]})
         obs, reward, terminated, truncated, info = env.step(agent)

@@ -153,7 +153,11 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
 @pytest.mark.slow
 def test_collect_cli_names_an_unknown_task(tmp_path):
     done = run_command("kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}")
-    assert done.returncode != 0 and "collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not PackingTask" in done.stderr  # no scripted collector for it
+    assert (
+        done.returncode != 0
+        and "collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not PackingTask"
+        in done.stderr
+    )  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()
     done = run_command("kpflow.cli.collect", "task=nope", f"hydra.run.dir={tmp_path}")
     assert done.returncode != 0 and "task/nope" in done.stderr and "pusht" in done.stderr  # Hydra lists the tasks

@@ -313,7 +313,9 @@ def test_real_dataset_import(real, tmp_path):
     ends = root["meta/episode_ends"][:3]
     assert store.n_episodes == 3 and list(store.episode_ends) == list(ends)
     state = root["data/state"][0].astype(np.float64)
-    np.testing.assert_allclose(store.episode(0)["keypoints"][0], observation_keypoints(state[2:5], FIXED_GOAL, state[:2]), atol=1e-4)
+    np.testing.assert_allclose(
+        store.episode(0)["keypoints"][0], observation_keypoints(state[2:5], FIXED_GOAL, state[:2]), atol=1e-4
+    )
     np.testing.assert_array_equal(store.episode(2)["action"], root["data/action"][ends[1] : ends[2]])
 
 

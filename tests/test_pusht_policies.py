@@ -192,12 +192,23 @@ def test_standard_config_is_diffusion_policys_draw():
     assert STANDARD_FIRST_SEED == 100_000
     for seed in (0, 1, 100_000, 100_499, 200_000, 2**32 - 1):
         rs = np.random.RandomState(seed)
-        want = [rs.randint(50, 450), rs.randint(50, 450), rs.randint(100, 400), rs.randint(100, 400), rs.randn() * 2 * np.pi - np.pi]
+        want = [
+            rs.randint(50, 450),
+            rs.randint(50, 450),
+            rs.randint(100, 400),
+            rs.randint(100, 400),
+            rs.randn() * 2 * np.pi - np.pi,
+        ]
         c = standard_config(seed)
         assert [*c.agent_pos, *c.block_pose] == want  # bit for bit
         assert c.goal_pose == (256.0, 256.0, np.pi / 4) and c.workspace == "standard"
     draws = np.array([[*standard_config(s).agent_pos, *standard_config(s).block_pose] for s in range(100_000, 100_500)])
-    assert draws[:, :2].min() >= 50 and draws[:, :2].max() <= 449 and draws[:, 2:4].min() >= 100 and draws[:, 2:4].max() <= 399
+    assert (
+        draws[:, :2].min() >= 50
+        and draws[:, :2].max() <= 449
+        and draws[:, 2:4].min() >= 100
+        and draws[:, 2:4].max() <= 399
+    )
     assert (draws[:, :4] == draws[:, :4].round()).all()  # integer positions, as there
     for bad in (-1, 2**32, 1.5, True):
         with pytest.raises(ValueError, match="seed must be an integer"):
@@ -236,7 +247,11 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     policy.reset(11)
     assert [policy.source.choose(q) for _ in range(50)] == draws[:50]  # the same seed, the same draws
     assert TransportPolicy(index, layout=PUSHT).source.choose(q) == ranked[0]  # candidates=1: the nearest
-    for bad, match in (({"candidates": 0}, "candidates"), ({"temperature": 0.0}, "temperature"), ({"max_step_px": -1.0}, "max_step_px")):
+    for bad, match in (
+        ({"candidates": 0}, "candidates"),
+        ({"temperature": 0.0}, "temperature"),
+        ({"max_step_px": -1.0}, "max_step_px"),
+    ):
         with pytest.raises(ValueError, match=match):
             TransportPolicy(index, **bad, layout=PUSHT)
 
@@ -274,9 +289,15 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     assert policy.source.stuck_count == 3
     policy.reset(0)
     for step in range(12):
-        policy.source.choose(q + np.r_[np.full((12, 2), 3.0 * step), np.zeros((13, 2))])  # the block slides 3 px a decision
+        policy.source.choose(
+            q + np.r_[np.full((12, 2), 3.0 * step), np.zeros((13, 2))]
+        )  # the block slides 3 px a decision
     assert policy.source.stuck_count == 0
-    for bad, match in (({"stuck_decisions": 0}, "stuck_decisions"), ({"stuck_px": -1.0}, "stuck_px"), ({"stuck_candidates": 0}, "stuck_candidates")):
+    for bad, match in (
+        ({"stuck_decisions": 0}, "stuck_decisions"),
+        ({"stuck_px": -1.0}, "stuck_px"),
+        ({"stuck_candidates": 0}, "stuck_candidates"),
+    ):
         with pytest.raises(ValueError, match=match):
             TransportPolicy(index, **bad, layout=PUSHT)
 
@@ -325,7 +346,9 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
     chunks = keypoints[:, -1:] + np.cumsum(rng.uniform(-20, 20, (1, 20, 2)), axis=1)
     policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step_px=5.0, layout=PUSHT)
     moved = policy.act({"keypoints": keypoints[0].astype(np.float64)})  # no "agent_pos": not needed
-    np.testing.assert_allclose(moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3)
+    np.testing.assert_allclose(
+        moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3
+    )
     assert np.abs(moved[0] - keypoints[0, -1]).max() <= 5.0 + 1e-3
 
 
@@ -351,7 +374,9 @@ def test_one_source_search_reaches_every_transporting_policy(demos):
     assert transport.index.reference is None and nearest.index.reference is None  # frame=world
     agent = list(PushTTask.policy_layout.indices("robot"))
     assert transport.index.weights[agent].tolist() == nearest.index.weights[agent].tolist() == [2.0]
-    assert SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None  # the rest: the checkpoint's
+    assert (
+        SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None
+    )  # the rest: the checkpoint's
     with pytest.raises(ValueError, match="source_search has no option canidates; its options are candidates, frame"):
         SourceSearch.of({"canidates": 3})
     with pytest.raises(ValueError, match="temperature must be a positive number"):

@@ -28,11 +28,22 @@ def test_release_keeps_weights_and_config_only(tmp_path, monkeypatch):
     walk_to_block_store(tmp_path / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
     model = KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16)
-    trainer = lightning.Trainer(max_steps=5, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
-                                enable_progress_bar=False, enable_model_summary=False)
+    trainer = lightning.Trainer(
+        max_steps=5,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        default_root_dir=tmp_path,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     trainer.fit(model, datamodule=ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0))
     trainer.save_checkpoint(tmp_path / "full.ckpt")
-    monkeypatch.setattr(sys, "argv", ["kpflow-release", f"src={tmp_path / 'full.ckpt'}", f"dst={tmp_path / 'out' / 'small.ckpt'}", "note=tiny"])
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        ["kpflow-release", f"src={tmp_path / 'full.ckpt'}", f"dst={tmp_path / 'out' / 'small.ckpt'}", "note=tiny"],
+    )
     main()
     small = torch.load(tmp_path / "out" / "small.ckpt", weights_only=True)
     assert set(small) <= {*KEEP, "release", "policy_config"} and small["release"]["note"] == "tiny"
@@ -75,7 +86,11 @@ def test_released_suite_policies_keep_one_copy_of_the_weights_and_their_source_i
         state = torch.load(path, weights_only=True)["state_dict"]
         assert any(k.startswith("ema_net.") for k in state) and not any(k.startswith("net.") for k in state)
         policy = load_policy(path)
-        assert (policy.model.hparams.n_keypoints, policy.model.hparams.keypoint_dim, policy.model.hparams.action_dim) == task.policy_layout.shape
+        assert (
+            policy.model.hparams.n_keypoints,
+            policy.model.hparams.keypoint_dim,
+            policy.model.hparams.action_dim,
+        ) == task.policy_layout.shape
         index = SourceIndex.load(source_index_path(path))
         assert index.keypoints.shape[1:] == (task.policy_layout.n_keypoints, 3) and len(index) > 1000
         assert index.reference == list(task.policy_layout.indices("objects"))
@@ -88,8 +103,16 @@ def test_released_suite_policies_keep_one_copy_of_the_weights_and_their_source_i
 STORE = ROOT / "release" / "pusht_table1_35_corrected.zarr"
 TABLE1_KCFM = ROOT / "release" / "pusht_table1_kcfm_35_corrected.ckpt"
 TABLE1_RELABELLED = ROOT / "release" / "pusht_table1_kcfm_35_relabelled.ckpt"
-TRANSPORTED = ["policy=transported_kcfm", f"policy.checkpoint={TABLE1_RELABELLED}", "data=pusht_store", f"data.path={STORE}"]
-AS_OBSERVED = ["policy.reach=false", "policy.turn_deg=false"]  # the goal as observed (the releases record 125 px and 30 degrees)
+TRANSPORTED = [
+    "policy=transported_kcfm",
+    f"policy.checkpoint={TABLE1_RELABELLED}",
+    "data=pusht_store",
+    f"data.path={STORE}",
+]
+AS_OBSERVED = [
+    "policy.reach=false",
+    "policy.turn_deg=false",
+]  # the goal as observed (the releases record 125 px and 30 degrees)
 
 
 def _episode(tmp_path, overrides: list[str], split: str, index: int, max_steps: int) -> dict:
@@ -139,7 +162,13 @@ def test_released_table1_kcfm_within_reach_reproduces_an_episode_of_its_row(tmp_
     evaluation configuration 10001 its row's run covered the goal to 0.85 at step 291 (``results/pusht_table1.md``),
     where the K-CFM shown the real goal, 295 px away, never covered it at all."""
     for reach, succeeds in ((125, True), (None, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", f"policy.reach={reach or 'false'}", "policy.turn_deg=false", "policy.steps=10"]
+        overrides = [
+            "policy=kcfm",
+            f"policy.checkpoint={TABLE1_KCFM}",
+            f"policy.reach={reach or 'false'}",
+            "policy.turn_deg=false",
+            "policy.steps=10",
+        ]
         scores = _episode(tmp_path, overrides, "object_ood", 10_001, 400)
         assert scores["success_085"] == succeeds, (reach, scores)
 
@@ -152,7 +181,13 @@ def test_released_table1_kcfm_within_turn_leaves_a_block_it_waited_beside(tmp_pa
     ``results/pusht_table1.md``); shown it also turned at most 30 degrees from the block, it covers the goal to 0.85
     at step 240."""
     for turn, succeeds in ((30, True), (None, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", f"policy.turn_deg={turn or 'false'}", "policy.steps=10"]
+        overrides = [
+            "policy=kcfm",
+            f"policy.checkpoint={TABLE1_KCFM}",
+            "policy.reach=125",
+            f"policy.turn_deg={turn or 'false'}",
+            "policy.steps=10",
+        ]
         scores = _episode(tmp_path, overrides, "in_distribution", 30_323, max_steps=300)
         assert scores["success_085"] == succeeds, (turn, scores)
 
@@ -164,7 +199,13 @@ def test_released_table1_kcfm_with_20_euler_steps_covers_a_goal_10_steps_miss(tm
     covers the goal of in-distribution tuning configuration 30656 to 0.85 (at most 0.68 in 1,200 steps,
     ``results/pusht_table1.md``); with 20 steps, Table 1's setting, it does at step 165."""
     for steps, succeeds in ((20, True), (10, False)):
-        overrides = ["policy=kcfm", f"policy.checkpoint={TABLE1_KCFM}", "policy.reach=125", "policy.turn_deg=30", f"policy.steps={steps}"]
+        overrides = [
+            "policy=kcfm",
+            f"policy.checkpoint={TABLE1_KCFM}",
+            "policy.reach=125",
+            "policy.turn_deg=30",
+            f"policy.steps={steps}",
+        ]
         scores = _episode(tmp_path, overrides, "in_distribution", 30_656, max_steps=200)
         assert scores["success_085"] == succeeds, (steps, scores)
         if succeeds:
@@ -219,7 +260,11 @@ def test_a_released_checkpoint_loaded_with_no_overrides_reproduces_its_documente
     path = ROOT / "release" / name
     if not path.exists() or (STORE in map(Path, (o.split("=", 1)[-1] for o in overrides)) and not STORE.exists()):
         pytest.skip(f"no {name} under release/")
-    cfg = compose_config("evaluate", [overrides[0], f"policy.checkpoint={path}", *overrides[1:], "workers=2", "experiment.videos=0", "logger=none"], tmp_path)
+    cfg = compose_config(
+        "evaluate",
+        [overrides[0], f"policy.checkpoint={path}", *overrides[1:], "workers=2", "experiment.videos=0", "logger=none"],
+        tmp_path,
+    )
     results = instantiate(cfg.experiment)(output_dir=tmp_path / "run", seed=cfg.seed, progress=False)
     for condition, (figure, lo, hi) in row.items():
         measured = 100 * next(s[figure] for s in results["summary"] if s["condition"] == condition)

@@ -36,7 +36,9 @@ def test_the_first_place_holding_the_file_wins(places):
         assert release_path("mine") == folder / "mine.ckpt"  # each newly written one comes earlier in the order
     (cache / "store.zarr").mkdir()
     assert release_path("store.zarr") == cache / "store.zarr"  # a name with a suffix is the file's whole name
-    assert resolve_release("release:mine") == env / "mine.ckpt" and resolve_release("runs/x.ckpt") == Path("runs/x.ckpt")
+    assert resolve_release("release:mine") == env / "mine.ckpt" and resolve_release("runs/x.ckpt") == Path(
+        "runs/x.ckpt"
+    )
 
 
 def test_a_name_found_nowhere_says_where_it_looked_and_how_to_get_it(places, monkeypatch):
@@ -46,14 +48,22 @@ def test_a_name_found_nowhere_says_where_it_looked_and_how_to_get_it(places, mon
     with pytest.raises(FileNotFoundError) as error:
         release_path("mine")
     message = str(error.value)
-    assert message.startswith(f"no released file mine.ckpt: looked in {env} ($KPFLOW_RELEASE_DIR); {clone} (the clone's release/); {cache} (the user cache)")
+    assert message.startswith(
+        f"no released file mine.ckpt: looked in {env} ($KPFLOW_RELEASE_DIR); {clone} (the clone's release/); {cache} (the user cache)"
+    )
     assert "released there: other." in message and "source_index" not in message
     assert f"releases/download/v{kpflow.__version__}/mine.ckpt) into {cache}/, or set KPFLOW_RELEASE_DIR" in message
     monkeypatch.delenv(ENV)
     monkeypatch.setattr(releases, "clone_dir", lambda: None)  # an installed wheel
     monkeypatch.setenv("XDG_CACHE_HOME", str(cache.parent.parent / "nothing"))
-    assert [what for _, what in search_dirs()][:2] == ["$KPFLOW_RELEASE_DIR (not set)", "a clone's release/ (kpflow is not running from a clone)"]
-    with pytest.raises(FileNotFoundError, match=r"looked in \$KPFLOW_RELEASE_DIR \(not set\); a clone's release/ \(kpflow is not running from a clone\); .*nothing/kpflow/release \(the user cache, missing\)\. Download"):
+    assert [what for _, what in search_dirs()][:2] == [
+        "$KPFLOW_RELEASE_DIR (not set)",
+        "a clone's release/ (kpflow is not running from a clone)",
+    ]
+    with pytest.raises(
+        FileNotFoundError,
+        match=r"looked in \$KPFLOW_RELEASE_DIR \(not set\); a clone's release/ \(kpflow is not running from a clone\); .*nothing/kpflow/release \(the user cache, missing\)\. Download",
+    ):
         release_path("mine")
 
 
@@ -69,7 +79,10 @@ def test_this_checkout_is_a_clone_and_its_releases_load_by_name(tmp_path, monkey
     assert releases.clone_dir() == ROOT / "release" and release_path(SMALL) == ROOT / "release" / f"{SMALL}.ckpt"
     policy = kpflow.load_policy(f"release:{SMALL}")
     assert policy.policy.model.hparams.n_keypoints == 25  # shown its goal within reach, as its record says
-    assert read_checkpoint(f"release:{SMALL}")["state_dict"].keys() == read_checkpoint(ROOT / "release" / f"{SMALL}.ckpt")["state_dict"].keys()
+    assert (
+        read_checkpoint(f"release:{SMALL}")["state_dict"].keys()
+        == read_checkpoint(ROOT / "release" / f"{SMALL}.ckpt")["state_dict"].keys()
+    )
     with pytest.raises(FileNotFoundError, match=f"no released file {SMALL}x.ckpt: .*released there: .*{SMALL}"):
         kpflow.load_policy(f"release:{SMALL}x")
 

@@ -179,7 +179,9 @@ def test_a_killed_runs_forked_workers_do_not_keep_its_folder(tmp_path):
     """A worker forked from a run closes its copy of the run's lock, so the folder is free as soon as the run dies, not
     only once its last worker has finished (what a resumed generation ran into)."""
     folder = tmp_path / "run"
-    holder = subprocess.Popen([sys.executable, "-c", HOLD_WITH_WORKERS, str(folder)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_WITH_WORKERS, str(folder)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
     workers = [int(pid) for pid in holder.stdout.readline().split()]
     try:
         with pytest.raises(RunFolderInUse):
@@ -200,7 +202,13 @@ def test_a_failed_run_leaves_neither_its_lock_nor_an_empty_folder(tmp_path):
     """A training that fails after claiming its folder (here: no data at data.path) says why in one line and leaves
     nothing behind; one that wrote a result keeps its folder, without the lock."""
     folder = tmp_path / "run"
-    done = run("train.py", "experiment=kcfm", f"data.path={tmp_path / 'missing.zarr'}", "logger=none", f"hydra.run.dir={folder}")
+    done = run(
+        "train.py",
+        "experiment=kcfm",
+        f"data.path={tmp_path / 'missing.zarr'}",
+        "logger=none",
+        f"hydra.run.dir={folder}",
+    )
     assert done.returncode == 1 and "missing.zarr" in done.stderr.splitlines()[0], done.stderr[-3000:]
     assert not folder.exists()
     kept = tmp_path / "kept"

@@ -32,18 +32,30 @@ BAD = [
     ("evaluate", "workers=0", "config key workers must be an integer >= 1; got 0"),
     ("evaluate", "split=bogus", "config key split must be one of in_distribution, .*standard, all; got 'bogus'"),
     ("collect", "n_episodes=abc", "config key n_episodes must be an integer >= 1; got 'abc'"),
-    ("collect", "split=bogus", "config key split must be one of in_distribution, robot_ood, object_ood, standard; got 'bogus'"),
+    (
+        "collect",
+        "split=bogus",
+        "config key split must be one of in_distribution, robot_ood, object_ood, standard; got 'bogus'",
+    ),
     ("collect", "keep_failures=maybe", "config key keep_failures must be true or false; got 'maybe'"),
     ("correct", "rounds=abc", "config key rounds must be an integer >= 1; got 'abc'"),
     ("correct", "rounds=0", "config key rounds must be an integer >= 1; got 0"),
     ("correct", "eval_configs=1.5", "config key eval_configs must be an integer >= 0; got 1.5"),
     ("train", "trainer.max_epochs=abc", "config key trainer.max_epochs must be an integer >= -1 or null; got 'abc'"),
-    ("train", "+trainer.gradient_clip_val=-1", "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got -1"),
+    (
+        "train",
+        "+trainer.gradient_clip_val=-1",
+        "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got -1",
+    ),
     ("train", "resume=yes", "config key resume must be true or false; got 'yes'"),
     # issue 40: a seed numpy cannot take, and a number that is not finite, name their key
     ("evaluate", "seed=4294967296", r"config key seed must be an integer in 0..2147483647; got 4294967296"),
     ("collect", "seed=-1", r"config key seed must be an integer in 0..2147483647; got -1"),
-    ("train", "+trainer.gradient_clip_val=inf", "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got inf"),
+    (
+        "train",
+        "+trainer.gradient_clip_val=inf",
+        "config key trainer.gradient_clip_val must be a finite number >= 0 or null; got inf",
+    ),
 ]
 
 
@@ -93,14 +105,23 @@ def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
 @pytest.mark.slow
 def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_path):
     out = tmp_path / "run"
-    base = ("train.py", "experiment=frames_field", "logger=csv", f"hydra.run.dir={out}", "data.n_points=60", "trainer.enable_progress_bar=false")
+    base = (
+        "train.py",
+        "experiment=frames_field",
+        "logger=csv",
+        f"hydra.run.dir={out}",
+        "data.n_points=60",
+        "trainer.enable_progress_bar=false",
+    )
     assert run(*base, "trainer.max_epochs=1").returncode == 0
     config = (out / "config.yaml").read_text()
     checkpoints = sorted(p.name for p in (out / "checkpoints").iterdir())
 
     done = run_command("kpflow.cli.train", *base[1:], "trainer.max_epochs=1")  # the same run_name again, without resume
     assert done.returncode != 0 and "already holds a run" in done.stderr and "resume=true" in done.stderr
-    done = run_command("kpflow.cli.train", *base[1:], "trainer.max_epochs=2", "resume=true", "model.hidden=64")  # a resume that cannot work
+    done = run_command(
+        "kpflow.cli.train", *base[1:], "trainer.max_epochs=2", "resume=true", "model.hidden=64"
+    )  # a resume that cannot work
     assert done.returncode != 0 and "does not fit the configured model" in done.stderr and "net.0.weight" in done.stderr
     assert (out / "config.yaml").read_text() == config  # the run's config, as it was
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == checkpoints  # no last-v1.ckpt beside them
@@ -215,8 +236,19 @@ def test_wandb_mode_disabled_leaves_the_wandb_logger_out(tmp_path, monkeypatch):
 
 def test_a_run_with_wandb_disabled_writes_no_wandb_folder(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "evaluate.py", "experiment=frames", "map=affine", "logger=default", "experiment.n_configs=2", "task.n_points=40", f"hydra.run.dir={out}"]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "WANDB_MODE": "disabled"})
+    cmd = [
+        sys.executable,
+        "evaluate.py",
+        "experiment=frames",
+        "map=affine",
+        "logger=default",
+        "experiment.n_configs=2",
+        "task.n_points=40",
+        f"hydra.run.dir={out}",
+    ]
+    done = subprocess.run(
+        cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "WANDB_MODE": "disabled"}
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert list((out / "csv").rglob("metrics.csv"))  # the run logged, through the CSV logger only
     assert not (out / "wandb").exists() and "wandb:" not in done.stdout + done.stderr  # nor wandb's console lines

@@ -64,14 +64,27 @@ def test_a_port_in_use_is_refused_before_loading():
 def test_a_corrupt_checkpoint_is_one_line_for_serve(tmp_path):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(b"not a checkpoint at all")
-    short_failure(refused("kpflow.cli.serve", f"checkpoint={bad}", "port=0"), str(bad), "is not a readable checkpoint (not a torch file")
+    short_failure(
+        refused("kpflow.cli.serve", f"checkpoint={bad}", "port=0"),
+        str(bad),
+        "is not a readable checkpoint (not a torch file",
+    )
 
 
-@pytest.mark.parametrize("content, why", [(b"not a checkpoint at all", "not a torch file"), (b"", "the file is empty")], ids=["garbage", "empty"])
+@pytest.mark.parametrize(
+    "content, why",
+    [(b"not a checkpoint at all", "not a torch file"), (b"", "the file is empty")],
+    ids=["garbage", "empty"],
+)
 def test_a_corrupt_checkpoint_is_one_line_for_release(tmp_path, content, why):
     bad = tmp_path / "corrupt.ckpt"
     bad.write_bytes(content)
-    short_failure(refused("kpflow.cli.release", f"src={bad}", f"dst={tmp_path / 'out.ckpt'}"), str(bad), "is not a readable checkpoint", why)
+    short_failure(
+        refused("kpflow.cli.release", f"src={bad}", f"dst={tmp_path / 'out.ckpt'}"),
+        str(bad),
+        "is not a readable checkpoint",
+        why,
+    )
     assert not (tmp_path / "out.ckpt").exists()
 
 

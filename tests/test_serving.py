@@ -67,9 +67,14 @@ def tiny_run(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=20, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0))
+    trainer.fit(
+        KCFM(N_KEYPOINTS, horizon=H),
+        datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
+    )
     trainer.save_checkpoint(root / "kcfm.ckpt")
-    index = SourceIndex.from_store(EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
+    index = SourceIndex.from_store(
+        EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK
+    )
     return root / "kcfm.ckpt", index
 
 
@@ -116,7 +121,11 @@ def test_metadata_arrives_on_connect(uri, released):
     with PolicyClient(uri) as client:
         meta = client.metadata
         assert meta == released.metadata and client.max_message_bytes == 64 * 1024
-        assert meta.observation == {"keypoints": [25, 2]} and meta.keypoint_groups == {"block": 12, "goal": 12, "agent": 1}
+        assert meta.observation == {"keypoints": [25, 2]} and meta.keypoint_groups == {
+            "block": 12,
+            "goal": 12,
+            "agent": 1,
+        }
         assert meta.action_shape == [8, 2] and meta.horizon == 16 and meta.n_obs == 1 and meta.control_hz == 10.0
         assert meta.checkpoint_sha256 == hashlib.sha256(RELEASED.read_bytes()).hexdigest()
 
@@ -161,7 +170,9 @@ def test_reset_refuses_a_seed_that_is_not_an_integer(uri):
     and nothing is sent; numpy integers are integers."""
     with PolicyClient(uri) as client:
         for seed in (1.5, 2.0, True, "1"):
-            with pytest.raises(ValueError, match=rf"reset's seed must be an integer or None, got {seed!r} \({type(seed).__name__}\)"):
+            with pytest.raises(
+                ValueError, match=rf"reset's seed must be an integer or None, got {seed!r} \({type(seed).__name__}\)"
+            ):
                 client.reset(seed)
         client.reset(np.int64(3))
         first = client.act(observation(0))
@@ -258,7 +269,9 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     for a, b in ((loaded.keypoints, index.keypoints), (loaded.chunks, index.chunks), (loaded.weights, index.weights)):
         np.testing.assert_array_equal(a, b)
     assert loaded.reference == index.reference
-    deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": "all"}})
+    deployment = load_deployment(
+        checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": "all"}}
+    )
     assert deployment.metadata.policy == "transported_kcfm/ilwr"  # a checkpoint without settings: the goal as observed
     local = TransportedKCFMPolicy(load_kcfm(checkpoint), index, steps=4, layout=PUSHT)
     obs = {"keypoints": index.keypoints[10].astype(np.float64) + 3.0}
@@ -267,9 +280,16 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
     # and kpflow-evaluate's source search (conf/source_search/pusht.yaml's weights and frame, a stuck block after 2)
-    fit_on, search = [*range(12), 24], SourceSearch({"objects": 1.0, "goals": 1.0, "robot": 4.0}, "objects", stuck_decisions=2)
+    fit_on, search = (
+        [*range(12), 24],
+        SourceSearch({"objects": 1.0, "goals": 1.0, "robot": 4.0}, "objects", stuck_decisions=2),
+    )
     SEARCH = {"weights": {"objects": 1.0, "goals": 1.0, "robot": 4.0}, "frame": "objects", "stuck_decisions": 2}
-    deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["objects", "robot"], "search": SEARCH}})
+    deployment = load_deployment(
+        checkpoint,
+        PushTTask(),
+        {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["objects", "robot"], "search": SEARCH}},
+    )
     searched, choice = search.reindexed(index, PUSHT), search.choice()
     local = TransportedKCFMPolicy(load_kcfm(checkpoint), searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT)
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
@@ -281,8 +301,13 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
     deployment = load_deployment(checkpoint, PushTTask(), {"kind": "transported_kcfm", "steps": 4, "transport": {"fit_on": ["block", "agent"], "search": SEARCH}, "reach": 60,
                                                  "turn_deg": 30})  # fmt: skip
     assert deployment.metadata.policy == "transported_kcfm/ilwr/reach=60/turn_deg=30"
-    limited = SubgoalPolicy(TransportedKCFMPolicy(load_kcfm(checkpoint), searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
-                            PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
+    limited = SubgoalPolicy(
+        TransportedKCFMPolicy(load_kcfm(checkpoint), searched, steps=4, fit_on=fit_on, **choice, layout=PUSHT),
+        PUSHT_BLOCK,
+        PUSHT_GOAL,
+        60,
+        30,
+    )
     far = {"keypoints": observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))}
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(2), limited.reset(2), local.reset(2)
@@ -297,7 +322,9 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
 
 def test_kcfm_within_reach_is_served_as_it_acts_in_process():
     """``reach`` serves the K-CFM shown its goal within that distance of the block, as SubgoalPolicy acts in process."""
-    deployment = load_deployment(RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": False})  # no turn limit (the release has 60)
+    deployment = load_deployment(
+        RELEASED, PushTTask(), {"steps": 4, "reach": 60, "turn_deg": False}
+    )  # no turn limit (the release has 60)
     assert deployment.metadata.policy == "kcfm/reach=60"
     local = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
     plain = bare_kcfm(RELEASED, steps=4)
@@ -306,8 +333,12 @@ def test_kcfm_within_reach_is_served_as_it_acts_in_process():
         client.reset(3), local.reset(3), plain.reset(3)
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
-        assert not np.array_equal(served, plain.act(obs))  # the goal, 221 px from the block, was moved: the check has teeth
-    with pytest.raises(ValueError, match="is a policy for 25 keypoints in 2-D and 2-D actions, but lift shows 11 keypoints in 3-D"):
+        assert not np.array_equal(
+            served, plain.act(obs)
+        )  # the goal, 221 px from the block, was moved: the check has teeth
+    with pytest.raises(
+        ValueError, match="is a policy for 25 keypoints in 2-D and 2-D actions, but lift shows 11 keypoints in 3-D"
+    ):
         load_deployment(RELEASED, SuiteTask("lift"), {"reach": 60})
     with pytest.raises(ValueError, match="reach must be a positive finite number or None"):
         load_deployment(RELEASED, PushTTask(), {"reach": 0})
@@ -321,12 +352,16 @@ def test_kcfm_within_reach_and_turn_is_served_as_it_acts_in_process():
     assert deployment.metadata.policy == "kcfm/reach=60/turn_deg=30"
     local = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60, 30)
     reach_only = SubgoalPolicy(bare_kcfm(RELEASED, steps=4), PUSHT_BLOCK, PUSHT_GOAL, 60)
-    obs = {"keypoints": observation_keypoints((300.0, 280.0, np.pi / 4 + 2.0), (256.0, 256.0, np.pi / 4), (100.0, 400.0))}
+    obs = {
+        "keypoints": observation_keypoints((300.0, 280.0, np.pi / 4 + 2.0), (256.0, 256.0, np.pi / 4), (100.0, 400.0))
+    }
     with PolicyServer(deployment, port=0).running() as address, PolicyClient(address) as client:
         client.reset(3), local.reset(3), reach_only.reset(3)
         served = client.act(obs)
         np.testing.assert_array_equal(served, local.act(obs))
-        assert not np.array_equal(served, reach_only.act(obs))  # the block is turned 2 rad from its goal: the goal was turned
+        assert not np.array_equal(
+            served, reach_only.act(obs)
+        )  # the block is turned 2 rad from its goal: the goal was turned
 
 
 def test_bad_source_index_file_is_a_clear_error(tmp_path):
@@ -354,7 +389,9 @@ def test_serve_cli_answers_then_stops_on_sigterm():
     try:
         line = ""
         deadline = time.time() + 120
-        while not ("serving kcfm" in line and " on ws://" in line) and time.time() < deadline:  # kcfm/reach=60/turn_deg=60: the release's settings
+        while (
+            not ("serving kcfm" in line and " on ws://" in line) and time.time() < deadline
+        ):  # kcfm/reach=60/turn_deg=60: the release's settings
             line = proc.stdout.readline()  # Hydra logs to stdout
             assert line or proc.poll() is None, "the server exited before serving"
         address = line.split("on ", 1)[1].split()[0]

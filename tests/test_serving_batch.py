@@ -56,7 +56,10 @@ def unet() -> torch.nn.Module:
 
 def calls(n: int, seed: int) -> list[tuple]:
     g = torch.Generator().manual_seed(seed)
-    return [(torch.randn(1, H, A, generator=g), torch.rand(1, generator=g), torch.randn(1, C, generator=g)) for _ in range(n)]
+    return [
+        (torch.randn(1, H, A, generator=g), torch.rand(1, generator=g), torch.randn(1, C, generator=g))
+        for _ in range(n)
+    ]
 
 
 def in_threads(target, n: int, batched: BatchedNetwork) -> tuple[dict, dict]:
@@ -171,7 +174,9 @@ def test_calls_that_record_gradients_go_straight_to_the_network():
     x, t, c = calls(1, seed=4)[0]
     start = time.monotonic()
     y = batched(x, t, c)
-    assert y.requires_grad and counted.batches == [1] and batched.stats()["calls"] == 0 and time.monotonic() - start < 1.0
+    assert (
+        y.requires_grad and counted.batches == [1] and batched.stats()["calls"] == 0 and time.monotonic() - start < 1.0
+    )
 
 
 @pytest.mark.parametrize(
@@ -271,7 +276,10 @@ def test_serve_config_turns_batching_on_and_checks_it():
     cfg = OmegaConf.load(CONF_SERVE)
     assert cfg.batch.max_size == 8 and cfg.batch.max_wait_ms == 5.0
     check_config(cfg, KEYS)
-    for key, value, match in (("max_size", 0, "batch.max_size must be an integer >= 1"), ("max_wait_ms", -1.0, "batch.max_wait_ms must be a finite number")):
+    for key, value, match in (
+        ("max_size", 0, "batch.max_size must be an integer >= 1"),
+        ("max_wait_ms", -1.0, "batch.max_wait_ms must be a finite number"),
+    ):
         bad = OmegaConf.merge(cfg, {"batch": {key: value}})
         with pytest.raises(ValueError, match=match):
             check_config(bad, KEYS)

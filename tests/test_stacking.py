@@ -56,7 +56,10 @@ def test_scenes_are_seeded_and_keep_or_swap_the_sides():
     assert sample_scene("moved", 4) == moved[4] and sample_scene("moved", 4, seed=1) != moved[4]
     for scenes, (cheese_side, lettuce_side) in ((moved, ("right", "left")), (swapped, ("left", "right"))):
         for s in scenes:
-            placed = ((s.cheese_pose, cheese_side, SOURCE_SCENE.cheese_pose), (s.lettuce_pose, lettuce_side, SOURCE_SCENE.lettuce_pose))
+            placed = (
+                (s.cheese_pose, cheese_side, SOURCE_SCENE.cheese_pose),
+                (s.lettuce_pose, lettuce_side, SOURCE_SCENE.lettuce_pose),
+            )
             for pose, side, demo in placed:
                 assert AREA_X[0] <= pose[0] <= AREA_X[1] and SIDE_Y[side][0] <= pose[1] <= SIDE_Y[side][1]
                 assert abs(pose[2] - demo[2]) <= YAW_RANGE
@@ -113,15 +116,24 @@ def test_half_turns_and_grasp_errors_in_closed_form():
     assert nearest_half_turn(-0.2, 0.1) == pytest.approx(-0.2)
     assert nearest_half_turn(np.pi / 2, 0.0) == pytest.approx(-np.pi / 2)  # the boundary: [ref - pi/2, ref + pi/2)
     turn = Rotation.from_euler("z", 0.5).as_matrix()
-    def path(positions, rotations):
-        return Trajectory(np.array(positions, float), np.stack(rotations), np.array([False, True]), np.array(["approach", "seal"]))
 
-    view = StackingView(image={}, poses={CHEESE: (np.array([0.1, -0.2, 0.82]), np.eye(3))}, boxes={}, start_box=np.zeros((8, 3)))
-    source = Demonstration(None, view, path([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]], [pointing_down(0.0), pointing_down(0.0)]), None)
+    def path(positions, rotations):
+        return Trajectory(
+            np.array(positions, float), np.stack(rotations), np.array([False, True]), np.array(["approach", "seal"])
+        )
+
+    view = StackingView(
+        image={}, poses={CHEESE: (np.array([0.1, -0.2, 0.82]), np.eye(3))}, boxes={}, start_box=np.zeros((8, 3))
+    )
+    source = Demonstration(
+        None, view, path([[0.0, 0.0, 1.0], [0.1, -0.2, 0.84]], [pointing_down(0.0), pointing_down(0.0)]), None
+    )
     now = {CHEESE: (np.array([-0.1, 0.1, 0.82]), turn)}
     ideal = path([[0.0, 0.0, 1.0], [-0.1, 0.1, 0.84]], [np.eye(3), pointing_down(0.5)])
     assert grasp_errors(source, ideal, now) == pytest.approx((0.0, 0.0), abs=1e-9)
-    flipped = dataclasses.replace(ideal, rotations=np.stack([np.eye(3), pointing_down(0.5 + np.pi)]))  # a box grasped turned by pi
+    flipped = dataclasses.replace(
+        ideal, rotations=np.stack([np.eye(3), pointing_down(0.5 + np.pi)])
+    )  # a box grasped turned by pi
     assert grasp_errors(source, flipped, now)[0] == pytest.approx(0.0, abs=1e-6)
     off = path(ideal.positions + [0.0, 0.003, 0.004], [np.eye(3), pointing_down(0.6)])
     assert grasp_errors(source, off, now) == pytest.approx((np.rad2deg(0.1), 5.0))
@@ -146,7 +158,9 @@ def test_a_stacking_trial_end_to_end_with_image_correspondences(env, source):
     task = StackingTask(camera_size=(480, 480), matcher=Matcher(consistency={"radius": 0.12, "tolerance": 0.015}))
     r = trial(env, source, sample_scene("moved", 0), SiftBackbone(colour_weight=2.0), task=task)
     pairs, s = r.artefacts["view"].pairs, r.scores
-    assert s["n_pairs"] + s["rejected"] == 7 and s["pairs_on"][CHEESE] >= 1 and sum(s["pairs_on"].values()) == s["n_pairs"]
+    assert (
+        s["n_pairs"] + s["rejected"] == 7 and s["pairs_on"][CHEESE] >= 1 and sum(s["pairs_on"].values()) == s["n_pairs"]
+    )
     assert pairs.pixels_before.shape == pairs.pixels_now.shape == (7, 2)
     assert pairs.source.shape == pairs.target.shape == (7, 3)
     assert s["pair_error_mm"] < 15.0
@@ -179,10 +193,25 @@ def test_evaluate_stacking_cli_writes_table_matches_and_config(tmp_path):
     assert cfg["experiment"]["n_trials"] == 1 and cfg["task"]["source"]["cheese_pose"] == list(SOURCE_SCENE.cheese_pose)
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["source"]["success"]
-    assert {(s["keypoints"], s["map"]) for s in results["summary"]} == {("sift_colour", "gp"), ("vit_random", "gp"), ("oracle", "gp")}
-    reasons = {None, "not grasped", "unreachable", "near-singular", "grasped the lettuce", "missed the lettuce", "no correspondences"}
+    assert {(s["keypoints"], s["map"]) for s in results["summary"]} == {
+        ("sift_colour", "gp"),
+        ("vit_random", "gp"),
+        ("oracle", "gp"),
+    }
+    reasons = {
+        None,
+        "not grasped",
+        "unreachable",
+        "near-singular",
+        "grasped the lettuce",
+        "missed the lettuce",
+        "no correspondences",
+    }
     assert all((t["failure"] is None) == t["success"] and t["failure"] in reasons for t in results["trials"])
     assert all(len(t["pair_errors_mm"]) == t["n_pairs"] for t in results["trials"])
     lo, hi = wilson_interval(1, 1)
-    assert f"| moved | oracle | gp | 1/1 = 100% [{100 * lo:.0f}, {100 * hi:.0f}] |" in (tmp_path / "results.md").read_text()
+    assert (
+        f"| moved | oracle | gp | 1/1 = 100% [{100 * lo:.0f}, {100 * hi:.0f}] |"
+        in (tmp_path / "results.md").read_text()
+    )
     assert len(list(tmp_path.glob("matches_moved_*.png"))) == 3

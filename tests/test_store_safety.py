@@ -70,12 +70,17 @@ def store(tmp_path) -> Path:
 # ------------------------------------------------------------------------------------------ code execution
 
 
-@pytest.mark.parametrize("array, dtype", [("meta/episode_ends", "|O"), ("meta/episode_ends", "<i8"), ("data/action", "|O"), ("data/action", "<f4")])
+@pytest.mark.parametrize(
+    "array, dtype",
+    [("meta/episode_ends", "|O"), ("meta/episode_ends", "<i8"), ("data/action", "|O"), ("data/action", "<f4")],
+)
 def test_pickle_filter_is_refused_on_open_before_any_chunk_is_decoded(store, tmp_path, array, dtype):
     marker = tmp_path / "pwned"
     plant_pickle(store / array, marker, dtype)
     for mode in ("r", "a"):
-        with pytest.raises(UnsafeStoreError, match=rf"{store}/{array}: (filters \[.pickle.\] are refused|dtype '\|O' is refused)"):
+        with pytest.raises(
+            UnsafeStoreError, match=rf"{store}/{array}: (filters \[.pickle.\] are refused|dtype '\|O' is refused)"
+        ):
             EpisodeStore(store, mode=mode)
     assert not marker.exists()
     assert_live(store / array, marker)
@@ -104,7 +109,9 @@ def test_pusht_importer_refuses_a_planted_replay_buffer(tmp_path):
     with pytest.raises(UnsafeStoreError, match="filters"):
         import_pusht_replay(source, tmp_path / "dest", progress=False)
     done = run_command("kpflow.tasks.pusht.replay_import", str(source), str(tmp_path / "dest2"), "--no-progress")
-    assert done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr and len(done.stderr.splitlines()) == 2, done.stderr
+    assert (
+        done.returncode == 1 and "filters ['pickle'] are refused" in done.stderr and len(done.stderr.splitlines()) == 2
+    ), done.stderr
     assert not marker.exists() and not (tmp_path / "dest").exists() and not (tmp_path / "dest2").exists()
     assert_live(source / "data/state", marker)
 
@@ -131,7 +138,10 @@ def test_a_chunk_shape_beyond_the_limit_is_refused(store):
     meta = json.loads((store / "data/keypoints/.zarray").read_text())
     meta["chunks"] = [1 << 30, 25, 2]
     (store / "data/keypoints/.zarray").write_text(json.dumps(meta))
-    with pytest.raises(UnsafeStoreError, match=f"would take 204800 MiB to decode; kpflow reads chunks of at most {MAX_CHUNK_BYTES >> 20} MiB"):
+    with pytest.raises(
+        UnsafeStoreError,
+        match=f"would take 204800 MiB to decode; kpflow reads chunks of at most {MAX_CHUNK_BYTES >> 20} MiB",
+    ):
         EpisodeStore(store)
 
 
@@ -141,7 +151,9 @@ def test_a_blosc_header_claiming_more_than_a_chunk_is_refused_before_decoding(st
     struct.pack_into("<I", raw, 4, 2_000_000_000)  # the header's decoded size (nbytes): 2 GB from a few hundred bytes
     chunk.write_bytes(bytes(raw))
     opened = EpisodeStore(store)
-    with pytest.raises(UnsafeStoreError, match=r"chunk data/action/0.0 decodes to 2000000000 bytes, but a chunk of this array is \d+"):
+    with pytest.raises(
+        UnsafeStoreError, match=r"chunk data/action/0.0 decodes to 2000000000 bytes, but a chunk of this array is \d+"
+    ):
         opened.episode(0)
 
 
@@ -159,7 +171,9 @@ def test_episode_ends_claiming_billions_of_rows_is_refused_without_reading_them(
     meta = json.loads((store / "meta/episode_ends/.zarray").read_text())
     meta["shape"] = [10**15]
     (store / "meta/episode_ends/.zarray").write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"field 'meta/episode_ends' is missing chunk\(s\) of its first 1000000000000000 rows"):
+    with pytest.raises(
+        ValueError, match=r"field 'meta/episode_ends' is missing chunk\(s\) of its first 1000000000000000 rows"
+    ):
         EpisodeStore(store)
 
 
@@ -173,7 +187,10 @@ def test_an_edited_dtype_is_refused_naming_the_field(store):
     control = zarr.open_group(str(store), mode="r")["data/action"][:3]  # plain zarr reads plausible integers
     assert control.dtype == np.int32
     for mode in ("r", "a"):
-        with pytest.raises(ValueError, match=r"field 'action' is int32 \[2\] on disk but was written as <f4 \[2\]: its metadata was changed"):
+        with pytest.raises(
+            ValueError,
+            match=r"field 'action' is int32 \[2\] on disk but was written as <f4 \[2\]: its metadata was changed",
+        ):
             EpisodeStore(store, mode=mode)
 
 
@@ -195,14 +212,16 @@ def test_changed_bytes_inside_a_chunk_are_refused_naming_field_and_episode(store
         values.view(np.uint32)[row * 50 + 7] ^= 1 << 20  # one bit of one mantissa: a plausible number
 
     rewrite_chunk(store / "data/keypoints", "0.0.0", flip)
-    plain = zarr.open_group(str(store), mode="r")["data/keypoints"][row:row + 20]
+    plain = zarr.open_group(str(store), mode="r")["data/keypoints"][row : row + 20]
     assert np.isfinite(plain).all() and 0 < np.abs(plain - before).max() < 50  # plain zarr: plausible, wrong
     opened = EpisodeStore(store)
     with pytest.raises(ValueError, match=f"{store}: field 'keypoints' of episode 2 does not match the checksum"):
         opened.episode(2)
     with pytest.raises(ValueError, match="field 'keypoints' of episode 2 does not match"):
         opened.field("keypoints")
-    np.testing.assert_array_equal(opened.episode(1)["keypoints"], EpisodeStore(store).episode(1)["keypoints"])  # others read
+    np.testing.assert_array_equal(
+        opened.episode(1)["keypoints"], EpisodeStore(store).episode(1)["keypoints"]
+    )  # others read
     with pytest.raises(ValueError, match="field 'keypoints' of episode 2"):
         opened.verify()
 
@@ -212,7 +231,12 @@ def test_chunks_swapped_between_two_fields_are_refused(tmp_path):
     rng = np.random.default_rng(0)
     with EpisodeStore(path, mode="a") as s:
         for t in (5, 7):
-            s.add_episode({"agent_pos": rng.normal(size=(t, 2)).astype(np.float32), "action": rng.normal(size=(t, 2)).astype(np.float32)})
+            s.add_episode(
+                {
+                    "agent_pos": rng.normal(size=(t, 2)).astype(np.float32),
+                    "action": rng.normal(size=(t, 2)).astype(np.float32),
+                }
+            )
     a, b = path / "data/action/0.0", path / "data/agent_pos/0.0"
     tmp = a.read_bytes()
     a.write_bytes(b.read_bytes())
@@ -232,7 +256,10 @@ def test_legacy_stores_read_unverified_refuse_appends_until_sealed(store, tmp_pa
     opened = EpisodeStore(legacy)
     assert not opened.sealed and opened.verify()["sealed"] is False
     episode = opened.episode(0)
-    with EpisodeStore(legacy, mode="a") as s, pytest.raises(ValueError, match="written without checksums .*kpflow-verify seal=true"):
+    with (
+        EpisodeStore(legacy, mode="a") as s,
+        pytest.raises(ValueError, match="written without checksums .*kpflow-verify seal=true"),
+    ):
         s.add_episode(episode)
     done = run_command("kpflow.cli.verify", "seal=true", "progress=false", f"store={legacy}")
     assert done.returncode == 0 and "sealed now" in done.stdout, done.stderr
@@ -251,7 +278,9 @@ def test_verify_command_names_the_damaged_field_and_episode(store):
 
     rewrite_chunk(store / "data/action", "0.0", nudge)
     done = run_command("kpflow.cli.verify", "progress=false", f"store={store}")
-    assert done.returncode == 1 and "field 'action' of episode 7 does not match the checksum" in done.stderr, done.stderr
+    assert done.returncode == 1 and "field 'action' of episode 7 does not match the checksum" in done.stderr, (
+        done.stderr
+    )
 
 
 def test_released_store_is_sealed_and_verifies():
@@ -268,7 +297,13 @@ def test_source_index_refuses_non_finite_or_negative_weights(tmp_path):
         with pytest.raises(ValueError, match="keypoint weights must be finite, >= 0 and not all 0"):
             SourceIndex(keypoints, chunks, np.asarray(weights, np.float32))
     path = SourceIndex(keypoints, chunks).save(tmp_path / "index.npz")
-    np.savez(tmp_path / "bad.npz", keypoints=keypoints, chunks=chunks, weights=np.array([np.nan, 1, 1, 1], np.float32), reference=np.zeros(0, np.int64))
+    np.savez(
+        tmp_path / "bad.npz",
+        keypoints=keypoints,
+        chunks=chunks,
+        weights=np.array([np.nan, 1, 1, 1], np.float32),
+        reference=np.zeros(0, np.int64),
+    )
     with pytest.raises(ValueError, match="bad.npz is not a usable source index: keypoint weights must be finite"):
         SourceIndex.load(tmp_path / "bad.npz")
     assert len(SourceIndex.load(path)) == 3
@@ -283,7 +318,10 @@ def test_npz_declaring_more_than_it_holds_is_refused(tmp_path):
     with zipfile.ZipFile(bomb) as z:
         info = z.getinfo("x.npy")
     assert info.file_size > 1000 * info.compress_size  # deflate's best, beyond the 64x (and 1 MiB) kpflow allows
-    with pytest.raises(ValueError, match=r"bomb.npz: array 'x' claims 16777344 bytes from \d+ stored, beyond 64 times plus 1048576 bytes"):
+    with pytest.raises(
+        ValueError,
+        match=r"bomb.npz: array 'x' claims 16777344 bytes from \d+ stored, beyond 64 times plus 1048576 bytes",
+    ):
         read_npz(bomb, ["x"])
     small = tmp_path / "small.npz"
     np.savez_compressed(small, x=np.zeros(1 << 19, np.uint8))  # 512 kB of zeros: within the slack every member has
@@ -295,7 +333,9 @@ def test_npz_declaring_more_than_it_holds_is_refused(tmp_path):
         buf = io.BytesIO()
         np.lib.format.write_array_header_1_0(buf, header)
         z.writestr("x.npy", buf.getvalue() + np.zeros(4).tobytes())
-    with pytest.raises(ValueError, match=r"array 'x' declares \(10000000000,\) x float64 \(80000000000 bytes\) but holds 32"):
+    with pytest.raises(
+        ValueError, match=r"array 'x' declares \(10000000000,\) x float64 \(80000000000 bytes\) but holds 32"
+    ):
         read_npz(lying, ["x"])
     objects = tmp_path / "objects.npz"
     np.savez(objects, x=np.array([{"a": 1}], dtype=object))
@@ -305,7 +345,9 @@ def test_npz_declaring_more_than_it_holds_is_refused(tmp_path):
 
 def test_yaml_aliases_are_refused(tmp_path):
     bomb = tmp_path / "config.yaml"
-    bomb.write_text("a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b, *b, *b, *b]\n")
+    bomb.write_text(
+        "a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b, *b, *b, *b, *b, *b, *b]\n"
+    )
     with pytest.raises(ValueError, match="uses YAML anchors or aliases"):
         read_yaml(bomb)
     ok = tmp_path / "ok.yaml"
@@ -326,7 +368,9 @@ def test_lerobot_dataset_with_repeated_feature_names_is_refused(store, tmp_path)
     (root / "meta/info.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="keypoint names are not k0.x, k0.y, ... in order"):
         import_lerobot(root, tmp_path / "imported.zarr", columns={"observation.state": "keypoints", "action": "action"})
-    assert import_lerobot(root, tmp_path / "as_state.zarr").episode(0)["state"].shape[1:] == (50,)  # by default: a flat state
+    assert import_lerobot(root, tmp_path / "as_state.zarr").episode(0)["state"].shape[1:] == (
+        50,
+    )  # by default: a flat state
     info["features"]["observation.state"]["names"] = names
     (root / "meta/info.json").write_text(json.dumps(info))
     assert import_lerobot(root, tmp_path / "imported.zarr").episode(0)["keypoints"].shape[1:] == (25, 2)
@@ -347,5 +391,7 @@ def test_damaged_checksum_records_are_refused_on_open(store):
                    {**attrs["checksums"], "action": attrs["checksums"]["action"][:-16]},  # one episode short
                    {"action": attrs["checksums"]["action"]}):  # a field missing  # fmt: skip
         (store / "meta/.zattrs").write_text(json.dumps({**attrs, "checksums": damage}))
-        with pytest.raises(ValueError, match="checksums are damaged|meta/.zattrs' field record or checksums are damaged"):
+        with pytest.raises(
+            ValueError, match="checksums are damaged|meta/.zattrs' field record or checksums are damaged"
+        ):
             EpisodeStore(store)

@@ -50,9 +50,15 @@ def test_turn_brings_the_goal_within_the_limit_about_its_centre(goal_angle):
     goal = list(PUSHT_GOAL)
     expected = np.clip(goal_angle - np.pi / 4, -np.pi / 3, np.pi / 3)
     assert _turn(shown) == pytest.approx(expected, abs=1e-9)
-    assert subgoal_turn(kp, PUSHT_BLOCK, PUSHT_GOAL, np.pi / 3) == pytest.approx(expected - (goal_angle - np.pi / 4), abs=1e-12)
+    assert subgoal_turn(kp, PUSHT_BLOCK, PUSHT_GOAL, np.pi / 3) == pytest.approx(
+        expected - (goal_angle - np.pi / 4), abs=1e-12
+    )
     np.testing.assert_allclose(shown[goal].mean(0), kp[goal].mean(0), atol=1e-9)
-    np.testing.assert_allclose(np.linalg.norm(shown[goal] - shown[goal][:1], axis=1), np.linalg.norm(kp[goal] - kp[goal][:1], axis=1), atol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(shown[goal] - shown[goal][:1], axis=1),
+        np.linalg.norm(kp[goal] - kp[goal][:1], axis=1),
+        atol=1e-9,
+    )
     np.testing.assert_array_equal(np.delete(shown, goal, 0), np.delete(kp, goal, 0))  # block and agent as observed
     if abs(goal_angle - np.pi / 4) < np.pi / 3:
         np.testing.assert_allclose(shown, kp, atol=1e-12)
@@ -78,8 +84,14 @@ def _model(n_obs: int) -> KCFM:
     torch.manual_seed(0)
     rng = np.random.default_rng(1)
     model = KCFM(N_KEYPOINTS, horizon=8, n_obs=n_obs, goal_frame=goal_frame(), down_dims=[16, 32]).eval()
-    train = np.stack([observation_keypoints((*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256.0, 256.0, 0.8),
-                                            rng.uniform(50, 450, 2)) for _ in range(32)])
+    train = np.stack(
+        [
+            observation_keypoints(
+                (*rng.uniform(100, 400, 2), rng.uniform(-3, 3)), (256.0, 256.0, 0.8), rng.uniform(50, 450, 2)
+            )
+            for _ in range(32)
+        ]
+    )
     model.set_normalisation(train, train[:, -1:] + rng.normal(0.0, 20.0, (32, 8, 2)))
     return model
 
@@ -89,7 +101,10 @@ def test_policy_acts_on_the_goal_within_reach(n_obs):
     """The wrapped K-CFM returns what the plain one returns for the observation with the goal moved by hand (same
     noise); within reach, exactly what the plain one returns for the observation itself."""
     model = _model(n_obs)
-    plain, wrapped = KCFMPolicy(model, steps=3, execute=4), SubgoalPolicy(KCFMPolicy(model, steps=3, execute=4), PUSHT_BLOCK, PUSHT_GOAL, 150.0)
+    plain, wrapped = (
+        KCFMPolicy(model, steps=3, execute=4),
+        SubgoalPolicy(KCFMPolicy(model, steps=3, execute=4), PUSHT_BLOCK, PUSHT_GOAL, 150.0),
+    )
     far = observation_keypoints((850.0, 600.0, 1.0), (256.0, 256.0, 0.8), (300.0, 300.0))
     near = observation_keypoints((300.0, 220.0, 1.0), (256.0, 256.0, 0.8), (300.0, 400.0))
     for kp, moves in ((far, True), (near, False)):

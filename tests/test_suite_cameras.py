@@ -157,7 +157,10 @@ def test_a_broken_render_is_refused_by_name_not_clipped_into_depths(env):
     assert np.isfinite(metric_depth(env.sim, zbuffer, "frontview")).all()
     for bad in (np.nan, 1.5e38, -0.2):
         zbuffer[1, 2] = bad
-        with pytest.raises(BrokenRender, match=r"camera 'frontview' rendered a broken depth image \(1 of 24 pixels not a z-buffer value in \[0, 1\]\)"):
+        with pytest.raises(
+            BrokenRender,
+            match=r"camera 'frontview' rendered a broken depth image \(1 of 24 pixels not a z-buffer value in \[0, 1\]\)",
+        ):
             metric_depth(env.sim, zbuffer, "frontview")
     broken = SuiteEnv(SPEC, render=True)
     real_render = broken.sim.render
@@ -174,7 +177,12 @@ def test_a_broken_render_is_refused_by_name_not_clipped_into_depths(env):
     broken.sim.render = noisy  # a context damaged for real does not break every frame the same way: planted here
     with pytest.raises(BrokenRender, match="rendered a broken depth image"):
         SuiteCameras(("frontview",), 120, 160).capture(broken)
-    gym = SuiteGymEnv(broken, "d0", SuiteTask("lift").policy_layout.n_keypoints, CameraKeypoints(SuiteCameras(("frontview",), 120, 160)))
+    gym = SuiteGymEnv(
+        broken,
+        "d0",
+        SuiteTask("lift").policy_layout.n_keypoints,
+        CameraKeypoints(SuiteCameras(("frontview",), 120, 160)),
+    )
     with pytest.raises(BrokenRender):
         gym.reset(seed=0)
 
@@ -206,7 +214,9 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     runs = []
     for _ in range(2):
         perception = CountingCameras(SuiteCameras(("frontview", "agentview")), seed=3)
-        episode = rollout(SuiteGymEnv(env, "d0", n_keypoints, perception, "rgb_array"), policy, 20, 0, scene, render=True)
+        episode = rollout(
+            SuiteGymEnv(env, "d0", n_keypoints, perception, "rgb_array"), policy, 20, 0, scene, render=True
+        )
         runs.append((episode, perception.captures, env.ee_pose()[0].copy()))
     (episode, captures, tip), (again, captures_again, tip_again) = runs
     assert episode.steps == 20 and episode.decisions == 3 and len(episode.frames) == 21  # decisions at steps 0, 8, 16
@@ -217,7 +227,12 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     np.testing.assert_array_equal(episode.records["action"], again.records["action"])
     blind = CameraKeypoints(SuiteCameras(("agentview",)), segmenter=_Nothing())  # never sees the cube: no pose to keep
     unseen = rollout(SuiteGymEnv(env, "d0", n_keypoints, blind), policy, 20, 0, scene)
-    assert (unseen.steps, unseen.decisions, unseen.first_info["failure"], unseen.first_info["unseen_reads"]) == (0, 0, "not perceived", 1)
+    assert (unseen.steps, unseen.decisions, unseen.first_info["failure"], unseen.first_info["unseen_reads"]) == (
+        0,
+        0,
+        "not perceived",
+        1,
+    )
 
 
 def test_generation_on_camera_keypoints_is_the_same_whatever_ran_before():

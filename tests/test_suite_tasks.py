@@ -64,7 +64,9 @@ def test_scenes_are_seeded_and_the_wide_variant_is_wider(worlds):
     task, env, *_ = worlds["stack"]
     a, b = task.sample_scene(env, "d0", 5), task.sample_scene(env, "d0", 5)
     assert a.as_dict() == b.as_dict() and a.as_dict() != task.sample_scene(env, "d0", 6).as_dict()
-    spread = {v: np.ptp([task.sample_scene(env, v, i).objects["cubeA"][0][0] for i in range(30)]) for v in ("d0", "wide")}
+    spread = {
+        v: np.ptp([task.sample_scene(env, v, i).objects["cubeA"][0][0] for i in range(30)]) for v in ("d0", "wide")
+    }
     assert spread["d0"] <= 0.16 + 1e-9 and spread["wide"] > 0.2
     square, senv, *_ = worlds["square"]
     offsets = [square.sample_scene(senv, "wide", i).fixture_offsets["peg"] for i in range(10)]
@@ -116,8 +118,17 @@ def test_far_scenes_leave_every_generated_range_and_resized_ones_scale_the_objec
     for name, scale in scene.scales.items():
         half = kenv.home_half_height(name) * scale
         assert abs(kenv.object_pose(name)[0][2] - (kenv.env.table_offset[2] + half)) < 2e-3
-    assert Scene.from_dict(square.sample_scene(senv, "far", 0).as_dict()).fixture_yaws == square.sample_scene(senv, "far", 0).fixture_yaws
-    assert stack.spec.variants == ("d0", "wide", "far", "resized", "d1") and square.spec.variants == ("d0", "wide", "far", "d1", "d2")
+    assert (
+        Scene.from_dict(square.sample_scene(senv, "far", 0).as_dict()).fixture_yaws
+        == square.sample_scene(senv, "far", 0).fixture_yaws
+    )
+    assert stack.spec.variants == ("d0", "wide", "far", "resized", "d1") and square.spec.variants == (
+        "d0",
+        "wide",
+        "far",
+        "d1",
+        "d2",
+    )
 
 
 def test_mimicgens_d1_and_d2_draw_within_its_ranges_the_nut_clear_of_the_peg(worlds):
@@ -148,15 +159,21 @@ def test_mimicgens_d1_and_d2_draw_within_its_ranges_the_nut_clear_of_the_peg(wor
             assert Scene.from_dict(scene.as_dict()) == scene
             turns.append((variant, scene.fixture_yaws.get("peg", 0.0)))
     senv.reset_to(square.sample_scene(senv, "wide", 0))
-    np.testing.assert_allclose(senv.sim.data.xpos[round_peg], built)  # wide keeps the round peg where robosuite builds it
+    np.testing.assert_allclose(
+        senv.sim.data.xpos[round_peg], built
+    )  # wide keeps the round peg where robosuite builds it
     with pytest.raises(ValueError, match=r"removes \['bin2'\], which no variant of square removes"):
         senv.reset_to(Scene.from_dict({**scene.as_dict(), "removed": ["bin2"]}))
     assert all(t == 0.0 for v, t in turns if v == "d1") and all(0.0 <= t <= np.pi / 2 for v, t in turns if v == "d2")
     assert len({t for v, t in turns if v == "d2"}) == 8
     stack, kenv, *_ = worlds["stack"]
-    cubes = np.array([stack.sample_scene(kenv, "d1", i).objects[c][0][:2] for i in range(20) for c in ("cubeA", "cubeB")])
+    cubes = np.array(
+        [stack.sample_scene(kenv, "d1", i).objects[c][0][:2] for i in range(20) for c in ("cubeA", "cubeB")]
+    )
     assert np.abs(cubes).max() <= 0.2 + 1e-9 and np.ptp(cubes[:, 0]) > 0.2
-    assert stack.sample_scene(kenv, "d1", 0).as_dict() != stack.sample_scene(kenv, "wide", 0).as_dict()  # other scenes, same ranges
+    assert (
+        stack.sample_scene(kenv, "d1", 0).as_dict() != stack.sample_scene(kenv, "wide", 0).as_dict()
+    )  # other scenes, same ranges
 
 
 def test_bad_scenes_tasks_and_variants_are_refused_by_name(worlds):
@@ -177,7 +194,9 @@ def test_symmetric_keypoints_turn_the_gripper_least():
     pos = np.array([0.1, 0.0, 0.82])
     for kind in ("cube", "peg"):  # a quarter turn leaves the keypoints where they were, in the same order
         r0, r1 = (Rotation.from_euler("z", y).as_matrix() for y in (0.3, 0.3 + np.pi / 2))
-        np.testing.assert_allclose(object_keypoints(kind, pos, r0, 0.3, half=0.02), object_keypoints(kind, pos, r1, 0.3, half=0.02), atol=1e-12)
+        np.testing.assert_allclose(
+            object_keypoints(kind, pos, r0, 0.3, half=0.02), object_keypoints(kind, pos, r1, 0.3, half=0.02), atol=1e-12
+        )
     spun = [object_keypoints("can", pos, Rotation.from_euler("z", y).as_matrix(), 0.0) for y in (0.0, 1.0, 2.5)]
     np.testing.assert_allclose(spun[0], spun[1], atol=1e-12)
     np.testing.assert_allclose(spun[0], spun[2], atol=1e-12)  # a can has no yaw to transport
@@ -203,11 +222,15 @@ def test_failure_reasons(worlds):
     env.reset_to(task.sample_scene(env, "d0", 1))
     pos, rot = env.ee_pose()
     n = 20
-    closing_in_the_air = Trajectory(np.repeat(pos[None], n, 0), np.repeat(rot[None], n, 0), np.ones(n, bool), np.full(n, "close"))
+    closing_in_the_air = Trajectory(
+        np.repeat(pos[None], n, 0), np.repeat(rot[None], n, 0), np.ones(n, bool), np.full(n, "close")
+    )
     assert task.run_segment(env, closing_in_the_air).failure is None
     assert task.segment_failure(env, "pick") == "not grasped"
     far = pos + [1.5, 0.0, 0.0]
-    unreachable = Trajectory(np.repeat(far[None], n, 0), np.repeat(rot[None], n, 0), np.zeros(n, bool), np.full(n, "approach"))
+    unreachable = Trajectory(
+        np.repeat(far[None], n, 0), np.repeat(rot[None], n, 0), np.zeros(n, bool), np.full(n, "approach")
+    )
     assert task.run_segment(env, unreachable).failure in ("unreachable", "joint limit")
     assert task.finish(env, unreachable) == (False, "not lifted")
 
@@ -221,14 +244,25 @@ def test_the_source_distance_is_mimicgens_pose_measure_and_the_keypoints_see_sym
 
     def start(pos, yaw):
         rot = Rotation.from_euler("z", yaw).as_matrix()
-        return SegmentStart({"cube": (pos, rot)}, {"cube": object_keypoints("cube", pos, rot, 0.3, half=0.02)}, {"cube": yaw}, pos[None])
+        return SegmentStart(
+            {"cube": (pos, rot)}, {"cube": object_keypoints("cube", pos, rot, 0.3, half=0.02)}, {"cube": yaw}, pos[None]
+        )
 
     pos = np.array([0.1, 0.0, 0.82])
-    source, now = start(pos, 0.3), start(pos + [0.03, 0.04, 0.0], 0.3 + np.pi / 2 + 0.2)  # 5 cm, a quarter turn and 0.2 rad
+    source, now = (
+        start(pos, 0.3),
+        start(pos + [0.03, 0.04, 0.0], 0.3 + np.pi / 2 + 0.2),
+    )  # 5 cm, a quarter turn and 0.2 rad
     mimicgen, rigid = SegmentTransport(None, in_hand=False), SegmentTransport(partial(AffineMap, kind="rigid"))
-    assert mimicgen.distance(source, now) == pytest.approx(0.05 + np.pi / 2 + 0.2)  # MimicGen's |dp| + angle, pos/rot weights 1
-    assert rigid.distance(source, now) == pytest.approx(0.05 + 0.2, abs=1e-9)  # a cube looks the same after a quarter turn
-    assert mimicgen.distance(source, source) == pytest.approx(0.0) and rigid.distance(source, source) == pytest.approx(0.0, abs=1e-9)
+    assert mimicgen.distance(source, now) == pytest.approx(
+        0.05 + np.pi / 2 + 0.2
+    )  # MimicGen's |dp| + angle, pos/rot weights 1
+    assert rigid.distance(source, now) == pytest.approx(
+        0.05 + 0.2, abs=1e-9
+    )  # a cube looks the same after a quarter turn
+    assert mimicgen.distance(source, source) == pytest.approx(0.0) and rigid.distance(source, source) == pytest.approx(
+        0.0, abs=1e-9
+    )
 
 
 def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seeded(worlds):
@@ -244,7 +278,9 @@ def test_the_nearest_source_is_chosen_in_its_own_scene_and_random_choice_is_seed
     def shifted(segment, dx):  # the same segment recorded with every object 20 cm away
         start = segment.start
         poses = {k: (p + dx, r) for k, (p, r) in start.poses.items()}
-        return replace(segment, start=replace(start, poses=poses, keypoints={k: v + dx for k, v in start.keypoints.items()}))
+        return replace(
+            segment, start=replace(start, poses=poses, keypoints={k: v + dx for k, v in start.keypoints.items()})
+        )
 
     far = [shifted(s, np.array([0.2, 0.0, 0.0])) for s in segments]
     for family in (SegmentTransport(None, in_hand=False), SegmentTransport(partial(AffineMap, kind="rigid"))):
@@ -278,7 +314,12 @@ def test_a_failed_check_ends_the_attempt_or_runs_on_to_the_success_test(worlds):
     assert records[True]["failure"] == records[False]["failure"] == "not grasped"
     assert not records[True]["success"] and not records[False]["success"]
     # stopped after the pick, or ran the place too
-    assert len(pick.trajectory) <= records[True]["steps"] < len(pick.trajectory) + len(place.trajectory) <= records[False]["steps"]
+    assert (
+        len(pick.trajectory)
+        <= records[True]["steps"]
+        < len(pick.trajectory) + len(place.trajectory)
+        <= records[False]["steps"]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -303,7 +344,11 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
         assert store.n_episodes == rows["gp"]["successes"]
         episode = store.episode(0)
         t = len(episode["action"])
-        assert episode["action"].shape == (t, 7) and episode["ee_target"].shape == (t, 10) and episode["keypoints"].shape == (t, 11, 3)
+        assert (
+            episode["action"].shape == (t, 7)
+            and episode["ee_target"].shape == (t, 10)
+            and episode["keypoints"].shape == (t, 11, 3)
+        )
         np.testing.assert_allclose(episode["ee_target"][:, :3], episode["action"][:, :3])
     with h5py.File(tmp_path / "d0" / "gp" / "demos.hdf5", "r") as f:
         env_args = json.loads(f["data"].attrs["env_args"])
@@ -311,7 +356,11 @@ def test_one_generation_run_end_to_end_with_its_store_and_robomimic_export(gener
         assert env_args["env_kwargs"]["controller_configs"]["body_parts"]["right"]["input_type"] == "absolute"
         demo = f["data/demo_0"]
         t = demo.attrs["num_samples"]
-        assert demo["actions"].shape == (t, 7) and demo["states"].shape[0] == t and demo["obs/robot0_eef_pos"].shape == (t, 3)
+        assert (
+            demo["actions"].shape == (t, 7)
+            and demo["states"].shape[0] == t
+            and demo["obs/robot0_eef_pos"].shape == (t, 3)
+        )
         assert demo["obs/keypoints"].shape == (t, 11, 3)
         assert demo["dones"][-1] == 1 and demo["rewards"][:-1].sum() == 0
         assert f["data"].attrs["total"] == sum(f[f"data/{k}"].attrs["num_samples"] for k in f["data"])
@@ -325,9 +374,23 @@ def test_generation_refuses_an_earlier_runs_folder_unless_resumed_with_its_setti
     out, _ = generated
     before = (out / "results.json").read_text()
     with pytest.raises(FileExistsError, match="already holds a generation run .* pass resume=true"):
-        generate(out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False)
-    with pytest.raises(ValueError, match=r"generation.json: resume=true continues a run with its own settings.*families"):
-        generate(out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False, resume=True)
+        generate(
+            out, SuiteTask("lift"), {"gp": SegmentTransport(GPMap)}, ["d0"], n=1, workers=1, videos=0, progress=False
+        )
+    with pytest.raises(
+        ValueError, match=r"generation.json: resume=true continues a run with its own settings.*families"
+    ):
+        generate(
+            out,
+            SuiteTask("lift"),
+            {"gp": SegmentTransport(GPMap)},
+            ["d0"],
+            n=1,
+            workers=1,
+            videos=0,
+            progress=False,
+            resume=True,
+        )
     assert (out / "results.json").read_text() == before
 
 
@@ -362,7 +425,12 @@ def test_the_export_refuses_bad_episodes_and_leaves_nothing_behind(tmp_path):
     with pytest.raises(ValueError, match="lacks"):
         export_robomimic(tmp_path / "x.hdf5", [{"action": np.zeros((3, 7))}], "Lift", {})
     with pytest.raises(ValueError, match="differ in length"):
-        export_robomimic(tmp_path / "x.hdf5", [{"action": np.zeros((3, 7)), "state": np.zeros((2, 5)), "ee_pos": np.zeros((3, 3))}], "Lift", {})
+        export_robomimic(
+            tmp_path / "x.hdf5",
+            [{"action": np.zeros((3, 7)), "state": np.zeros((2, 5)), "ee_pos": np.zeros((3, 3))}],
+            "Lift",
+            {},
+        )
     assert list(tmp_path.iterdir()) == []
 
 
@@ -397,7 +465,11 @@ def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
     now = SegmentStart({}, {"peg": goal}, {}, np.zeros((1, 3)), (held @ turn.T + shift)[None])
     carried = SegmentTransport(partial(AffineMap, kind="rigid")).carry(segment, now)
     in_world = lambda rot, pos, points: np.einsum("tij,mj->tmi", rot, points) + pos[:, None]  # noqa: E731
-    np.testing.assert_allclose(in_world(carried.rotations, carried.positions, now.in_hand[0]), in_world(rotations, trajectory.positions, held), atol=1e-9)
+    np.testing.assert_allclose(
+        in_world(carried.rotations, carried.positions, now.in_hand[0]),
+        in_world(rotations, trajectory.positions, held),
+        atol=1e-9,
+    )
     uncorrected = SegmentTransport(partial(AffineMap, kind="rigid"), in_hand=False).carry(segment, now)
     np.testing.assert_allclose(uncorrected.positions, trajectory.positions, atol=1e-9)  # the goal did not move
 
@@ -408,7 +480,9 @@ def test_the_six_dimensional_rotation_round_trips():
     rotations = Rotation.random(20, random_state=2).as_matrix()
     np.testing.assert_allclose(rot6d_to_matrix(matrix_to_rot6d(rotations)), rotations, atol=1e-12)
     noisy = rot6d_to_matrix(matrix_to_rot6d(rotations) + 0.05)  # Gram-Schmidt gives a rotation for any input
-    np.testing.assert_allclose(np.einsum("tji,tjk->tik", noisy, noisy), np.broadcast_to(np.eye(3), (20, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("tji,tjk->tik", noisy, noisy), np.broadcast_to(np.eye(3), (20, 3, 3)), atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.det(noisy), 1.0, atol=1e-12)
 
 
@@ -489,7 +563,9 @@ def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_
     np.testing.assert_allclose(carried.rotations[0], rotations[0], atol=1e-9)  # the nearest order at the start
     np.testing.assert_allclose(carried.positions[0], positions[0], atol=1e-9)
     ends = [Rotation.from_matrix(carried.rotations[t] @ rotations[t].T).magnitude() for t in range(n)]
-    np.testing.assert_allclose(ends, [0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2, np.pi / 2, np.pi / 2, np.pi / 2], atol=1e-9)
+    np.testing.assert_allclose(
+        ends, [0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2, np.pi / 2, np.pi / 2, np.pi / 2], atol=1e-9
+    )
     centre = lambda rot, pos: np.einsum("tij,j->ti", rot, held.mean(0)) + pos  # noqa: E731
     np.testing.assert_allclose(centre(carried.rotations, carried.positions), centre(rotations, positions), atol=1e-9)
 
@@ -513,7 +589,9 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
 
     out, _ = generated
     store = out / "d0" / "gp" / "episodes.zarr"
-    data = ChunkDataModule(store, horizon=16, obs_key="keypoints", action_key="ee_target", val_fraction=0.0, batch_size=64, n_obs=2)
+    data = ChunkDataModule(
+        store, horizon=16, obs_key="keypoints", action_key="ee_target", val_fraction=0.0, batch_size=64, n_obs=2
+    )
     model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32))
     trainer = lightning.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                                 enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
@@ -523,12 +601,17 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     release_source_index(released, SuiteTask("lift").policy_layout, store, 200, action_key="ee_target")
     obs = {"keypoints_history": data.train_dataloader().dataset[0]["history"].numpy().astype(np.float64)}
     full, ema = bare_kcfm(tmp_path / "last.ckpt"), bare_kcfm(released)
-    np.testing.assert_array_equal(full.act(obs), ema.act(obs))  # sampling uses the EMA network: the release acts the same
+    np.testing.assert_array_equal(
+        full.act(obs), ema.act(obs)
+    )  # sampling uses the EMA network: the release acts the same
     common = ["experiment=suite_policy", "task=lift"]
     expected = {
         "kcfm": (KCFMPolicy, [f"policy.checkpoint={released}"]),
         "transported_kcfm": (TransportedKCFMPolicy, [f"policy.checkpoint={released}"]),  # the index beside it
-        "transported_kcfm ": (TransportedKCFMPolicy, [f"policy.checkpoint={tmp_path / 'last.ckpt'}", "data=suite_store", f"data.path={store}"]),
+        "transported_kcfm ": (
+            TransportedKCFMPolicy,
+            [f"policy.checkpoint={tmp_path / 'last.ckpt'}", "data=suite_store", f"data.path={store}"],
+        ),
         "transport": (TransportPolicy, ["data=suite_store", f"data.path={store}"]),
         "nearest": (NearestNeighbourPolicy, ["data=suite_store", f"data.path={store}"]),
     }
@@ -540,10 +623,20 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
             assert isinstance(policies[name], cls), name
     transported = policies["transported_kcfm"]
     pick = transported.transports[0]  # segment by segment (the experiment's default): Lift's one phase, on the cube
-    assert transported.phases is not None and pick.fit_on.tolist() == list(range(8)) and pick.pulled.tolist() == [8, 9, 10] and transported.rotation
+    assert (
+        transported.phases is not None
+        and pick.fit_on.tolist() == list(range(8))
+        and pick.pulled.tolist() == [8, 9, 10]
+        and transported.rotation
+    )
     env = SuiteTask("lift").make_env("far")
     episode = rollout(env, transported, 16, 0, {"seed": 0, "options": {"stream": 20_000}}, action_dim=10)
-    assert episode.steps == 16 and episode.decisions == 2 and transported.last_source is not None and transported.last_phase == "pick"
+    assert (
+        episode.steps == 16
+        and episode.decisions == 2
+        and transported.last_source is not None
+        and transported.last_phase == "pick"
+    )
 
 
 def test_the_gymnasium_env_passes_gymnasiums_checker_and_draws_scenes_by_seed():
@@ -560,7 +653,9 @@ def test_the_gymnasium_env_passes_gymnasiums_checker_and_draws_scenes_by_seed():
     first, info = env.reset(seed=3, options={"stream": 20_000})
     again, _ = env.reset(seed=3, options={"stream": 20_000})
     np.testing.assert_array_equal(first["keypoints"], again["keypoints"])
-    assert info["scene"] == SuiteTask("lift").sample_scene(env.sim, "d0", 3, 20_000).as_dict() and not info["is_success"]
+    assert (
+        info["scene"] == SuiteTask("lift").sample_scene(env.sim, "d0", 3, 20_000).as_dict() and not info["is_success"]
+    )
     assert not np.array_equal(env.reset()[0]["keypoints"], first["keypoints"])
     with pytest.raises(ValueError, match="has no condition 'nope'"):
         SuiteTask("lift").make_env("nope")
@@ -583,7 +678,10 @@ def test_the_gymnasium_env_refuses_what_no_robot_should_receive():
         (np.r_[good[:3], np.inf, good[4:]], r"action must be 10 finite numbers"),
         (good[:7], r"action must be 10 finite numbers"),
         ("open", r"action must be 10 finite numbers"),
-        (np.r_[good[:3], np.zeros(6), -1.0], r"6-D rotation \[0.0, 0.0, 0.0, 0.0, 0.0, 0.0\] has a zero column or two parallel ones"),
+        (
+            np.r_[good[:3], np.zeros(6), -1.0],
+            r"6-D rotation \[0.0, 0.0, 0.0, 0.0, 0.0, 0.0\] has a zero column or two parallel ones",
+        ),
         (np.r_[good[:3], 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, -1.0], r"two parallel ones"),
     ]:
         with pytest.raises(ValueError, match=refused):

@@ -34,13 +34,20 @@ def _configurations(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray]
     rng = np.random.default_rng(seed)
     keypoints, chunks = [], []
     for _ in range(n):
-        a, b = rng.uniform(-0.08, 0.08, 3) * [1, 1, 0] + [0, 0, 0.82], rng.uniform(-0.08, 0.08, 3) * [1, 1, 0] + [0.1, 0, 0.82]
+        a, b = (
+            rng.uniform(-0.08, 0.08, 3) * [1, 1, 0] + [0, 0, 0.82],
+            rng.uniform(-0.08, 0.08, 3) * [1, 1, 0] + [0.1, 0, 0.82],
+        )
         grip = a + rng.uniform(-0.05, 0.05, 3) + [0, 0, 0.15]
         jaws = _yaw(rng.uniform(-0.5, 0.5)) @ np.diag([1.0, -1.0, -1.0])
         pads = grip + np.array([[0, 0.02, 0], [0, -0.02, 0]]) @ jaws.T
-        keypoints.append(np.concatenate([_cube(a, rng.uniform(-0.7, 0.7)), _cube(b, rng.uniform(-0.7, 0.7)), grip[None], pads]))
+        keypoints.append(
+            np.concatenate([_cube(a, rng.uniform(-0.7, 0.7)), _cube(b, rng.uniform(-0.7, 0.7)), grip[None], pads])
+        )
         path = grip + np.linspace(0, 1, H)[:, None] * (a - grip)
-        chunks.append(np.concatenate([path, np.repeat(matrix_to_rot6d(jaws)[None], H, 0), np.linspace(-1, 1, H)[:, None]], 1))
+        chunks.append(
+            np.concatenate([path, np.repeat(matrix_to_rot6d(jaws)[None], H, 0), np.linspace(-1, 1, H)[:, None]], 1)
+        )
     return np.asarray(keypoints), np.asarray(chunks)
 
 

@@ -161,9 +161,12 @@ def test_backspace_discards_and_escape_quits_without_saving(teleop):
 
 def test_run_restarts_discarded_episodes_with_their_seed_and_stops_on_quit(teleop):
     script = {
-        0: [down(pygame.K_RIGHT)], 2: [down(pygame.K_RETURN)],  # seed 5: saved
-        3: [down(pygame.K_RIGHT)], 4: [down(pygame.K_BACKSPACE)],  # seed 6: discarded
-        5: [down(pygame.K_RIGHT)], 7: [down(pygame.K_RETURN)],  # seed 6 again: saved
+        0: [down(pygame.K_RIGHT)],
+        2: [down(pygame.K_RETURN)],  # seed 5: saved
+        3: [down(pygame.K_RIGHT)],
+        4: [down(pygame.K_BACKSPACE)],  # seed 6: discarded
+        5: [down(pygame.K_RIGHT)],
+        7: [down(pygame.K_RETURN)],  # seed 6 again: saved
         8: [down(pygame.K_ESCAPE)],
     }
     assert teleop.run(5, seed=5, event_source=scripted(script)) == 2
@@ -172,13 +175,26 @@ def test_run_restarts_discarded_episodes_with_their_seed_and_stops_on_quit(teleo
 
 
 def test_store_of_another_split_is_refused(tmp_path):
-    EpisodeStore(tmp_path / "demos.zarr", mode="a").attrs.update({"task": "pusht", "split": "robot_ood", "goal": "random"})
+    EpisodeStore(tmp_path / "demos.zarr", mode="a").attrs.update(
+        {"task": "pusht", "split": "robot_ood", "goal": "random"}
+    )
     with pytest.raises(ValueError, match="robot_ood"):
         make_teleop(tmp_path / "demos.zarr")
 
 
 def test_cli_sets_up_the_store(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(sys, "argv", ["kpflow-teleop", f"store={tmp_path / 'cli.zarr'}", "split=object_ood", "goal=fixed", "episodes=0", "window=64"])
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "kpflow-teleop",
+            f"store={tmp_path / 'cli.zarr'}",
+            "split=object_ood",
+            "goal=fixed",
+            "episodes=0",
+            "window=64",
+        ],
+    )
     main()
     store = EpisodeStore(tmp_path / "cli.zarr", mode="r")
     assert dict(store.attrs) == {"task": "pusht", "split": "object_ood", "goal": "fixed"} and store.n_episodes == 0

@@ -14,7 +14,15 @@ from tests.helpers import run_command
 
 
 def train(tmp: Path, *extra: str) -> subprocess.CompletedProcess:
-    cmd = ["experiment=frames_field", "logger=csv", "run_name=test", f"hydra.run.dir={tmp}", "data.n_points=60", "trainer.enable_progress_bar=false", *extra]
+    cmd = [
+        "experiment=frames_field",
+        "logger=csv",
+        "run_name=test",
+        f"hydra.run.dir={tmp}",
+        "data.n_points=60",
+        "trainer.enable_progress_bar=false",
+        *extra,
+    ]
     done = run_command("kpflow.cli.train", *cmd)
     assert done.returncode == 0, done.stderr[-3000:]
     return done
@@ -40,7 +48,9 @@ def test_train_resume_and_reload(tmp_path):
 
 @pytest.mark.slow
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
-    done = run_command("kpflow.cli.train", "experiment=frames_field", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true")
+    done = run_command(
+        "kpflow.cli.train", "experiment=frames_field", "logger=none", f"hydra.run.dir={tmp_path}", "resume=true"
+    )
     assert done.returncode != 0 and "does not exist" in done.stderr
 
 

@@ -172,7 +172,9 @@ def test_unknown_stiffness_mode_raises(mode):
 # ------------------------------------------------------------------ quaternions
 def test_quat_to_matrix_matches_scipy_xyzw():
     q = torch.from_numpy(Rotation.random(20, random_state=0).as_quat())  # scipy: (x, y, z, w)
-    torch.testing.assert_close(quat_to_matrix(q), torch.from_numpy(Rotation.from_quat(q.numpy()).as_matrix()), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        quat_to_matrix(q), torch.from_numpy(Rotation.from_quat(q.numpy()).as_matrix()), atol=1e-12, rtol=0
+    )
     # scalar-first order would be a different rotation: the order matters
     wxyz = q[:, [3, 0, 1, 2]]
     assert (quat_to_matrix(wxyz) - quat_to_matrix(q)).abs().amax() > 0.1
@@ -185,8 +187,17 @@ def test_matrix_to_quat_matches_scipy_and_round_trips():
     rots = Rotation.random(50, random_state=1)
     # and the awkward ones: half turns about each axis and about diagonals (w = 0), near-half turns, identity
     special = Rotation.from_rotvec(
-        [[math.pi, 0, 0], [0, math.pi, 0], [0, 0, math.pi], [math.pi / math.sqrt(2), math.pi / math.sqrt(2), 0],
-         [3.1, 0, 0], [0, -3.1, 0], [0, 0, 3.1], [0, 0, 0], [1e-9, 0, 0]]
+        [
+            [math.pi, 0, 0],
+            [0, math.pi, 0],
+            [0, 0, math.pi],
+            [math.pi / math.sqrt(2), math.pi / math.sqrt(2), 0],
+            [3.1, 0, 0],
+            [0, -3.1, 0],
+            [0, 0, 3.1],
+            [0, 0, 0],
+            [1e-9, 0, 0],
+        ]
     )
     for r in (rots, special):
         m = torch.from_numpy(r.as_matrix())
@@ -222,7 +233,9 @@ def test_transport_quaternions_agrees_with_orientations_under_a_nonlinear_map():
     quats = torch.from_numpy(Rotation.random(12, random_state=4).as_quat())
     out = transport_quaternions(phi, x, quats)
     torch.testing.assert_close(out.norm(dim=-1), torch.ones(12, dtype=F64), atol=1e-12, rtol=0)
-    torch.testing.assert_close(quat_to_matrix(out), transport_orientations(phi, x, quat_to_matrix(quats)), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        quat_to_matrix(out), transport_orientations(phi, x, quat_to_matrix(quats)), atol=1e-12, rtol=0
+    )
     # a quaternion and its negative are the same orientation and transport to the same result
     torch.testing.assert_close(transport_quaternions(phi, x, -quats), out, atol=1e-12, rtol=0)
 
@@ -305,8 +318,9 @@ def test_transport_trajectory_fields(fitted_maps, name):
     x, v = curve(t, 2)
     x = x * 1.6 - 0.3  # reaches outside the keypoints, where the uncertainty grows
     rots, k = random_rotations(30, 2, 0), random_spd(30, 2, 1)
-    out = transport_trajectory(phi, x, velocities=v, orientations=rots, stiffness=k, n_samples=6,
-                               generator=torch.Generator().manual_seed(7))
+    out = transport_trajectory(
+        phi, x, velocities=v, orientations=rots, stiffness=k, n_samples=6, generator=torch.Generator().manual_seed(7)
+    )
     assert isinstance(out, TransportedTrajectory)
     mean, var = phi.predict(x)
     torch.testing.assert_close(out.positions, mean, atol=0, rtol=0)
@@ -353,4 +367,3 @@ def test_transport_trajectory_rigid_map_is_certain():
     torch.testing.assert_close(out.orientations, q @ rots, atol=1e-10, rtol=0)
     lo, hi = out.band()
     torch.testing.assert_close(lo, hi, atol=0, rtol=0)
-

@@ -45,7 +45,9 @@ def store_path(tmp_path_factory):
 @pytest.fixture(scope="module")
 def index(store_path):
     """Every training configuration, compared in the block's frame (so a rigidly moved scene finds its original)."""
-    return SourceIndex.from_store(EpisodeStore(store_path), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK)
+    return SourceIndex.from_store(
+        EpisodeStore(store_path), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK
+    )
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +110,14 @@ def test_kcfm_policy_shapes_and_seeding(untrained, index):
 
 
 def test_bad_arguments_raise(untrained, index):
-    for kwargs in ({"execute": 0}, {"execute": H + 1}, {"execute": 2.5}, {"execute": True}, {"steps": 0}, {"steps": MAX_STEPS + 1}):
+    for kwargs in (
+        {"execute": 0},
+        {"execute": H + 1},
+        {"execute": 2.5},
+        {"execute": True},
+        {"steps": 0},
+        {"steps": MAX_STEPS + 1},
+    ):
         name = next(iter(kwargs))
         with pytest.raises(ValueError, match=name):
             KCFMPolicy(untrained, **kwargs)
@@ -129,7 +138,10 @@ def test_checkpoint_round_trip_gives_identical_actions(trained, index):
     model, ckpt = trained
     for make in (
         lambda: (KCFMPolicy(model, 10, 6), bare_kcfm(ckpt, 10, 6)),
-        lambda: (TransportedKCFMPolicy(model, index, execute=6, layout=PUSHT), TransportedKCFMPolicy(load_kcfm(ckpt), index, execute=6, layout=PUSHT)),
+        lambda: (
+            TransportedKCFMPolicy(model, index, execute=6, layout=PUSHT),
+            TransportedKCFMPolicy(load_kcfm(ckpt), index, execute=6, layout=PUSHT),
+        ),
     ):
         live, loaded = make()
         assert not loaded.model.training and loaded.model.device.type == "cpu"
@@ -184,7 +196,9 @@ def test_rigid_motion_of_the_scene_moves_the_chunk_rigidly(untrained, index, ang
         expected = plain.act(_obs(source)) @ rot.T + shift
         np.testing.assert_allclose(chunk, expected, atol=1e-2, rtol=0)  # px; measured 2e-13
         plain.reset(1)
-        assert np.abs(plain.act(moved) - expected).max() > 1.0  # without transport it is not moved along (measured 270-950 px)
+        assert (
+            np.abs(plain.act(moved) - expected).max() > 1.0
+        )  # without transport it is not moved along (measured 270-950 px)
 
 
 def test_a_rigid_map_family_works_too(untrained, index):
@@ -195,7 +209,9 @@ def test_a_rigid_map_family_works_too(untrained, index):
     plain = KCFMPolicy(untrained, execute=4)
     transported.reset(2)
     plain.reset(2)
-    np.testing.assert_allclose(transported.act(_obs(source @ rot.T + shift)), plain.act(_obs(source)) @ rot.T + shift, atol=1e-2)
+    np.testing.assert_allclose(
+        transported.act(_obs(source @ rot.T + shift)), plain.act(_obs(source)) @ rot.T + shift, atol=1e-2
+    )
 
 
 def test_transport_keeps_a_trained_kcfm_accurate_on_a_moved_scene(trained, index):
@@ -263,7 +279,9 @@ def test_built_with_reach_and_turn_it_searches_and_acts_on_the_shown_goal(traine
     plain = transported_kcfm(str(ckpt), demos, PushTTask(), transport=TRANSPORT)
     assert isinstance(wrapped, SubgoalPolicy) and isinstance(wrapped.policy, TransportedKCFMPolicy)
     assert isinstance(plain, TransportedKCFMPolicy)
-    obs = _obs(observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0)))  # goal 180 px off, turned 2.2 rad
+    obs = _obs(
+        observation_keypoints((300.0, 250.0, 0.3), (150.0, 150.0, 2.5), (240.0, 320.0))
+    )  # goal 180 px off, turned 2.2 rad
     shown = wrapped.shown(obs)
     assert not np.allclose(shown["keypoints"], obs["keypoints"])
     wrapped.reset(3), plain.reset(3)

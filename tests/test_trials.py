@@ -21,17 +21,25 @@ def test_episode_grid_counts_rows_and_a_filmed_failure(tmp_path):
     n_trials, first_index = protocol_counts(2)
     n_trials["robot_ood"] = 3  # one number per condition
     trial = PolicyTrial(PushTTask(), StandStill(), PushTReport(), "still", max_steps=5)
-    results = run_trials(tmp_path, trial, ["in_distribution", "robot_ood"], n_trials, first_index, workers=2, videos=1, progress=False)
+    results = run_trials(
+        tmp_path, trial, ["in_distribution", "robot_ood"], n_trials, first_index, workers=2, videos=1, progress=False
+    )
     assert [(t["condition"], t["index"]) for t in results["trials"]] == [
         ("in_distribution", FIRST_CONFIG), ("in_distribution", FIRST_CONFIG + 1),
         ("robot_ood", FIRST_CONFIG), ("robot_ood", FIRST_CONFIG + 1), ("robot_ood", FIRST_CONFIG + 2),
     ]  # fmt: skip
-    assert all(t["policy"] == "still" and t["steps"] == 5 and not t["success"] and t["failure"] == "time limit" for t in results["trials"])
+    assert all(
+        t["policy"] == "still" and t["steps"] == 5 and not t["success"] and t["failure"] == "time limit"
+        for t in results["trials"]
+    )
     row = cell_summary(results, "robot_ood")
     assert row["episodes"] == 3 and row["success_085"] == 0.0 and row["policy"] == "still"
     assert results["metrics"]["robot_ood/still/success_095"] == 0.0
     # the showcase: no success to film, the first failure of each split filmed, re-run to the same episode
-    assert [p.rsplit("/", 1)[1] for p in results["videos"]] == [f"in_distribution_still_{FIRST_CONFIG}_time_limit.mp4", f"robot_ood_still_{FIRST_CONFIG}_time_limit.mp4"]
+    assert [p.rsplit("/", 1)[1] for p in results["videos"]] == [
+        f"in_distribution_still_{FIRST_CONFIG}_time_limit.mp4",
+        f"robot_ood_still_{FIRST_CONFIG}_time_limit.mp4",
+    ]
     on_disk = json.loads((tmp_path / "results.json").read_text())
     assert on_disk["task"] == "pusht" and on_disk["policy"] == "still" and on_disk["figures"] == ["success.png"]
     assert "| still | robot_ood | 3 | 0.0% [" in (tmp_path / "results.md").read_text()
@@ -41,7 +49,12 @@ def test_the_expert_succeeds_and_its_success_is_filmed(tmp_path):
     trial = PolicyTrial(PushTTask(), PushTExpert("standard"), PushTReport(), "expert", max_steps=600)
     results = run_trials(tmp_path, trial, "in_distribution", 1, FIRST_CONFIG, workers=1, videos=1, progress=False)
     (episode,) = results["trials"]
-    assert episode["success"] and episode["failure"] is None and episode["success_085"] and episode["steps_085"] <= episode["steps_095"]
+    assert (
+        episode["success"]
+        and episode["failure"] is None
+        and episode["success_085"]
+        and episode["steps_085"] <= episode["steps_095"]
+    )
     assert results["videos"][0].endswith(f"in_distribution_expert_{FIRST_CONFIG}_success.mp4")
 
 

@@ -342,7 +342,10 @@ def test_sift_colour_term_tells_apart_blocks_that_grey_sift_confuses():
     yellow = np.stack([grey, grey, (grey * 0.2).astype(np.uint8)], -1)
     blue = np.stack([(grey * 0.2).astype(np.uint8), grey, grey], -1)
     plain, coloured = SiftBackbone(), SiftBackbone(colour_weight=2.0)
-    assert np.asarray(plain(yellow).descriptors).shape[-1] == 128 and np.asarray(coloured(yellow).descriptors).shape[-1] == 131
+    assert (
+        np.asarray(plain(yellow).descriptors).shape[-1] == 128
+        and np.asarray(coloured(yellow).descriptors).shape[-1] == 131
+    )
 
     def similarity(backbone):  # mean cosine similarity of each cell's descriptor in the two images
         a, b = (torch.as_tensor(np.asarray(backbone(img).descriptors), dtype=torch.float64) for img in (yellow, blue))
@@ -396,7 +399,9 @@ def test_rigidity_check_drops_the_pair_that_fits_no_object():
     wrong = target.copy()
     wrong[1] = target[5]  # a point of block A matched onto block B
     assert rigidly_consistent(source, wrong).tolist() == [True, False, True, True, True, True, True, True]
-    lone_pair = rigidly_consistent(np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]))
+    lone_pair = rigidly_consistent(
+        np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    )
     assert not lone_pair.any()  # two neighbours that disagree: nothing tells which is wrong, so both go
     with pytest.raises(ValueError, match="both be"):
         rigidly_consistent(source, target[:3])

@@ -37,7 +37,9 @@ SHORTEN = [("experiment.n_trials=20", "experiment.n_trials=5", 2)]
 def run(args: list[str], cwd: Path, env: dict, timeout: float = 600, code: int = 0) -> subprocess.CompletedProcess:
     """Run ``args`` in ``cwd`` in a session of its own (a server it started in the background ends with it), and
     check that it exits with ``code``."""
-    proc = subprocess.Popen(args, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        args, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     try:
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -64,7 +66,9 @@ def free_port() -> int:
 def venv(tmp_path_factory) -> Path:
     """A fresh venv with kpflow installed from a wheel of this checkout (its dependencies: the test environment's)."""
     tmp = tmp_path_factory.mktemp("wheel_install")
-    src = tmp / "src"  # the files a wheel is built from, so that no build/ or egg-info of the checkout is reused or written
+    src = (
+        tmp / "src"
+    )  # the files a wheel is built from, so that no build/ or egg-info of the checkout is reused or written
     shutil.copytree(ROOT / "kpflow", src / "kpflow", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, src / name)
@@ -72,12 +76,16 @@ def venv(tmp_path_factory) -> Path:
                            cwd=tmp, capture_output=True, text=True, timeout=600)  # fmt: skip
     wheels = list((tmp / "dist").glob("kpflow-*.whl"))
     if built.returncode or len(wheels) != 1:
-        pytest.skip(f"the wheel cannot be built offline here (pip wheel exited {built.returncode}): {built.stderr.strip()[-500:]}")
+        pytest.skip(
+            f"the wheel cannot be built offline here (pip wheel exited {built.returncode}): {built.stderr.strip()[-500:]}"
+        )
     env = tmp / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(env)], check=True, timeout=300)
     site = Path(subprocess.run([str(env / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                capture_output=True, text=True, check=True).stdout.strip())  # fmt: skip
-    (site / "test_environment.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")  # the dependencies, after the venv's own
+    (site / "test_environment.pth").write_text(
+        sysconfig.get_paths()["purelib"] + "\n"
+    )  # the dependencies, after the venv's own
     subprocess.run([sys.executable, "-m", "pip", "--python", str(env / "bin" / "python"), "install", "-q", "--no-deps", "--no-index", str(wheels[0])],
                    check=True, capture_output=True, timeout=300)  # fmt: skip
     return env
@@ -103,7 +111,11 @@ def python_block(page: Path, containing: str) -> str:
 
 def test_kpflow_comes_from_the_wheel_with_what_the_guides_use(venv, newcomer):
     folder, env = newcomer
-    where = run(["python", "-c", "import kpflow, kpflow.examples; print(kpflow.__file__); print(kpflow.examples.TEMPLATES)"], folder, env).stdout.split()
+    where = run(
+        ["python", "-c", "import kpflow, kpflow.examples; print(kpflow.__file__); print(kpflow.examples.TEMPLATES)"],
+        folder,
+        env,
+    ).stdout.split()
     assert all(Path(p).is_relative_to(venv) for p in where), where  # the wheel's copy, not the checkout
     assert Path(where[1], "reach_task", "conf", "task", "reach.yaml").is_file()
     assert "experiments (experiment=NAME):" in run(["kpflow-train", "--help"], folder, env).stdout
@@ -132,13 +144,21 @@ def test_the_readme_snippets_and_a_release_by_name(newcomer):
 def test_the_own_task_tutorial_runs_from_a_copied_template(newcomer):
     folder, env = newcomer
     port, connect_port = free_port(), free_port()
-    blocks = [code for lang, code, _ in code_blocks((ROOT / "docs" / "tutorials" / "own-task.md").read_text()) if lang == "bash"]
+    blocks = [
+        code
+        for lang, code, _ in code_blocks((ROOT / "docs" / "tutorials" / "own-task.md").read_text())
+        if lang == "bash"
+    ]
     script = "\n".join(blocks)
     for text, shorter, times in [*SHORTEN, ("8765", str(port), 2)]:
-        assert script.count(text) == times, f"docs/tutorials/own-task.md changed: {text!r} occurs {script.count(text)} times, not {times}"
+        assert script.count(text) == times, (
+            f"docs/tutorials/own-task.md changed: {text!r} occurs {script.count(text)} times, not {times}"
+        )
         blocks = [block.replace(text, shorter) for block in blocks]
     assert blocks[0].startswith("kpflow-example reach_task my_project")
-    outputs = [run(["bash", "-euo", "pipefail", "-c", block], folder, env).stdout for block in blocks]  # each from the folder, as the page runs
+    outputs = [
+        run(["bash", "-euo", "pipefail", "-c", block], folder, env).stdout for block in blocks
+    ]  # each from the folder, as the page runs
     project = folder / "my_project"
     assert "reach: kcfm in closed loop" in outputs[1] and "| wide | transported_kcfm | 5 |" in outputs[2]
     assert re.search(r"[1-5]/5 episodes reached the target through ws://127\.0\.0\.1:\d+", outputs[3]), outputs[3]
@@ -146,5 +166,7 @@ def test_the_own_task_tutorial_runs_from_a_copied_template(newcomer):
     # README steps 4-5 on the policy just released: serve it, and a client asks it for an action chunk
     served = run(["bash", "-euo", "pipefail", "-c", f"kpflow-serve checkpoint=release/reach.ckpt port={connect_port} &\n"
                   f"trap 'kill $!' EXIT\nkpflow-connect --uri ws://127.0.0.1:{connect_port}"], project, env).stdout  # fmt: skip
-    assert "server: kcfm, observes" in served and re.search(r"action chunk \[8, 2\] in [\d.]+ ms on the server", served), served
+    assert "server: kcfm, observes" in served and re.search(
+        r"action chunk \[8, 2\] in [\d.]+ ms on the server", served
+    ), served
     assert not (ROOT / "my_project").exists()

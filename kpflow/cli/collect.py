@@ -77,9 +77,13 @@ def collect_task(cfg: DictConfig) -> dict:
     task = instantiate(cfg.task)
     if not isinstance(task, GymTask):
         remove_unused_run_folder(Path(cfg.output_dir))
-        raise ValueError(f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not {type(task).__name__}")
+        raise ValueError(
+            f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not {type(task).__name__}"
+        )
     out = start_run(cfg, KEYS)
-    summary = collect_gym_episodes(task, out / "episodes.zarr", cfg.n_episodes, cfg.condition, cfg.seed, cfg.keep_failures)
+    summary = collect_gym_episodes(
+        task, out / "episodes.zarr", cfg.n_episodes, cfg.condition, cfg.seed, cfg.keep_failures
+    )
     write_json(out / "summary.json", summary)
     print(f"collected {summary['episodes']} episodes ({summary['successes']}/{summary['attempts']} attempts succeeded,"
           f" {summary['steps']} steps) into {summary['store']}")  # fmt: skip

@@ -129,14 +129,24 @@ def main(cfg: DictConfig) -> list[dict]:
         policy = make_policy(EpisodeStore(store_path))
         trial = PolicyTrial(PushTTask(), policy, PushTReport(), label, cfg.eval_max_steps)
         n_trials, first_index = protocol_counts(cfg.eval_configs)
-        results = run_trials(out / f"eval_{label}", trial, cfg.split, n_trials, first_index, cfg.seed, cfg.workers, videos=0)
+        results = run_trials(
+            out / f"eval_{label}", trial, cfg.split, n_trials, first_index, cfg.seed, cfg.workers, videos=0
+        )
         return cell_summary(results, cfg.split)
 
     reports, evals = [], [evaluate("start")]
     for _ in range(cfg.rounds):
         reports += collect_corrections(
-            store_path, make_policy, 1, cfg.episodes_per_round, cfg.split, cfg.goal, cfg.seed,
-            cfg.max_steps, cfg.stuck_steps, cfg.takeover_steps,
+            store_path,
+            make_policy,
+            1,
+            cfg.episodes_per_round,
+            cfg.split,
+            cfg.goal,
+            cfg.seed,
+            cfg.max_steps,
+            cfg.stuck_steps,
+            cfg.takeover_steps,
         )
         evals.append(evaluate(f"round{reports[-1]['round']}"))
     write_json(out / "rounds.json", {"start_steps": start_steps, "rounds": reports, "evaluations": evals})

@@ -22,7 +22,13 @@ from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
 
 log = logging.getLogger(__name__)  # the console and the run's evaluate.log (Hydra's job logging)
-KEYS = {"seed": SEED, "n_configs": Key(int, lo=1), "first_config": Key(int, lo=0), "workers": Key(int, lo=1), "condition": Key(str)}
+KEYS = {
+    "seed": SEED,
+    "n_configs": Key(int, lo=1),
+    "first_config": Key(int, lo=0),
+    "workers": Key(int, lo=1),
+    "condition": Key(str),
+}
 
 
 def keys_of(cfg: DictConfig) -> dict:
@@ -38,7 +44,9 @@ def read_old_spellings(cfg: DictConfig) -> None:
     if split is None:
         return
     if cfg.condition not in ("all", split):
-        raise ValueError(f"split={split} (the old spelling of condition) contradicts condition={cfg.condition}: give condition alone")
+        raise ValueError(
+            f"split={split} (the old spelling of condition) contradicts condition={cfg.condition}: give condition alone"
+        )
     log.warning("split=%s is the old spelling of condition=%s: read as that", split, split)
     with open_dict(cfg):
         cfg.condition, cfg.split = split, None
@@ -51,7 +59,11 @@ def record_used(cfg: DictConfig, results: dict) -> None:
     policy = cfg.get("policy")
     with open_dict(cfg):
         if policy is not None and "policy_settings" in results:
-            used = {"reach": None, "turn_deg": None, **results["policy_settings"]}  # no goal limit in the policy: as observed
+            used = {
+                "reach": None,
+                "turn_deg": None,
+                **results["policy_settings"],
+            }  # no goal limit in the policy: as observed
             for name, value in used.items():
                 if name in policy:
                     policy[name] = False if value is None and name in ("reach", "turn_deg") else value

@@ -65,7 +65,9 @@ def main(cfg: DictConfig) -> dict:
         if unknown:
             raise ValueError(f"families {unknown} are not among the transports {sorted(cfg.transports)}")
         if not isinstance(task, SuiteTask):
-            raise ValueError(f"generation needs a robosuite benchmark task (lift, stack, can, square), not {type(task).__name__}")
+            raise ValueError(
+                f"generation needs a robosuite benchmark task (lift, stack, can, square), not {type(task).__name__}"
+            )
         check_config(cfg, KEYS)
         shard_indices(cfg.n, cfg.shards, cfg.shard)  # shard in 0..shards-1, shards <= n
     except ValueError:

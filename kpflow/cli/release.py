@@ -53,9 +53,13 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
     checkpoint = read_checkpoint(src)
     out = {k: checkpoint[k] for k in KEEP if k in checkpoint}
     config = PolicyConfig.of_checkpoint(checkpoint, str(src))
-    config = config.given(kind, TransportConfig.of({k: v for k, v in (transport or {}).items() if v is not None}), **(settings or {}))
+    config = config.given(
+        kind, TransportConfig.of({k: v for k, v in (transport or {}).items() if v is not None}), **(settings or {})
+    )
     if config.kind == "kcfm" and config.transport.record():
-        raise ValueError(f"kind=kcfm releases the K-CFM as it is: transport options {sorted(config.transport.record())} would be unused")
+        raise ValueError(
+            f"kind=kcfm releases the K-CFM as it is: transport options {sorted(config.transport.record())} would be unused"
+        )
     if layout is not None:
         config = replace(config, layout=layout.record())
     if config.settings.record():
@@ -75,7 +79,9 @@ def release(src: str | Path, dst: str | Path, note: str = "", ema_only: bool = F
 
     with atomic_path(dst) as tmp:
         torch.save(out, tmp)
-        load_policy(tmp, kind="kcfm")  # a file that does not load back never reaches dst (its source index is written after it)
+        load_policy(
+            tmp, kind="kcfm"
+        )  # a file that does not load back never reaches dst (its source index is written after it)
     return dst
 
 
@@ -96,7 +102,9 @@ def release_source_index(dst: str | Path, layout, store: str | Path | None, epis
             full = SourceIndex.from_store(s, 1, None, None, range(min(episodes, s.n_episodes)), "keypoints", action_key)
     keep = slice(None, None, int(every))
     kept = SourceIndex(full.keypoints[keep], full.chunks[keep], None, None, full.episodes[keep])
-    return SourceSearch.of(DEFAULTS["search"]).reindexed(kept, layout).save(source_index_path(dst))  # searched as the builder reindexes it
+    return (
+        SourceSearch.of(DEFAULTS["search"]).reindexed(kept, layout).save(source_index_path(dst))
+    )  # searched as the builder reindexes it
 
 
 KEYS = {
@@ -119,7 +127,9 @@ def main(cfg: DictConfig) -> Path:
     check_config(cfg, KEYS)
     sources = cfg.source_store or cfg.get("data") is not None
     if sources and cfg.get("task") is None:
-        raise ValueError("source_store and data= need task=<name> (kpflow/conf/task/): the keypoint layout the index is searched with")
+        raise ValueError(
+            "source_store and data= need task=<name> (kpflow/conf/task/): the keypoint layout the index is searched with"
+        )
     layout = instantiate(cfg.task).policy_layout if cfg.get("task") is not None else None
     settings = OmegaConf.to_container(cfg.settings) if cfg.get("settings") else None
     transport = OmegaConf.to_container(cfg.transport, resolve=True) if cfg.get("transport") else None
@@ -127,7 +137,9 @@ def main(cfg: DictConfig) -> Path:
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
     if sources:
         demos = instantiate(cfg.data) if cfg.get("data") is not None else None
-        index = release_source_index(dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key, demos)
+        index = release_source_index(
+            dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key, demos
+        )
         print(f"source index {index} ({index.stat().st_size / 1e6:.2f} MB)")
     return dst
 

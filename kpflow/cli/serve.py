@@ -61,14 +61,38 @@ def main(cfg: DictConfig) -> None:
     if cfg.transported is not None:
         old = "transported_kcfm" if cfg.transported else "kcfm"
         if kind not in (None, old):
-            raise ValueError(f"transported={cfg.transported} (the old spelling of kind) contradicts kind={kind}: give kind alone")
+            raise ValueError(
+                f"transported={cfg.transported} (the old spelling of kind) contradicts kind={kind}: give kind alone"
+            )
         kind = old
-    overrides = {"kind": kind, "transport": OmegaConf.to_container(cfg.transport, resolve=True), **{k: cfg[k] for k in SETTINGS}}
+    overrides = {
+        "kind": kind,
+        "transport": OmegaConf.to_container(cfg.transport, resolve=True),
+        **{k: cfg[k] for k in SETTINGS},
+    }
     task = instantiate(cfg.task) if cfg.get("task") is not None else None
-    deployment = load_deployment(cfg.checkpoint, task, overrides, cfg.control_hz, cfg.input_margin, cfg.batch.max_size, float(cfg.batch.max_wait_ms))
+    deployment = load_deployment(
+        cfg.checkpoint,
+        task,
+        overrides,
+        cfg.control_hz,
+        cfg.input_margin,
+        cfg.batch.max_size,
+        float(cfg.batch.max_wait_ms),
+    )
     server = PolicyServer(deployment, cfg.host, cfg.port, int(cfg.max_message_mb * 2**20))
-    batching = f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait" if cfg.batch.max_size > 1 else "no batching"
-    log.info("%s from %s (sha256 %s; %s); Ctrl-C stops", deployment.metadata.policy, cfg.checkpoint, deployment.metadata.checkpoint_sha256[:12], batching)
+    batching = (
+        f"batches of up to {cfg.batch.max_size} rows, {cfg.batch.max_wait_ms:g} ms wait"
+        if cfg.batch.max_size > 1
+        else "no batching"
+    )
+    log.info(
+        "%s from %s (sha256 %s; %s); Ctrl-C stops",
+        deployment.metadata.policy,
+        cfg.checkpoint,
+        deployment.metadata.checkpoint_sha256[:12],
+        batching,
+    )
     server.run()
 
 

@@ -58,10 +58,18 @@ def check_resumable(model, last: Path) -> None:
     saved = read_checkpoint(last)["state_dict"]
     own = model.state_dict()
     missing, extra = sorted(set(own) - set(saved)), sorted(set(saved) - set(own))
-    shapes = [f"{k}: checkpoint {list(saved[k].shape)} vs model {list(own[k].shape)}" for k in own if k in saved and saved[k].shape != own[k].shape]
+    shapes = [
+        f"{k}: checkpoint {list(saved[k].shape)} vs model {list(own[k].shape)}"
+        for k in own
+        if k in saved and saved[k].shape != own[k].shape
+    ]
     if missing or extra or shapes:
-        what = "; ".join(shapes[:3] + [f"missing {missing[:3]}"] * bool(missing) + [f"unexpected {extra[:3]}"] * bool(extra))
-        raise ValueError(f"{last} does not fit the configured model ({what}): resume with the run's own model config (see its config.yaml)")
+        what = "; ".join(
+            shapes[:3] + [f"missing {missing[:3]}"] * bool(missing) + [f"unexpected {extra[:3]}"] * bool(extra)
+        )
+        raise ValueError(
+            f"{last} does not fit the configured model ({what}): resume with the run's own model config (see its config.yaml)"
+        )
 
 
 @config_dir_checked
@@ -70,7 +78,9 @@ def check_resumable(model, last: Path) -> None:
 def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, KEYS, write=False)  # claims the folder (rank 0): no other run passes the check below with us
     if "model_checkpoint" not in cfg.get("callbacks", {}):
-        raise ValueError("callbacks.model_checkpoint is missing: train.py checkpoints every run (see kpflow/conf/callbacks/default.yaml)")
+        raise ValueError(
+            "callbacks.model_checkpoint is missing: train.py checkpoints every run (see kpflow/conf/callbacks/default.yaml)"
+        )
     last = Path(cfg.callbacks.model_checkpoint.dirpath) / "last.ckpt"
     if cfg.resume and not last.exists():
         raise FileNotFoundError(f"resume=true but {last} does not exist: pass the run_name of an earlier run")
@@ -82,13 +92,18 @@ def main(cfg: DictConfig) -> dict:
         )
     datamodule = instantiate(cfg.data)
     fill_from_data(cfg.model, datamodule)
-    model = instantiate(cfg.model, _convert_="all")  # plain lists and dicts as hparams: checkpoints load with weights_only
+    model = instantiate(
+        cfg.model, _convert_="all"
+    )  # plain lists and dicts as hparams: checkpoints load with weights_only
     if cfg.resume:
         check_resumable(model, last)
     callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
     checkpoints = callbacks["model_checkpoint"]
     trainer = instantiate(
-        cfg.trainer, logger=make_loggers(cfg) or False, callbacks=[*callbacks.values(), WriteConfig(cfg)], plugins=[SafeCheckpointIO()],
+        cfg.trainer,
+        logger=make_loggers(cfg) or False,
+        callbacks=[*callbacks.values(), WriteConfig(cfg)],
+        plugins=[SafeCheckpointIO()],
         default_root_dir=out,
     )
     trainer.fit(model, datamodule=datamodule, ckpt_path=str(last) if cfg.resume else None)

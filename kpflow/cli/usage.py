@@ -85,7 +85,10 @@ def usage(command: str) -> str:
         shown = [(f"{k}={v}" if v else k, comment) for k, v, comment in keys]
         width = max(len(key) for key, _ in shown)
         lines += [f"  {key:<{width}}  {comment}" for key, comment in shown]
-    lines += ["", f"the whole composed config: kpflow-{command} [overrides] --cfg job; config groups: docs/reference/cli.md"]
+    lines += [
+        "",
+        f"the whole composed config: kpflow-{command} [overrides] --cfg job; config groups: docs/reference/cli.md",
+    ]
     return "\n".join(lines)
 
 

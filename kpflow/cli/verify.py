@@ -28,8 +28,16 @@ def main(cfg: DictConfig) -> int:
         with EpisodeStore(path, mode="a" if cfg.seal else "r") as store:
             sealed_before = store.sealed
             report = store.seal(cfg.progress) if cfg.seal else store.verify(cfg.progress)
-            state = "verified" if sealed_before else "sealed now" if store.sealed else "unsealed: read whole, values unverifiable (seal=true records them)"
-        print(f"{path}: {report['episodes']} episodes, {report['steps']} steps, fields {', '.join(report['fields'])}: {state}")
+            state = (
+                "verified"
+                if sealed_before
+                else "sealed now"
+                if store.sealed
+                else "unsealed: read whole, values unverifiable (seal=true records them)"
+            )
+        print(
+            f"{path}: {report['episodes']} episodes, {report['steps']} steps, fields {', '.join(report['fields'])}: {state}"
+        )
     return 0
 
 

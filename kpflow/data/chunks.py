@@ -222,8 +222,14 @@ class ChunkDataModule(lightning.LightningDataModule):
         if n == 0:
             raise ValueError(f"{self.path} holds no episodes")
         self.train_episodes, self.val_episodes = split_episodes(n, self.val_fraction, self.seed)
-        kwargs = dict(horizon=self.horizon, obs_key=self.obs_key, action_key=self.action_key, n_obs=self.n_obs, hindsight=self.hindsight,
-                      relabel_fragments=self.relabel_fragments)
+        kwargs = dict(
+            horizon=self.horizon,
+            obs_key=self.obs_key,
+            action_key=self.action_key,
+            n_obs=self.n_obs,
+            hindsight=self.hindsight,
+            relabel_fragments=self.relabel_fragments,
+        )
         self.train_set = ChunkDataset(store, self.train_episodes, **kwargs)
         self.val_set = ChunkDataset(store, self.val_episodes, **kwargs)
 

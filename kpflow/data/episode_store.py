@@ -129,8 +129,14 @@ def _digests(checksums: Any, where: str) -> dict[str, bytes] | None:
     except (AttributeError, TypeError, ValueError):
         digests = None  # not a dict of strings, or not hex
     lengths = {len(d) for d in digests.values()} if digests else set()
-    if digests is None or len(lengths) > 1 or any(len(d) * 2 != len(checksums[n]) or len(d) % _DIGEST for n, d in digests.items()):
-        raise ValueError(f"{where}: meta/.zattrs' checksums are damaged (each field must hold {_HEX} hex digits per episode)")
+    if (
+        digests is None
+        or len(lengths) > 1
+        or any(len(d) * 2 != len(checksums[n]) or len(d) % _DIGEST for n, d in digests.items())
+    ):
+        raise ValueError(
+            f"{where}: meta/.zattrs' checksums are damaged (each field must hold {_HEX} hex digits per episode)"
+        )
     return digests
 
 
@@ -146,7 +152,9 @@ def _check_ends(ends: np.ndarray, where: str) -> None:
         )
 
 
-def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dict[str, int | None], where: str) -> tuple[int, bool]:
+def _uncommitted(
+    raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dict[str, int | None], where: str
+) -> tuple[int, bool]:
     """How many entries of ``raw`` (the stored ``episode_ends``) are committed, and whether an uncommitted append
     (or a stale pending mark) is left to clean up; raise ``ValueError`` for any state a torn append cannot leave.
 
@@ -159,7 +167,9 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dic
         try:
             e, start, end = int(pending["episode"]), int(pending["start"]), int(pending["end"])
         except (KeyError, TypeError, ValueError):
-            raise ValueError(f"{where}: meta/.zattrs holds a malformed {_PENDING} mark {pending!r}; nothing was changed") from None
+            raise ValueError(
+                f"{where}: meta/.zattrs holds a malformed {_PENDING} mark {pending!r}; nothing was changed"
+            ) from None
         if n == e + 1 and raw[-1] == 0:  # torn commit: .zarray grown, value not written
             n = e
         elif not (n == e or (n == e + 1 and raw[-1] == end)):  # neither before the commit nor just after it
@@ -169,13 +179,17 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dic
             )
         prev = int(raw[e - 1]) if e else 0
         if prev != start:
-            raise ValueError(f"{where}: the pending episode {e} starts at row {start} but episode {e - 1} ends at {prev}: the index is damaged")
+            raise ValueError(
+                f"{where}: the pending episode {e} starts at row {start} but episode {e - 1} ends at {prev}: the index is damaged"
+            )
         committed = int(raw[n - 1]) if n else 0
         limit, extra_attrs = (end, 1) if n == e else (committed, 0)  # uncommitted: its rows and attrs may be there
     _check_ends(raw[:n], where)
     for name, count in rows.items():
         if count < committed:
-            raise ValueError(f"{where}: data/{name} has {count} rows but meta/episode_ends says {committed}: rows were lost")
+            raise ValueError(
+                f"{where}: data/{name} has {count} rows but meta/episode_ends says {committed}: rows were lost"
+            )
         if count > limit:
             what = "the index is empty" if not n else f"meta/episode_ends ends at row {committed}"
             raise ValueError(
@@ -184,7 +198,9 @@ def _uncommitted(raw: np.ndarray, pending: Any, rows: dict[str, int], lists: dic
             )
     for key, count in lists.items():
         if count is not None and count > n + extra_attrs:
-            raise ValueError(f"{where}: meta/.zattrs lists {key} for {count} episodes but the store holds {n}: the metadata is damaged")
+            raise ValueError(
+                f"{where}: meta/.zattrs lists {key} for {count} episodes but the store holds {n}: the metadata is damaged"
+            )
     dirty = pending is not None or n < len(raw) or any(c > committed for c in rows.values())
     return n, dirty
 
@@ -250,7 +266,9 @@ class EpisodeStore:
         self._meta: zarr.Group = self._root["meta"]
         self._ends_array = open_array(self._meta, "episode_ends", where)
         if self._ends_array.ndim != 1 or self._ends_array.dtype.kind not in "iu":
-            raise ValueError(f"{where}: meta/episode_ends must be a 1-D integer array; it is {self._ends_array.dtype} {list(self._ends_array.shape)}")
+            raise ValueError(
+                f"{where}: meta/episode_ends must be a 1-D integer array; it is {self._ends_array.dtype} {list(self._ends_array.shape)}"
+            )
         arrays = {name: open_array(self._data, name, where) for name in self._data.array_keys()}
         check_chunks(self._ends_array, self._ends_array.shape[0], where, "meta/episode_ends")  # before reading it whole
         raw = np.asarray(read(self._ends_array, slice(None), where, "meta/episode_ends"), dtype=np.int64)
@@ -259,14 +277,21 @@ class EpisodeStore:
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{where}: meta/.zattrs is damaged ({type(e).__name__}: {e})") from e
         if not isinstance(meta_attrs, dict):
-            raise ValueError(f"{where}: meta/.zattrs is damaged: it holds a JSON {type(meta_attrs).__name__}, not an object of attributes; restore the store from a copy")
+            raise ValueError(
+                f"{where}: meta/.zattrs is damaged: it holds a JSON {type(meta_attrs).__name__}, not an object of attributes; restore the store from a copy"
+            )
         if not isinstance(meta_attrs.get(_EPISODE_ATTRS, []), list):
-            raise ValueError(f"{where}: meta/.zattrs is damaged: its {_EPISODE_ATTRS} must be a list (one record per episode)")
+            raise ValueError(
+                f"{where}: meta/.zattrs is damaged: its {_EPISODE_ATTRS} must be a list (one record per episode)"
+            )
         pending = meta_attrs.get(_PENDING)
         self._schema: dict[str, dict] | None = meta_attrs.get(_FIELDS)
         self._digests = _digests(meta_attrs.get(_CHECKSUMS), where)
         rows = {name: a.shape[0] for name, a in arrays.items()}
-        lists = {"attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]), "checksums": None if self._digests is None else self._n_checksums}
+        lists = {
+            "attrs": None if meta_attrs.get(_EPISODE_ATTRS) is None else len(meta_attrs[_EPISODE_ATTRS]),
+            "checksums": None if self._digests is None else self._n_checksums,
+        }
         n, dirty = _uncommitted(raw, pending, rows, lists, where)
         self._ends = raw[:n]
         self._check_schema(arrays, n, pending is not None)
@@ -289,7 +314,9 @@ class EpisodeStore:
                 raise ValueError(f"{where}: meta/.zattrs holds checksums but no field record: the metadata is damaged")
             return
         if not isinstance(self._schema, dict) or not all(_field_spec_ok(spec) for spec in self._schema.values()):
-            raise ValueError(f"{where}: meta/.zattrs' field record is damaged: it must map each field to {{dtype, shape}}, got {str(self._schema)[:120]!r}")
+            raise ValueError(
+                f"{where}: meta/.zattrs' field record is damaged: it must map each field to {{dtype, shape}}, got {str(self._schema)[:120]!r}"
+            )
         if self._digests is None:
             raise ValueError(
                 f"{where}: meta/.zattrs records the fields but lost its checksums: the store was sealed and cannot be verified "
@@ -297,11 +324,17 @@ class EpisodeStore:
                 "record from meta/.zattrs), or restore the store from a copy"
             )
         if set(self._digests) != set(self._schema):
-            raise ValueError(f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)")
+            raise ValueError(
+                f"{where}: meta/.zattrs' field record or checksums are damaged (they must list the same fields)"
+            )
         if self._n_checksums < n:
-            raise ValueError(f"{where}: meta/.zattrs holds checksums for {self._n_checksums} episodes but the store has {n}: the metadata is damaged")
+            raise ValueError(
+                f"{where}: meta/.zattrs holds checksums for {self._n_checksums} episodes but the store has {n}: the metadata is damaged"
+            )
         if (n or arrays) and set(arrays) != set(self._schema) and not (pending and not n):
-            raise ValueError(f"{where}: the store's fields {sorted(arrays)} are not the recorded ones {sorted(self._schema)}")
+            raise ValueError(
+                f"{where}: the store's fields {sorted(arrays)} are not the recorded ones {sorted(self._schema)}"
+            )
         for name, a in arrays.items():
             spec = self._schema.get(name, {})
             if spec and (a.dtype != np.dtype(spec.get("dtype")) or list(a.shape[1:]) != list(spec.get("shape", []))):
@@ -399,7 +432,9 @@ class EpisodeStore:
 
     def _index(self, i: int) -> int:
         if not -self.n_episodes <= i < self.n_episodes:
-            raise IndexError(f"episode {i} out of range: the store has {self.n_episodes} episodes (valid: {-self.n_episodes}..{self.n_episodes - 1})")
+            raise IndexError(
+                f"episode {i} out of range: the store has {self.n_episodes} episodes (valid: {-self.n_episodes}..{self.n_episodes - 1})"
+            )
         return i % self.n_episodes
 
     def episode_slice(self, i: int) -> slice:
@@ -448,7 +483,11 @@ class EpisodeStore:
         got = episode_digests(values, (self._ends[first:stop] - start).tolist())
         want = self._digests[name][_DIGEST * first : _DIGEST * stop]
         if got != want:
-            i = first + next(k for k in range(stop - first) if got[_DIGEST * k : _DIGEST * (k + 1)] != want[_DIGEST * k : _DIGEST * (k + 1)])
+            i = first + next(
+                k
+                for k in range(stop - first)
+                if got[_DIGEST * k : _DIGEST * (k + 1)] != want[_DIGEST * k : _DIGEST * (k + 1)]
+            )
             raise ValueError(
                 f"{self.path}: field {name!r} of episode {i} does not match the checksum recorded when it was written: "
                 "the data on disk has changed (damaged or edited chunks)"
@@ -537,12 +576,23 @@ class EpisodeStore:
             mark[_EPISODE_ATTRS] = listed + [{}] * (self.n_episodes - len(listed)) + [dict(attrs or {})]
         mark[_FIELDS] = self._schema or _schema(values)
         earlier = mark.get(_CHECKSUMS) or {}
-        mark[_CHECKSUMS] = {name: earlier.get(name, "")[: _HEX * self.n_episodes] + episode_digests(v, [len(v)]).hex() for name, v in values.items()}
+        mark[_CHECKSUMS] = {
+            name: earlier.get(name, "")[: _HEX * self.n_episodes] + episode_digests(v, [len(v)]).hex()
+            for name, v in values.items()
+        }
         self._meta.attrs.put(mark)
         if not self.fields:
             for name, v in values.items():
                 chunks = (_chunk_rows(v[0].nbytes), *v.shape[1:])
-                self._data.create(name, shape=(0, *v.shape[1:]), chunks=chunks, dtype=v.dtype, compressor=_COMPRESSOR, fill_value=0, overwrite=True)
+                self._data.create(
+                    name,
+                    shape=(0, *v.shape[1:]),
+                    chunks=chunks,
+                    dtype=v.dtype,
+                    compressor=_COMPRESSOR,
+                    fill_value=0,
+                    overwrite=True,
+                )
         for name, v in values.items():  # 2. data rows (invisible until committed)
             array = self._data[name]
             array.resize((end, *array.shape[1:]))
@@ -582,7 +632,9 @@ class EpisodeStore:
             if v.shape[1:] != array.shape[1:]:
                 raise ValueError(f"field {name!r} has trailing shape {v.shape[1:]}; the store has {array.shape[1:]}")
             if not np.can_cast(v.dtype, array.dtype, casting="same_kind"):
-                raise ValueError(f"field {name!r} has dtype {v.dtype}, which does not cast to the store's {array.dtype}")
+                raise ValueError(
+                    f"field {name!r} has dtype {v.dtype}, which does not cast to the store's {array.dtype}"
+                )
             out[name] = v.astype(array.dtype, copy=False)
         return out
 
@@ -598,7 +650,9 @@ def _acquire(path: Path, wait: float | None) -> FileLock:
     try:
         return FileLock(path / LOCK_NAME, wait=wait, on_wait=say)
     except TimeoutError as e:
-        raise TimeoutError(f"{path} cannot be opened for writing: {e} (EpisodeStore(..., wait=SECONDS | None))") from None
+        raise TimeoutError(
+            f"{path} cannot be opened for writing: {e} (EpisodeStore(..., wait=SECONDS | None))"
+        ) from None
 
 
 def _remove_partials(path: Path) -> None:
@@ -621,7 +675,9 @@ def _episode_arrays(episode: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         if v.ndim == 0:
             raise ValueError(f"field {name!r} is a scalar; expected an array [T, ...] with a leading time axis")
         if v.dtype.kind not in DTYPE_KINDS or v.dtype.itemsize > 8:
-            raise ValueError(f"field {name!r} has dtype {v.dtype}; only bool, integer and float arrays of at most 8 bytes are stored")
+            raise ValueError(
+                f"field {name!r} has dtype {v.dtype}; only bool, integer and float arrays of at most 8 bytes are stored"
+            )
         values[name] = v
     lengths = {name: len(v) for name, v in values.items()}
     if len(set(lengths.values())) > 1:

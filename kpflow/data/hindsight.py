@@ -47,9 +47,13 @@ class HindsightGoals:
 
     def __post_init__(self) -> None:
         if len(self.object) != len(self.goal) or not self.object:
-            raise ValueError(f"object and goal need the same number (>= 1) of keypoints; got {len(self.object)} and {len(self.goal)}")
+            raise ValueError(
+                f"object and goal need the same number (>= 1) of keypoints; got {len(self.object)} and {len(self.goal)}"
+            )
         if set(self.object) & set(self.goal):
-            raise ValueError(f"a keypoint cannot be both the object's and the goal's: {sorted(set(self.object) & set(self.goal))}")
+            raise ValueError(
+                f"a keypoint cannot be both the object's and the goal's: {sorted(set(self.object) & set(self.goal))}"
+            )
 
     def relabel(self, obs: np.ndarray, episode_ends: np.ndarray, fragments: np.ndarray | None = None) -> np.ndarray:
         """A copy of the concatenated observations ``obs [N, K, D]`` of episodes ending (exclusive) at the rows
@@ -59,14 +63,20 @@ class HindsightGoals:
         obs = np.asarray(obs)
         used = (*self.object, *self.goal)
         if obs.ndim != 3 or min(used) < 0 or max(used) >= obs.shape[1]:
-            raise ValueError(f"need observations [N, K, D] with keypoints {min(used)}..{max(used)}; got shape {obs.shape}")
+            raise ValueError(
+                f"need observations [N, K, D] with keypoints {min(used)}..{max(used)}; got shape {obs.shape}"
+            )
         ends = np.asarray(episode_ends, np.int64)
         if ends.ndim != 1 or len(ends) == 0 or ends[-1] != len(obs) or (np.diff(ends, prepend=0) < 1).any():
-            raise ValueError(f"episode_ends must rise strictly from >= 1 to the number of rows ({len(obs)}); got {ends[:5]}...")
+            raise ValueError(
+                f"episode_ends must rise strictly from >= 1 to the number of rows ({len(obs)}); got {ends[:5]}..."
+            )
         lengths = np.diff(ends, prepend=0)
         fragments = np.zeros(len(ends), bool) if fragments is None else np.asarray(fragments)
         if fragments.shape != ends.shape or fragments.dtype != bool:
-            raise ValueError(f"fragments must be one bool per episode ({len(ends)}); got {fragments.dtype} {fragments.shape}")
+            raise ValueError(
+                f"fragments must be one bool per episode ({len(ends)}); got {fragments.dtype} {fragments.shape}"
+            )
         rows = ~np.repeat(fragments, lengths)  # the rows to relabel
         last = np.repeat(ends - 1, lengths)[rows]  # each such row's episode's last row
         out = obs.copy()

@@ -26,8 +26,15 @@ from ..maps.map_module import KeypointPairs
 PairSampler = Callable[[int, np.random.Generator], tuple[np.ndarray, np.ndarray]]
 
 
-def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.random.Generator, jitter: float = 0.1,
-                chunk: int = 2000, teacher: Callable[[], TransportMap] = ILWRMap) -> KeypointPairs:
+def add_queries(
+    source: np.ndarray,
+    target: np.ndarray,
+    n_queries: int,
+    rng: np.random.Generator,
+    jitter: float = 0.1,
+    chunk: int = 2000,
+    teacher: Callable[[], TransportMap] = ILWRMap,
+) -> KeypointPairs:
     """The pairs with their query points and the ``teacher``'s targets (module docstring), as float32 tensors."""
     src, tgt = torch.from_numpy(np.asarray(source, np.float64)), torch.from_numpy(np.asarray(target, np.float64))
     b, _, d = src.shape
@@ -35,7 +42,9 @@ def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.
     spread = (src - centre).square().sum(-1).mean(-1)[:, None, None].sqrt()
     n_near = n_queries // 2
     pick = torch.from_numpy(rng.integers(0, src.shape[1], (b, n_near)))
-    near = torch.gather(src, 1, pick[..., None].expand(-1, -1, d)) + jitter * spread * torch.from_numpy(rng.standard_normal((b, n_near, d)))
+    near = torch.gather(src, 1, pick[..., None].expand(-1, -1, d)) + jitter * spread * torch.from_numpy(
+        rng.standard_normal((b, n_near, d))
+    )
     lo, hi = src.amin(1, keepdim=True), src.amax(1, keepdim=True)
     lo, hi = lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo)
     box = lo + (hi - lo) * torch.from_numpy(rng.random((b, n_queries - n_near, d)))
@@ -44,7 +53,9 @@ def add_queries(source: np.ndarray, target: np.ndarray, n_queries: int, rng: np.
     batched = teacher().supports_batch
     steps = range(0, b if n_queries else 0, chunk if batched else 1)
     with torch.no_grad():  # a teacher that fits one pair at a time (the GP: ~3 ms each) shows its progress
-        for i in tqdm(steps, desc="distillation targets", unit="pair", disable=batched or len(steps) < 1000, mininterval=5.0):
+        for i in tqdm(
+            steps, desc="distillation targets", unit="pair", disable=batched or len(steps) < 1000, mininterval=5.0
+        ):
             s = slice(i, i + chunk) if batched else i
             targets[s] = teacher().fit(src[s], tgt[s])(queries[s])
     return KeypointPairs(src.float(), tgt.float(), queries.float(), targets.float())
@@ -103,7 +114,9 @@ class KeypointPairDataModule(lightning.LightningDataModule):
         source, target = self.sampler(self.n_pairs, rng)
         source, target = np.asarray(source), np.asarray(target)
         if source.shape != target.shape or source.ndim != 3 or len(source) != self.n_pairs:
-            raise ValueError(f"the pair sampler must return source and target [{self.n_pairs}, N, D]; got {source.shape} and {target.shape}")
+            raise ValueError(
+                f"the pair sampler must return source and target [{self.n_pairs}, N, D]; got {source.shape} and {target.shape}"
+            )
         if not (np.isfinite(source).all() and np.isfinite(target).all()):
             raise ValueError("the pair sampler returned NaN or inf keypoints")
         pairs = add_queries(source, target, self.n_queries, rng, self.jitter, teacher=self.teacher)
@@ -114,7 +127,11 @@ class KeypointPairDataModule(lightning.LightningDataModule):
         if pairs is None:
             raise RuntimeError("call setup() before asking for a dataloader")
         data = _Pairs(pairs)
-        order = RandomSampler(data, generator=torch.Generator().manual_seed(self.seed)) if shuffle else SequentialSampler(data)
+        order = (
+            RandomSampler(data, generator=torch.Generator().manual_seed(self.seed))
+            if shuffle
+            else SequentialSampler(data)
+        )
         return DataLoader(data, sampler=BatchSampler(order, self.batch_size, drop_last=False), batch_size=None)
 
     def train_dataloader(self) -> DataLoader:

@@ -61,7 +61,9 @@ def _width(spec: dict, where: str) -> int:
         raise ValueError(f"{where} has no valid shape in info.json ({shape!r})")
     width = int(np.prod(shape))
     if width > MAX_WIDTH:
-        raise ValueError(f"{where} has {width} values per frame; kpflow imports state and action features of at most {MAX_WIDTH}")
+        raise ValueError(
+            f"{where} has {width} values per frame; kpflow imports state and action features of at most {MAX_WIDTH}"
+        )
     return width
 
 
@@ -117,18 +119,28 @@ class KeypointMap:
 
     def __post_init__(self) -> None:
         if not self.columns:
-            raise ValueError(f"keypoint_map maps no keypoints: give keypoints and robot columns, e.g. {MAP_EXAMPLE} ({MAP_HELP})")
+            raise ValueError(
+                f"keypoint_map maps no keypoints: give keypoints and robot columns, e.g. {MAP_EXAMPLE} ({MAP_HELP})"
+            )
         if len(self.names) != len(self.columns) or not 0 <= self.robot <= len(self.columns):
-            raise ValueError(f"keypoint_map: {len(self.columns)} keypoints need as many names ({len(self.names)} given) and at most that many robot ones")
+            raise ValueError(
+                f"keypoint_map: {len(self.columns)} keypoints need as many names ({len(self.names)} given) and at most that many robot ones"
+            )
         dims = {len(c) for c in self.columns}
         if len(dims) != 1 or not dims <= {2, 3}:
             given = ", ".join(f"{n}: {list(c)}" for n, c in zip(self.names, self.columns))
-            raise ValueError(f"keypoint_map: every keypoint needs the same number of columns, 2 (x, y) or 3 (x, y, z); it gives {given}")
+            raise ValueError(
+                f"keypoint_map: every keypoint needs the same number of columns, 2 (x, y) or 3 (x, y, z); it gives {given}"
+            )
         if len(set(self.names)) != len(self.names):
-            raise ValueError(f"keypoint_map names two keypoints alike: {list(self.names)} (the robot's are robot, robot0, robot1, ...)")
+            raise ValueError(
+                f"keypoint_map names two keypoints alike: {list(self.names)} (the robot's are robot, robot0, robot1, ...)"
+            )
         flat = self.flat_columns
         if len(set(flat)) != len(flat):
-            raise ValueError(f"keypoint_map names the columns {sorted({c for c in flat if flat.count(c) > 1})} more than once: each column is one value of one keypoint")
+            raise ValueError(
+                f"keypoint_map names the columns {sorted({c for c in flat if flat.count(c) > 1})} more than once: each column is one value of one keypoint"
+            )
 
     @classmethod
     def from_config(cls, spec: KeypointMap | Mapping) -> KeypointMap:
@@ -138,7 +150,9 @@ class KeypointMap:
             return spec
         if not isinstance(spec, Mapping) or "keypoints" not in spec or set(spec) - {"keypoints", "robot"}:
             found = f"the keys {sorted(map(str, spec))}" if isinstance(spec, Mapping) else f"a {type(spec).__name__}"
-            raise ValueError(f"keypoint_map takes the keys keypoints and robot, e.g. {MAP_EXAMPLE}; it has {found} ({MAP_HELP})")
+            raise ValueError(
+                f"keypoint_map takes the keys keypoints and robot, e.g. {MAP_EXAMPLE}; it has {found} ({MAP_HELP})"
+            )
         named = _keypoint_columns(spec["keypoints"], "keypoints")
         robot = _keypoint_columns(spec.get("robot") or [], "robot")
         keypoints = named + robot
@@ -162,9 +176,13 @@ class KeypointMap:
                              f"add its names there (features.observation.state.names: [..., ...])")  # fmt: skip
         found = [str(n) for n in found]
         if missing := [c for c in self.flat_columns if c not in found]:
-            raise ValueError(f"{where} has no columns {missing} that keypoint_map names; its columns are {found}: correct data.keypoint_map ({MAP_HELP})")
+            raise ValueError(
+                f"{where} has no columns {missing} that keypoint_map names; its columns are {found}: correct data.keypoint_map ({MAP_HELP})"
+            )
         if repeated := sorted({c for c in self.flat_columns if found.count(c) > 1}):
-            raise ValueError(f"{where} names more than one column {repeated}: keypoint_map cannot tell which one is meant")
+            raise ValueError(
+                f"{where} names more than one column {repeated}: keypoint_map cannot tell which one is meant"
+            )
         return np.array([[found.index(c) for c in cols] for cols in self.columns], np.int64)
 
     def apply(self, state: np.ndarray, names, where: str = "observation.state") -> np.ndarray:
@@ -185,7 +203,9 @@ def _keypoint_columns(spec, key: str) -> list[tuple[str, tuple[str, ...]]]:
 
     def columns(value, name: str) -> tuple[str, ...]:
         if not is_list(value) or not all(isinstance(c, str) for c in value):
-            raise ValueError(f"keypoint_map.{key}: {name} must be a list of its 2 or 3 column names (x, y[, z]); got {value!r}")
+            raise ValueError(
+                f"keypoint_map.{key}: {name} must be a list of its 2 or 3 column names (x, y[, z]); got {value!r}"
+            )
         return tuple(value)
 
     if isinstance(spec, Mapping):
@@ -198,7 +218,9 @@ def _keypoint_columns(spec, key: str) -> list[tuple[str, tuple[str, ...]]]:
     if is_list(spec):
         prefix = "robot" if key == "robot" else "k"
         return [(f"{prefix}{i}", columns(value, f"{key}[{i}]")) for i, value in enumerate(spec)]
-    raise ValueError(f"keypoint_map.{key} must map names to column lists or list column lists, e.g. {MAP_EXAMPLE}; got {spec!r}")
+    raise ValueError(
+        f"keypoint_map.{key} must map names to column lists or list column lists, e.g. {MAP_EXAMPLE}; got {spec!r}"
+    )
 
 
 def _keypoints_shaped(flat: np.ndarray, names, field: str, where: str) -> np.ndarray:
@@ -208,11 +230,17 @@ def _keypoints_shaped(flat: np.ndarray, names, field: str, where: str) -> np.nda
     if isinstance(names, list) and len(set(map(str, names))) != len(names):
         repeated = sorted({str(n) for n in names if names.count(n) > 1})
         raise ValueError(f"{where} names its values with repeats ({repeated[:3]}): each value needs its own name")
-    if field != "keypoints" or not isinstance(names, list) or not any(re.fullmatch(r"k\d+\.[xyz]", str(n)) for n in names):
+    if (
+        field != "keypoints"
+        or not isinstance(names, list)
+        or not any(re.fullmatch(r"k\d+\.[xyz]", str(n)) for n in names)
+    ):
         return flat
     layout = keypoint_layout(names)
     if layout is None or layout[0] * layout[1] != flat.shape[1]:
-        raise ValueError(f"{where}: its keypoint names are not k0.x, k0.y, ... in order for its {flat.shape[1]} values: {names[:6]!r}...")
+        raise ValueError(
+            f"{where}: its keypoint names are not k0.x, k0.y, ... in order for its {flat.shape[1]} values: {names[:6]!r}..."
+        )
     return flat.reshape(len(flat), *layout)
 
 
@@ -232,7 +260,9 @@ def _stats(values: np.ndarray) -> dict[str, list]:
 
 def _tasks_table(tasks: list[str]) -> pa.Table:
     """``meta/tasks.parquet`` as pandas writes it (lerobot reads it with pandas: the task string is the index)."""
-    table = pa.table({"task_index": pa.array(range(len(tasks)), pa.int64()), "__index_level_0__": pa.array(tasks, pa.string())})
+    table = pa.table(
+        {"task_index": pa.array(range(len(tasks)), pa.int64()), "__index_level_0__": pa.array(tasks, pa.string())}
+    )
     pandas = {"index_columns": ["__index_level_0__"],
               "column_indexes": [{"name": None, "field_name": None, "pandas_type": "unicode", "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
               "columns": [{"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64", "metadata": None},
@@ -268,9 +298,14 @@ def export_lerobot(
     if unknown := sorted(set(fields) - set(store.fields)):
         raise ValueError(f"fields {unknown} are not in the store (it has {list(store.fields)})")
     if not fps > 0 or chunks_size < 1 or not data_files_size_in_mb > 0:
-        raise ValueError(f"fps, chunks_size and data_files_size_in_mb must be positive; got {fps}, {chunks_size}, {data_files_size_in_mb}")
+        raise ValueError(
+            f"fps, chunks_size and data_files_size_in_mb must be positive; got {fps}, {chunks_size}, {data_files_size_in_mb}"
+        )
     arrays = {f: store.field(f) for f in fields}
-    features = {feature_name(f): {"dtype": "float32", "shape": [int(np.prod(a.shape[1:]))], "names": _names(f, a.shape[1:])} for f, a in arrays.items()}
+    features = {
+        feature_name(f): {"dtype": "float32", "shape": [int(np.prod(a.shape[1:]))], "names": _names(f, a.shape[1:])}
+        for f, a in arrays.items()
+    }
     ends = store.episode_ends
     starts = np.concatenate([[0], ends[:-1]])
     index = np.arange(int(ends[-1]))
@@ -291,7 +326,9 @@ def export_lerobot(
     files.append((chunk, file, first, int(ends[-1])))
     with atomic_dir(root, overwrite=overwrite) as tmp:
         for c, f, a, b in files:
-            table = pa.table({name: _vector_column(v[a:b]) if v.ndim == 2 else pa.array(v[a:b]) for name, v in columns.items()})
+            table = pa.table(
+                {name: _vector_column(v[a:b]) if v.ndim == 2 else pa.array(v[a:b]) for name, v in columns.items()}
+            )
             path = tmp / DATA_PATH.format(chunk_index=c, file_index=f)
             path.parent.mkdir(parents=True, exist_ok=True)
             pq.write_table(table, path)
@@ -338,7 +375,10 @@ def read_info(root: str | Path) -> dict:
 
 
 def import_lerobot(
-    root: str | Path, store_path: str | Path, columns: Mapping[str, str] | None = None, keypoint_map: KeypointMap | Mapping | None = None
+    root: str | Path,
+    store_path: str | Path,
+    columns: Mapping[str, str] | None = None,
+    keypoint_map: KeypointMap | Mapping | None = None,
 ) -> EpisodeStore:
     """The state/action columns of the LeRobot v3 dataset at ``root`` as a new :class:`EpisodeStore` at
     ``store_path``, one episode per ``episode_index`` in order.
@@ -368,17 +408,23 @@ def import_lerobot(
     for feature in picked:  # the mapped columns are there, before any data file is read
         keypoint_map.indices(features[feature].get("names"), f"{root}: feature {feature}")
     if int(info["total_frames"]) < 1:
-        raise ValueError(f"{root}: info.json declares {info['total_frames']} frames: a dataset to import needs at least one")
+        raise ValueError(
+            f"{root}: info.json declares {info['total_frames']} frames: a dataset to import needs at least one"
+        )
     check_parquet_rows(files, int(info["total_frames"]), {**widths, "episode_index": 1, "frame_index": 1}, str(root))
     table = pa.concat_tables([read_parquet(f, [*columns, "episode_index", "frame_index"], str(root)) for f in files])
     episode = table["episode_index"].to_numpy()
     order = np.lexsort((table["frame_index"].to_numpy(), episode))
     values = {}
     for feature, name in columns.items():
-        flat = np.asarray(table[feature].combine_chunks().flatten().to_numpy(), np.float32).reshape(table.num_rows, -1)[order]
+        flat = np.asarray(table[feature].combine_chunks().flatten().to_numpy(), np.float32).reshape(table.num_rows, -1)[
+            order
+        ]
         shape = features[feature]["shape"]
         if flat.shape[1] != int(np.prod(shape)):
-            raise ValueError(f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame")
+            raise ValueError(
+                f"{root}: feature {feature} has shape {shape} in info.json but {flat.shape[1]} values per frame"
+            )
         if feature in picked:
             values[name] = keypoint_map.apply(flat, features[feature].get("names"), f"{root}: feature {feature}")
         else:

@@ -56,12 +56,16 @@ class SourceIndex:
         if weights.shape != (k,):
             raise ValueError(f"weights must have one entry per keypoint ({k}), got shape {weights.shape}")
         if not (np.isfinite(weights).all() and (weights >= 0).all() and weights.any()):
-            raise ValueError(f"keypoint weights must be finite, >= 0 and not all 0 (every distance would be NaN or 0); got {weights.tolist()}")
+            raise ValueError(
+                f"keypoint weights must be finite, >= 0 and not all 0 (every distance would be NaN or 0); got {weights.tolist()}"
+            )
         self.keypoints, self.chunks, self.weights = keypoints, chunks, weights
         if episodes is not None:
             episodes = np.asarray(episodes)
             if episodes.shape != (len(keypoints),) or not np.issubdtype(episodes.dtype, np.integer):
-                raise ValueError(f"episodes must hold one integer per source ({len(keypoints)}), got {episodes.dtype} {episodes.shape}")
+                raise ValueError(
+                    f"episodes must hold one integer per source ({len(keypoints)}), got {episodes.dtype} {episodes.shape}"
+                )
             episodes = episodes.astype(np.int64)
         self.episodes = episodes
         self.reference = None if reference is None else list(reference)
@@ -91,7 +95,9 @@ class SourceIndex:
         takeovers of a corrected store halve policy transportation's success with the object outside the training
         region: results/pusht_table1.md.)"""
         episodes = range(store.n_episodes) if episodes is None else episodes
-        dataset = ChunkDataset(store, episodes, horizon, obs_key, action_key, hindsight=hindsight, relabel_fragments=True)
+        dataset = ChunkDataset(
+            store, episodes, horizon, obs_key, action_key, hindsight=hindsight, relabel_fragments=True
+        )
         keypoints, chunks, _ = dataset.arrays()
         return cls(keypoints, chunks, weights, reference, dataset.episodes())
 
@@ -102,7 +108,9 @@ class SourceIndex:
         reference = np.asarray([] if self.reference is None else self.reference, np.int64)
         episodes = {} if self.episodes is None else {"episodes": self.episodes}
         with atomic_path(path) as tmp:
-            np.savez_compressed(tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference, **episodes)
+            np.savez_compressed(
+                tmp, keypoints=self.keypoints, chunks=self.chunks, weights=self.weights, reference=reference, **episodes
+            )
         return Path(path)
 
     @classmethod

@@ -35,10 +35,14 @@ def episode_order(stores: Sequence[EpisodeStore], key: str) -> list[tuple[int, i
     try:
         entries.sort(key=lambda entry: entry[0])
     except TypeError:
-        raise ValueError(f"the episodes' {key!r} attributes are not comparable: {sorted({type(v).__name__ for v, *_ in entries})}") from None
+        raise ValueError(
+            f"the episodes' {key!r} attributes are not comparable: {sorted({type(v).__name__ for v, *_ in entries})}"
+        ) from None
     for (a, s, e), (b, t, f) in zip(entries, entries[1:]):
         if a == b:
-            raise ValueError(f"{key} {a!r} is held twice: by episode {e} of {stores[s].path} and episode {f} of {stores[t].path}")
+            raise ValueError(
+                f"{key} {a!r} is held twice: by episode {e} of {stores[s].path} and episode {f} of {stores[t].path}"
+            )
     return [(s, e) for _, s, e in entries]
 
 
@@ -78,7 +82,11 @@ def merge_stores(out: str | Path, sources: Sequence[str | Path], key: str | None
         stores = [stack.enter_context(EpisodeStore(p)) for p in sources]
         _check_compatible(stores)
         if order is None:
-            order = episode_order(stores, key) if key is not None else [(s, e) for s, st in enumerate(stores) for e in range(st.n_episodes)]
+            order = (
+                episode_order(stores, key)
+                if key is not None
+                else [(s, e) for s, st in enumerate(stores) for e in range(st.n_episodes)]
+            )
         order = [(int(s), int(e)) for s, e in order]
         if len(set(order)) != len(order):
             raise ValueError("the merge order names an episode twice")
@@ -104,18 +112,24 @@ def _check_compatible(stores: Sequence[EpisodeStore]) -> None:
             first_attrs = (store, attrs)
         elif attrs != first_attrs[1]:
             keys = sorted(k for k in set(attrs) | set(first_attrs[1]) if attrs.get(k) != first_attrs[1].get(k))
-            raise ValueError(f"{first_attrs[0].path} and {store.path} hold different store attrs ({', '.join(keys)}): not parts of one store")
+            raise ValueError(
+                f"{first_attrs[0].path} and {store.path} hold different store attrs ({', '.join(keys)}): not parts of one store"
+            )
         layout = _layout(store)
         if layout is not None:
             layouts.append((store, layout))
     for (a, la), (b, lb) in zip(layouts, layouts[1:]):
         if la != lb:
             names = sorted(n for n in set(la) | set(lb) if la.get(n) != lb.get(n))
-            what = "; ".join(f"{n}: {la.get(n, 'absent')} in {a.path}, {lb.get(n, 'absent')} in {b.path}" for n in names)
+            what = "; ".join(
+                f"{n}: {la.get(n, 'absent')} in {a.path}, {lb.get(n, 'absent')} in {b.path}" for n in names
+            )
             raise ValueError(f"the stores' fields differ ({what}): they cannot be merged without casting")
 
 
-def combine_stores(out: str | Path, sources: Sequence[tuple[str | Path, int | None]], fields: Sequence[str] | None = None) -> Path:
+def combine_stores(
+    out: str | Path, sources: Sequence[tuple[str | Path, int | None]], fields: Sequence[str] | None = None
+) -> Path:
     """Write a new store ``out`` of the first ``n`` episodes (None: all) of each ``(store, n)`` of ``sources`` in turn
     (e.g. 90 human demonstrations and a policy's self-generated ones), holding ``fields`` (None: the fields every
     source has). Each episode keeps its attrs and gains ``source`` (its store's place in ``sources``) and
@@ -144,8 +158,18 @@ def combine_stores(out: str | Path, sources: Sequence[tuple[str | Path, int | No
             if None in kinds.values():
                 raise ValueError(f"field {name!r} is missing from {[p for p, k in kinds.items() if k is None]}")
             if len(set(kinds.values())) > 1:
-                raise ValueError(f"field {name!r} is stored differently: " + "; ".join(f"{k[0]} {k[1]} in {p}" for p, k in kinds.items()))
-        provenance = [{"path": str(store.path), "episodes": store.n_episodes if n is None else int(n), "attrs": _store_attrs(store)} for store, n in stores]
+                raise ValueError(
+                    f"field {name!r} is stored differently: "
+                    + "; ".join(f"{k[0]} {k[1]} in {p}" for p, k in kinds.items())
+                )
+        provenance = [
+            {
+                "path": str(store.path),
+                "episodes": store.n_episodes if n is None else int(n),
+                "attrs": _store_attrs(store),
+            }
+            for store, n in stores
+        ]
         with atomic_dir(out) as tmp, EpisodeStore(tmp, mode="a") as combined:
             combined.attrs.put({"combined_from": provenance})
             for s, (store, n) in enumerate(stores):

@@ -64,7 +64,10 @@ def check_array_metadata(raw: bytes, where: str) -> dict[str, Any]:
         raise ValueError(f"{where}/.zarray is not zarr v2 array metadata")
     dtype = _dtype(meta.get("dtype"), where)
     shape, chunks = meta.get("shape"), meta.get("chunks")
-    ints = all(isinstance(v, list) and len(v) <= _MAX_DIMS and all(isinstance(n, int) and not isinstance(n, bool) for n in v) for v in (shape, chunks))
+    ints = all(
+        isinstance(v, list) and len(v) <= _MAX_DIMS and all(isinstance(n, int) and not isinstance(n, bool) for n in v)
+        for v in (shape, chunks)
+    )
     if not ints or len(shape) != len(chunks) or min(shape, default=0) < 0 or min(chunks, default=1) < 1:
         raise ValueError(f"{where}/.zarray has an invalid shape {shape!r} or chunks {chunks!r}")
     chunk_bytes = math.prod(chunks) * dtype.itemsize
@@ -93,7 +96,9 @@ def check_array_metadata(raw: bytes, where: str) -> dict[str, Any]:
 
 def _dtype(spec: Any, where: str) -> np.dtype:
     if not isinstance(spec, str):
-        raise UnsafeStoreError(f"{where}: dtype {spec!r} is structured; kpflow reads plain numeric arrays ({DTYPE_KINDS})")
+        raise UnsafeStoreError(
+            f"{where}: dtype {spec!r} is structured; kpflow reads plain numeric arrays ({DTYPE_KINDS})"
+        )
     try:
         dtype = np.dtype(spec)
     except TypeError:
@@ -118,9 +123,13 @@ def check_chunk(raw: bytes, meta: dict[str, Any], where: str, key: str) -> None:
             raise ValueError(f"{where}: chunk {key} is damaged: {len(raw)} bytes, shorter than a blosc header")
         *_, size, _, compressed = _BLOSC_HEADER.unpack_from(raw)
         if compressed != len(raw):
-            raise ValueError(f"{where}: chunk {key} is damaged: its header says {compressed} bytes, the file holds {len(raw)}")
+            raise ValueError(
+                f"{where}: chunk {key} is damaged: its header says {compressed} bytes, the file holds {len(raw)}"
+            )
     if size != expected:
-        raise UnsafeStoreError(f"{where}: chunk {key} decodes to {size} bytes, but a chunk of this array is {expected}: refusing to decode it")
+        raise UnsafeStoreError(
+            f"{where}: chunk {key} decodes to {size} bytes, but a chunk of this array is {expected}: refusing to decode it"
+        )
 
 
 class CheckedStore(zarr.storage.DirectoryStore):
@@ -156,7 +165,9 @@ class CheckedStore(zarr.storage.DirectoryStore):
         else:
             most = self._meta(self._array_of(key))["chunk_bytes"] + _BLOSC_OVERHEAD
         if size > most:
-            raise UnsafeStoreError(f"{self.path}: {key} is {size} bytes on disk, more than it can hold ({most}); refusing to read it")
+            raise UnsafeStoreError(
+                f"{self.path}: {key} is {size} bytes on disk, more than it can hold ({most}); refusing to read it"
+            )
 
     def __setitem__(self, key: str, value) -> None:
         super().__setitem__(key, value)
@@ -193,7 +204,9 @@ def open_array(group: zarr.Group, name: str, where: str) -> zarr.Array:
     except UnsafeStoreError:
         raise
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{where}: field {name!r} has damaged metadata ({group.path + '/' if group.path else ''}{name}/.zarray: {type(e).__name__}: {e})") from e
+        raise ValueError(
+            f"{where}: field {name!r} has damaged metadata ({group.path + '/' if group.path else ''}{name}/.zarray: {type(e).__name__}: {e})"
+        ) from e
     if not isinstance(array, zarr.Array):
         raise ValueError(f"{where}: {name!r} is a group, not an array")
     return array
@@ -250,4 +263,6 @@ def read(array: zarr.Array, selection: Any, where: str, field: str) -> np.ndarra
     except UnsafeStoreError:
         raise
     except (RuntimeError, ValueError, TypeError, OSError) as e:
-        raise ValueError(f"{where}: field {field!r} could not be read: a chunk is damaged ({type(e).__name__}: {e})") from e
+        raise ValueError(
+            f"{where}: field {field!r} could not be read: a chunk is damaged ({type(e).__name__}: {e})"
+        ) from e

@@ -56,8 +56,20 @@ def read_run(label: str, folder: str | Path) -> list[SweepRow]:
         steps, solver = load_checkpoint(KCFM, policy["checkpoint"]).sampler(steps, solver)
     results = json.loads((folder / "results.json").read_text())
     return [
-        SweepRow(label, str(solver), int(steps), s["condition"], int(s["episodes"]), s["success_085"], tuple(s["ci_085"]),
-                 s["success_095"], tuple(s["ci_095"]), s["score"], s["latency_ms"], str(folder))  # fmt: skip
+        SweepRow(
+            label,
+            str(solver),
+            int(steps),
+            s["condition"],
+            int(s["episodes"]),
+            s["success_085"],
+            tuple(s["ci_085"]),
+            s["success_095"],
+            tuple(s["ci_095"]),
+            s["score"],
+            s["latency_ms"],
+            str(folder),
+        )  # fmt: skip
         for s in results["summary"]
     ]
 
@@ -68,8 +80,11 @@ def table(rows: list[SweepRow]) -> list[str]:
     return [
         "| policy | sampler | network calls | condition | episodes | success @0.85 | success @0.95 | score | latency ms (median) | run |",
         "|---|---|---|---|---|---|---|---|---|---|",
-        *[f"| {r.label} | {r.solver} | {r.calls} | {r.condition} | {r.episodes} | {pct(r.success_085, r.ci_085)} | {pct(r.success_095, r.ci_095)} | "
-          f"{r.score:.3f} | {r.latency_ms:.1f} | `{r.run}` |" for r in rows],  # fmt: skip
+        *[
+            f"| {r.label} | {r.solver} | {r.calls} | {r.condition} | {r.episodes} | {pct(r.success_085, r.ci_085)} | {pct(r.success_095, r.ci_095)} | "
+            f"{r.score:.3f} | {r.latency_ms:.1f} | `{r.run}` |"
+            for r in rows
+        ],  # fmt: skip
     ]
 
 
@@ -81,11 +96,20 @@ def figure(rows: list[SweepRow], path: str | Path) -> Path:
     for row_axes, condition in zip(axes, conditions):
         curves = dict.fromkeys((r.label, r.solver) for r in rows if r.condition == condition)
         for label, solver in curves:
-            pts = sorted((r for r in rows if (r.label, r.solver, r.condition) == (label, solver, condition)), key=lambda r: r.calls)
+            pts = sorted(
+                (r for r in rows if (r.label, r.solver, r.condition) == (label, solver, condition)),
+                key=lambda r: r.calls,
+            )
             calls = [r.calls for r in pts]
             name = f"{label}, {solver}"
             line = row_axes[0].plot(calls, [100 * r.success_095 for r in pts], marker="o", lw=1.2, label=name)[0]
-            row_axes[0].fill_between(calls, [100 * r.ci_095[0] for r in pts], [100 * r.ci_095[1] for r in pts], color=line.get_color(), alpha=0.15)
+            row_axes[0].fill_between(
+                calls,
+                [100 * r.ci_095[0] for r in pts],
+                [100 * r.ci_095[1] for r in pts],
+                color=line.get_color(),
+                alpha=0.15,
+            )
             row_axes[1].plot(calls, [r.score for r in pts], marker="o", lw=1.2, color=line.get_color(), label=name)
         for ax, what in zip(row_axes, ("success @0.95 (%)", "score")):
             ax.set_aspect("auto")

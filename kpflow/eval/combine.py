@@ -51,11 +51,15 @@ def _report_class(target: str, where: str) -> type:
     module_name, _, class_name = target.removeprefix(REPORTS).rpartition(".")
     known = {m.name for m in pkgutil.iter_modules(reports.__path__)}
     if not target.startswith(REPORTS) or module_name not in known:
-        raise ValueError(f"{where}: experiment.trial.report names {target!r}, not one of kpflow's reports ({REPORTS}<{'|'.join(sorted(known))}>.<Class>)")
+        raise ValueError(
+            f"{where}: experiment.trial.report names {target!r}, not one of kpflow's reports ({REPORTS}<{'|'.join(sorted(known))}>.<Class>)"
+        )
     module = importlib.import_module(REPORTS + module_name)
     cls = getattr(module, class_name, None)
     if not (isinstance(cls, type) and cls.__module__ == module.__name__ and class_name.endswith("Report")):
-        raise ValueError(f"{where}: experiment.trial.report names {target!r}, which is not a report class of {module.__name__}")
+        raise ValueError(
+            f"{where}: experiment.trial.report names {target!r}, which is not a report class of {module.__name__}"
+        )
     return cls
 
 
@@ -65,7 +69,9 @@ def _plain_options(node: Any, where: str, key: str) -> Any:
     if isinstance(node, Mapping):
         for name, value in node.items():
             if str(name).startswith("_"):
-                raise ValueError(f"{where}: {key}.{name} is refused: a config read from disk may not ask for anything to be built or called")
+                raise ValueError(
+                    f"{where}: {key}.{name} is refused: a config read from disk may not ask for anything to be built or called"
+                )
             _plain_options(value, where, f"{key}.{name}")
     elif isinstance(node, list):
         for i, value in enumerate(node):
@@ -81,9 +87,13 @@ def build_report(cfg: DictConfig, job: Path):
     try:
         options = OmegaConf.to_container(cfg.experiment.trial.report, resolve=True)
     except Exception as e:  # an interpolation that does not resolve outside the run
-        raise ValueError(f"{where}: experiment.trial.report does not read as plain options ({type(e).__name__}: {e})") from None
+        raise ValueError(
+            f"{where}: experiment.trial.report does not read as plain options ({type(e).__name__}: {e})"
+        ) from None
     if not isinstance(options, dict):
-        raise ValueError(f"{where}: experiment.trial.report must be a mapping with a _target_, not {type(options).__name__}")
+        raise ValueError(
+            f"{where}: experiment.trial.report must be a mapping with a _target_, not {type(options).__name__}"
+        )
     cls = _report_class(str(options.pop("_target_", "")), where)
     try:
         return cls(**_plain_options(options, where, "experiment.trial.report"))
@@ -113,7 +123,10 @@ def pool_shards(jobs: list[Path]) -> str | None:
         report = build_report(shards[0][1], shards[0][0])
         summaries = {cell: report.summarise(members) for cell, members in cells.items()}
         names = ", ".join(job.name for job, _ in shards)
-        parts.append(f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n" + report.table(summaries, axes))
+        parts.append(
+            f"## Pooled: jobs {names} (one evaluation split by trial ranges, {len(trials)} trials)\n\n"
+            + report.table(summaries, axes)
+        )
     return "\n".join(parts) if parts else None
 
 
@@ -131,7 +144,10 @@ def combine_tables(sweep_dir: str | Path, before: Mapping[str, tuple[int, int]] 
     sweep_dir = Path(sweep_dir)
     before = before or {}
     written = [p for p, stamp in results_files(sweep_dir).items() if before.get(p) != stamp]
-    jobs = sorted(map(Path, written), key=lambda p: (0, int(p.parent.name), "") if p.parent.name.isdigit() else (1, 0, p.parent.name))
+    jobs = sorted(
+        map(Path, written),
+        key=lambda p: (0, int(p.parent.name), "") if p.parent.name.isdigit() else (1, 0, p.parent.name),
+    )
     header, rows = [], []
     for path in jobs:
         lines = [line for line in path.read_text().splitlines() if line.startswith("|")]

@@ -55,7 +55,9 @@ def read_points(root: str | Path, threshold: str = "085") -> list[Point]:
             raise ValueError(f"{path}: the folder above results.json must be the number of demonstrations; got {n!r}")
         for split, s in _summaries(json.loads(path.read_text())).items():
             if split in SPLITS:
-                points.append(Point(policy, int(n), split, s["episodes"], s[f"success_{threshold}"], tuple(s[f"ci_{threshold}"])))
+                points.append(
+                    Point(policy, int(n), split, s["episodes"], s[f"success_{threshold}"], tuple(s[f"ci_{threshold}"]))
+                )
     if not points:
         raise FileNotFoundError(f"no <policy>/<n_demos>/results.json under {root}")
     return points
@@ -63,12 +65,17 @@ def read_points(root: str | Path, threshold: str = "085") -> list[Point]:
 
 def table(points: list[Point], threshold: str = "085") -> str:
     """Markdown: one row per policy and number of demonstrations, success [95% CI] per split."""
-    rows = [f"| policy | demonstrations | {' | '.join(SPLITS)} | configurations per split |", "|---|---|" + "---|" * (len(SPLITS) + 1)]
+    rows = [
+        f"| policy | demonstrations | {' | '.join(SPLITS)} | configurations per split |",
+        "|---|---|" + "---|" * (len(SPLITS) + 1),
+    ]
     for policy, n in sorted({(p.policy, p.n_demos) for p in points}):
         cells, episodes = [], sorted({p.episodes for p in points if (p.policy, p.n_demos) == (policy, n)})
         for split in SPLITS:
             hit = [p for p in points if (p.policy, p.n_demos, p.split) == (policy, n, split)]
-            cells.append(f"{100 * hit[0].success:.1f}% [{100 * hit[0].ci[0]:.1f}, {100 * hit[0].ci[1]:.1f}]" if hit else "-")
+            cells.append(
+                f"{100 * hit[0].success:.1f}% [{100 * hit[0].ci[0]:.1f}, {100 * hit[0].ci[1]:.1f}]" if hit else "-"
+            )
         rows.append(f"| {policy} | {n} | {' | '.join(cells)} | {', '.join(map(str, episodes))} |")
     return f"Success at coverage 0.{threshold[1:]}, 95% Wilson intervals.\n\n" + "\n".join(rows) + "\n"
 

@@ -38,7 +38,9 @@ class DemoTransportTrial:
         check_uncertainty_options(max_std, on_uncertain)
         self.sources = keypoint_sources(task, backbones, oracle)
         if not self.sources or not self.maps:
-            raise ValueError(f"{task.name}: give at least one keypoint source (backbones, or oracle: true) and one map family")
+            raise ValueError(
+                f"{task.name}: give at least one keypoint source (backbones, or oracle: true) and one map family"
+            )
         self.name, self.conditions = task.name, tuple(task.conditions)
         self.default_conditions = self.conditions
         #: the grid's keypoint axis is shown when there is a choice to show (backbones, oracle, several sources)
@@ -46,7 +48,11 @@ class DemoTransportTrial:
         self.env = self.source = None
 
     def variants(self) -> list[dict[str, str]]:
-        return [{**({"keypoints": s} if "keypoints" in self.axes else {}), "map": m} for s in self.sources for m in self.maps]
+        return [
+            {**({"keypoints": s} if "keypoints" in self.axes else {}), "map": m}
+            for s in self.sources
+            for m in self.maps
+        ]
 
     def setup(self, env=None) -> None:
         """One thread, the simulator (``env``, or a new one) and the recorded source demonstration."""
@@ -56,7 +62,9 @@ class DemoTransportTrial:
         self.env = env if env is not None else self.task.make_env()
         self.source = self.task.demonstrate(self.env)
 
-    def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
+    def run(
+        self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None
+    ) -> TrialResult:
         """Trial ``index`` of ``condition`` with ``variant``'s keypoint source and map (module docstring)."""
         scene = self.task.sample_scene(condition, index, seed)
         keypoint_source = self.sources[variant.get("keypoints", next(iter(self.sources)))]
@@ -70,7 +78,9 @@ class DemoTransportTrial:
         keypoints, view = task.observe(env, scene, source, keypoint_source)
         trajectory = execution = None
         if keypoints is not None:
-            trajectory, _ = DemoTransportPolicy(make_map, self.max_std, self.on_uncertain).plan(source.trajectory, keypoints)
+            trajectory, _ = DemoTransportPolicy(make_map, self.max_std, self.on_uncertain).plan(
+                source.trajectory, keypoints
+            )
             execution = task.execute(env, trajectory, frames)
         scores = self.report.scores(env, source, view, trajectory, execution)
         success = bool(execution is not None and execution.success)

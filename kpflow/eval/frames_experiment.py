@@ -60,7 +60,9 @@ def figure1(task: FramesTask, make_map: MapFactory, out: Path) -> dict:
                 "scene": name,
                 "start_error": float((tr.positions[0] - s.position).norm()),
                 "final_position_error": float((tr.positions[-1] - g.position).norm()),
-                "final_orientation_error_deg": math.degrees(float(metrics.rotation_angle_error(tr.orientations[-1], g.rotation))),
+                "final_orientation_error_deg": math.degrees(
+                    float(metrics.rotation_angle_error(tr.orientations[-1], g.rotation))
+                ),
                 "max_std": float(tr.std.norm(dim=-1).max()),
             }
         )
@@ -91,9 +93,18 @@ def figure2(task: FramesTask, make_map: MapFactory, out: Path, n_configs: int, s
                 "dtw_mean": float(metrics.dtw(rollout, truth)) / max(len(rollout), len(truth)),
                 "final_position_error": float(metrics.final_position_error(rollout, truth)),
                 "final_orientation_error_deg": float(
-                    np.mean([math.degrees(float(metrics.rotation_angle_error(t.orientations[-1], held.demo.orientations[-1]))) for t in transported])
+                    np.mean(
+                        [
+                            math.degrees(
+                                float(metrics.rotation_angle_error(t.orientations[-1], held.demo.orientations[-1]))
+                            )
+                            for t in transported
+                        ]
+                    )
                 ),
-                "calibration_2sigma": float(np.mean([float(metrics.band_coverage(t.positions, t.std, truth)) for t in transported])),
+                "calibration_2sigma": float(
+                    np.mean([float(metrics.band_coverage(t.positions, t.std, truth)) for t in transported])
+                ),
             }
         )
         ax = axes.flat[i]
@@ -123,7 +134,10 @@ def figure2(task: FramesTask, make_map: MapFactory, out: Path, n_configs: int, s
 
 def markdown_table(rows: list[dict], columns: list[str], fmt: str = "{:.4f}") -> str:
     head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
-    body = "".join("| " + " | ".join(fmt.format(r[c]) if isinstance(r[c], float) else str(r[c]) for c in columns) + " |\n" for r in rows)
+    body = "".join(
+        "| " + " | ".join(fmt.format(r[c]) if isinstance(r[c], float) else str(r[c]) for c in columns) + " |\n"
+        for r in rows
+    )
     return head + body
 
 
@@ -144,14 +158,28 @@ def run_frames_experiment(
     torch.manual_seed(seed)
     f1 = figure1(task, make_map, out)
     f2 = figure2(task, make_map, out, n_configs, seed, horizon)
-    cols2 = ["config", "frechet", "dtw_mean", "final_position_error", "final_orientation_error_deg", "calibration_2sigma"]
+    cols2 = [
+        "config",
+        "frechet",
+        "dtw_mean",
+        "final_position_error",
+        "final_orientation_error_deg",
+        "calibration_2sigma",
+    ]
     table = (
         "## Figure 1: one demonstration, frames moved\n\n"
-        + markdown_table(f1["scenes"], ["scene", "start_error", "final_position_error", "final_orientation_error_deg", "max_std"])
+        + markdown_table(
+            f1["scenes"], ["scene", "start_error", "final_position_error", "final_orientation_error_deg", "max_std"]
+        )
         + "\n## Figure 2: leave-one-out over eight configurations (policy on transported data vs held-out demo)\n\n"
         + markdown_table(f2["configs"] + [{"config": "mean", **f2["mean"]}], cols2)
     )
     write_text(out / "results.md", table)
-    results = {"figure1": f1, "figure2": f2, "figures": ["figure1.png", "figure2.png"], "metrics": {f"fig2/{k}": v for k, v in f2["mean"].items()}}
+    results = {
+        "figure1": f1,
+        "figure2": f2,
+        "figures": ["figure1.png", "figure2.png"],
+        "metrics": {f"fig2/{k}": v for k, v in f2["mean"].items()},
+    }
     write_json(out / "results.json", results)
     return {**results, "table": table}

@@ -47,9 +47,7 @@ def _curves(a, b) -> tuple[torch.Tensor, torch.Tensor]:
         if not torch.isfinite(c).all():
             raise ValueError(f"{name} contains inf")
     if a.shape[-1] != b.shape[-1]:
-        raise ValueError(
-            f"a and b must have the same point dimension D, got {a.shape[-1]} and {b.shape[-1]}"
-        )
+        raise ValueError(f"a and b must have the same point dimension D, got {a.shape[-1]} and {b.shape[-1]}")
     dtype = torch.promote_types(a.dtype, b.dtype)
     a, b = a.to(dtype), b.to(dtype)
     try:
@@ -189,9 +187,7 @@ def band_coverage(mean, std, truth, k: float = 2.0) -> torch.Tensor:
     if std.shape == mean.shape[:-1]:
         std = std[..., None]
     elif std.shape != mean.shape:
-        raise ValueError(
-            f"std must have shape {tuple(mean.shape)} or {tuple(mean.shape[:-1])}, got {tuple(std.shape)}"
-        )
+        raise ValueError(f"std must have shape {tuple(mean.shape)} or {tuple(mean.shape[:-1])}, got {tuple(std.shape)}")
     if (std < 0).any():
         raise ValueError("std must be non-negative")
     if not k > 0:

@@ -38,7 +38,11 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         raise ValueError(f"every must be >= 1, got {every}")
     out = Path(output_dir)
     # the bare K-CFM (no goal limit: the held-out chunks are the demonstrated ones), by the one builder
-    policy = build(checkpoint, {"kind": "kcfm", "steps": steps, "execute": execute, "reach": False, "turn_deg": False}, input_margin=None)
+    policy = build(
+        checkpoint,
+        {"kind": "kcfm", "steps": steps, "execute": execute, "reach": False, "turn_deg": False},
+        input_margin=None,
+    )
     steps = policy.steps
     n_obs = int(policy.model.hparams.n_obs)
     data.setup()
@@ -54,7 +58,9 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
         chunk = policy.act(obs)
         recorded, mask = item["actions"].numpy(), item["mask"].numpy()
         hold = np.repeat(held_out.previous_action(int(k))[None], len(recorded), axis=0)
-        rows.append((int(item["episode"]), int(item["t"]), *_errors(chunk, recorded, mask), *_errors(hold, recorded, mask)))
+        rows.append(
+            (int(item["episode"]), int(item["t"]), *_errors(chunk, recorded, mask), *_errors(hold, recorded, mask))
+        )
         chunks.append(chunk)
     errors = np.array([r[2:] for r in rows])
     summary = {
@@ -83,7 +89,13 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
     picked = [i for i, row in enumerate(rows) if row[0] == shown]
     figure = offline_figure(out / "offline.png", held_out.episode_actions(shown), [rows[i][1] for i in picked],
                             [chunks[i] for i in picked], shown)  # fmt: skip
-    write_json(out / "results.json", {**summary, "rows": [dict(zip(("episode", "t", "first", "chunk", "hold_first", "hold_chunk"), r)) for r in rows]})
+    write_json(
+        out / "results.json",
+        {
+            **summary,
+            "rows": [dict(zip(("episode", "t", "first", "chunk", "hold_first", "hold_chunk"), r)) for r in rows],
+        },
+    )
     write_text(out / "results.md", table)
     metrics = {k: v for k, v in summary.items() if isinstance(v, float)}
     return {**summary, "metrics": metrics, "table": table, "figures": [figure.name]}

@@ -45,7 +45,17 @@ def draw_field(ax, field, lo: np.ndarray, hi: np.ndarray, n: int = 25, dtype=tor
     pts = torch.as_tensor(np.stack([gx.ravel(), gy.ravel()], -1), dtype=dtype)
     v = field(pts).detach().cpu().numpy()
     speed = np.linalg.norm(v, axis=-1).reshape(gx.shape)
-    ax.streamplot(xs, ys, v[:, 0].reshape(gx.shape), v[:, 1].reshape(gx.shape), color=speed, cmap="Greys", density=0.9, linewidth=0.6, arrowsize=0.6)
+    ax.streamplot(
+        xs,
+        ys,
+        v[:, 0].reshape(gx.shape),
+        v[:, 1].reshape(gx.shape),
+        color=speed,
+        cmap="Greys",
+        density=0.9,
+        linewidth=0.6,
+        arrowsize=0.6,
+    )
 
 
 def new_figure(rows: int, cols: int, size: float = 3.2):
@@ -60,7 +70,9 @@ def close(fig) -> None:
     plt.close(fig)
 
 
-def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_b, good, title: str = "", dropped=None) -> None:
+def draw_matches(
+    ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_b, good, title: str = "", dropped=None
+) -> None:
     """Two images side by side with a line per matched pair ``pixels_a [n, 2]`` -> ``pixels_b [n, 2]`` (x, y),
     green where ``good [n]`` and red elsewhere, dashed where ``dropped [n]``."""
     width = image_a.shape[1]
@@ -74,7 +86,9 @@ def draw_matches(ax, image_a: np.ndarray, image_b: np.ndarray, pixels_a, pixels_
     ax.set_title(title, fontsize=7)
 
 
-def offline_figure(path: Path, recorded: np.ndarray, steps: list[int], predicted: list[np.ndarray], episode: int) -> Path:
+def offline_figure(
+    path: Path, recorded: np.ndarray, steps: list[int], predicted: list[np.ndarray], episode: int
+) -> Path:
     """One held-out episode's recorded actions (a line per action dimension, at most 4) and each predicted chunk
     drawn from the step it was asked at (the offline check, :mod:`kpflow.eval.offline`)."""
     dims = min(recorded.shape[1], 4)
@@ -83,7 +97,9 @@ def offline_figure(path: Path, recorded: np.ndarray, steps: list[int], predicted
         ax.set_aspect("auto")
         ax.plot(recorded[:, d], color="black", lw=1.5, label="recorded")
         for i, (t, chunk) in enumerate(zip(steps, predicted)):
-            ax.plot(range(t, t + len(chunk)), chunk[:, d], color="tab:orange", lw=1, label="predicted" if i == 0 else None)
+            ax.plot(
+                range(t, t + len(chunk)), chunk[:, d], color="tab:orange", lw=1, label="predicted" if i == 0 else None
+            )
         ax.set(title=f"episode {episode}: action {d}", xlabel="step")
     axes.flat[0].legend(fontsize=7)
     fig.savefig(path, dpi=100, bbox_inches="tight")

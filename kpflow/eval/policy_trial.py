@@ -44,12 +44,18 @@ class PolicyTrial:
 
     def __init__(self, task: GymTask, policy: Policy, report, name: str = "policy", max_steps: int | None = None):
         if not isinstance(task, GymTask):
-            raise ValueError(f"a policy trial runs Gymnasium tasks (kpflow.tasks.base.GymTask), not {type(task).__name__}")
+            raise ValueError(
+                f"a policy trial runs Gymnasium tasks (kpflow.tasks.base.GymTask), not {type(task).__name__}"
+            )
         if max_steps is not None and max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         self.task, self.policy, self.report, self.policy_name = task, policy, report, str(name)
         self.max_steps = None if max_steps is None else int(max_steps)
-        self.name, self.conditions, self.default_conditions = task.name, tuple(task.conditions), tuple(task.default_conditions)
+        self.name, self.conditions, self.default_conditions = (
+            task.name,
+            tuple(task.conditions),
+            tuple(task.default_conditions),
+        )
 
     def variants(self) -> list[dict[str, str]]:
         return [{"policy": self.policy_name}]
@@ -60,7 +66,9 @@ class PolicyTrial:
 
         torch.set_num_threads(1)
 
-    def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
+    def run(
+        self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None
+    ) -> TrialResult:
         """Episode ``index`` of ``condition``; ``scores``: the task's (:meth:`~kpflow.tasks.base.GymTask.score`) and
         the median decision latency."""
         scene = self.task.evaluation_scene(condition, index, seed)

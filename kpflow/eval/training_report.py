@@ -59,17 +59,27 @@ class TrainingReport(Callback):
         if not trainer.is_global_zero:
             return
         train = sum(self._losses) / len(self._losses) if self._losses else None
-        self.rows.append({"epoch": trainer.current_epoch, "train_loss": train, "val_loss": self._val, "steps": trainer.global_step})
+        self.rows.append(
+            {"epoch": trainer.current_epoch, "train_loss": train, "val_loss": self._val, "steps": trainer.global_step}
+        )
         self.write(type(pl_module).__name__)
-        log.info("epoch %d (%d steps): training loss %s, validation loss %s", trainer.current_epoch, trainer.global_step,
-                 _loss(train), _loss(self._val))
+        log.info(
+            "epoch %d (%d steps): training loss %s, validation loss %s",
+            trainer.current_epoch,
+            trainer.global_step,
+            _loss(train),
+            _loss(self._val),
+        )
 
     def write(self, model: str) -> None:
         """``results.json``, ``results.md`` and ``loss.png`` from the rows so far."""
         self.out.mkdir(parents=True, exist_ok=True)
         vals = [r for r in self.rows if r["val_loss"] is not None]
         best = min(vals, key=lambda r: r["val_loss"]) if vals else None
-        write_json(self.out / "results.json", {"model": model, "epochs": self.rows, "best_epoch": None if best is None else best["epoch"]})
+        write_json(
+            self.out / "results.json",
+            {"model": model, "epochs": self.rows, "best_epoch": None if best is None else best["epoch"]},
+        )
         lines = [f"# Training of {model}", "", f"{len(self.rows)} epochs, {self.rows[-1]['steps']} steps."]
         if best is not None:
             lines.append(f"Best validation loss {best['val_loss']:.4g} at epoch {best['epoch']} (checkpoints/).")

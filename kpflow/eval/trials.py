@@ -42,7 +42,9 @@ class Trial(Protocol):
     def setup(self) -> None:
         """Build this process's simulator and anything else a worker needs (called once per worker)."""
 
-    def run(self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None) -> TrialResult:
+    def run(
+        self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None
+    ) -> TrialResult:
         """Trial ``index`` of ``condition`` in ``variant``; video frames are appended to ``frames`` when given."""
 
     def describe(self) -> dict:
@@ -75,7 +77,9 @@ def trial_from_record(record: dict, axes: list[str]) -> TrialResult:
     fixed = {"condition", "index", "scene", "success", "failure", *axes}
     scores = {k: v for k, v in record.items() if k not in fixed}
     variant = {a: record[a] for a in axes}
-    return TrialResult(record["condition"], record["index"], variant, record["scene"], record["success"], record["failure"], scores)
+    return TrialResult(
+        record["condition"], record["index"], variant, record["scene"], record["success"], record["failure"], scores
+    )
 
 
 def video_name(trial: TrialResult) -> str:
@@ -87,9 +91,13 @@ def video_name(trial: TrialResult) -> str:
 def cell_summary(results: dict, condition: str, **variant: str) -> dict:
     """The summary row of ``condition`` (and ``variant``'s options, when the grid has several cells) in a
     :func:`run_trials` result."""
-    rows = [s for s in results["summary"] if s["condition"] == condition and all(s.get(k) == v for k, v in variant.items())]
+    rows = [
+        s for s in results["summary"] if s["condition"] == condition and all(s.get(k) == v for k, v in variant.items())
+    ]
     if len(rows) != 1:
-        raise KeyError(f"{len(rows)} summary rows match condition {condition!r} and {variant}; give the variant's options")
+        raise KeyError(
+            f"{len(rows)} summary rows match condition {condition!r} and {variant}; give the variant's options"
+        )
     return rows[0]
 
 
@@ -118,21 +126,38 @@ def run_trials(
     conditions = list(conditions)
     if not conditions or any(c not in trial.conditions for c in conditions):
         raise ValueError(f"unknown condition in {conditions}; choose {ALL!r} or from {trial.conditions}")
-    counts = {c: (_per_condition(first_index, c, "first_index"), _per_condition(n_trials, c, "n_trials")) for c in conditions}
+    counts = {
+        c: (_per_condition(first_index, c, "first_index"), _per_condition(n_trials, c, "n_trials")) for c in conditions
+    }
     if any(n < 1 for _, n in counts.values()) or workers < 1 or videos < 0:
         raise ValueError(f"n_trials and workers must be >= 1 and videos >= 0, got {n_trials}, {workers}, {videos}")
     variants = trial.variants()
     if not variants:
-        raise ValueError(f"{trial.name}: the trial has no variant to run (give at least one keypoint source and one map)")
+        raise ValueError(
+            f"{trial.name}: the trial has no variant to run (give at least one keypoint source and one map)"
+        )
     axes = list(variants[0])
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
 
     jobs = [(c, first + i, v, seed) for c in conditions for v in variants for first, n in [counts[c]] for i in range(n)]
-    records = map_jobs(_run, jobs, workers, initializer=_setup, initargs=(trial,), desc=f"{trial.name} trials", unit="trial", progress=progress)
+    records = map_jobs(
+        _run,
+        jobs,
+        workers,
+        initializer=_setup,
+        initargs=(trial,),
+        desc=f"{trial.name} trials",
+        unit="trial",
+        progress=progress,
+    )
     trials = [trial_from_record(r, axes) for r in records]
     report = trial.report
-    summaries = {(c, *v.values()): report.summarise([t for t in trials if t.condition == c and t.variant == v]) for c in conditions for v in variants}
+    summaries = {
+        (c, *v.values()): report.summarise([t for t in trials if t.condition == c and t.variant == v])
+        for c in conditions
+        for v in variants
+    }
 
     if not _TRIAL or _TRIAL[0] is not trial:  # this process has not set up this run's trial yet
         _setup(trial)

@@ -34,7 +34,9 @@ def _summary(folder: Path) -> str:
 
 def templates() -> dict[str, str]:
     """The templates ``kpflow-example`` can copy: name -> what it is (one line)."""
-    return {p.name: _summary(p) for p in sorted(TEMPLATES.iterdir()) if p.is_dir() and not p.name.startswith(("_", "."))}
+    return {
+        p.name: _summary(p) for p in sorted(TEMPLATES.iterdir()) if p.is_dir() and not p.name.startswith(("_", "."))
+    }
 
 
 def copy_template(name: str, dest: str | Path) -> Path:
@@ -47,7 +49,9 @@ def copy_template(name: str, dest: str | Path) -> Path:
     """
     known = templates()
     if name not in known:
-        raise ValueError(f"no template {name!r}: kpflow-example copies one of {', '.join(known)} (kpflow-example lists them)")
+        raise ValueError(
+            f"no template {name!r}: kpflow-example copies one of {', '.join(known)} (kpflow-example lists them)"
+        )
     dest = Path(dest)
     again = f"name a new or empty folder you can write to (kpflow-example {name} DIR)"
     if dest.is_symlink() and not dest.exists():
@@ -62,7 +66,9 @@ def copy_template(name: str, dest: str | Path) -> Path:
     except OSError as e:
         if existed:  # leave the empty folder it was, not part of a template
             for entry in list(dest.iterdir()) if dest.is_dir() else []:
-                shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(missing_ok=True)
+                shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(
+                    missing_ok=True
+                )
         else:
             shutil.rmtree(dest, ignore_errors=True)
         reason = e.strerror or "some of its files could not be written"  # shutil.Error: one (src, dst, why) per file
@@ -75,7 +81,8 @@ def main(argv: list[str] | None = None) -> None:
     from kpflow.utils.errors import command
 
     parser = argparse.ArgumentParser(
-        prog="kpflow-example", description="Copy one of kpflow's project templates into a folder (no arguments: list them)."
+        prog="kpflow-example",
+        description="Copy one of kpflow's project templates into a folder (no arguments: list them).",
     )
     parser.add_argument("name", nargs="?", help="the template, e.g. reach_task")
     parser.add_argument("dir", nargs="?", help="the folder to create (new or empty)")

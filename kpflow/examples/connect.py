@@ -27,13 +27,17 @@ def connect(args: argparse.Namespace) -> None:
     """Ask the server at ``args.uri`` for one chunk and print what it serves and returns (a failure: one line)."""
     with PolicyClient(args.uri, wait=args.wait) as policy:
         meta = policy.metadata
-        print(f"server: {meta.policy}, observes {meta.observation}, returns {meta.action_shape} actions at {meta.control_hz:g} Hz")
-        (key, shape), = meta.observation.items()
+        print(
+            f"server: {meta.policy}, observes {meta.observation}, returns {meta.action_shape} actions at {meta.control_hz:g} Hz"
+        )
+        ((key, shape),) = meta.observation.items()
         keypoints = np.load(args.keypoints) if args.keypoints else np.random.default_rng(0).uniform(0, 1, shape[-2:])
         obs = {key: np.broadcast_to(keypoints, shape).copy()}
         policy.reset(seed=0)
         chunk = policy.act(obs)
-        print(f"action chunk {list(chunk.shape)} in {policy.server_ms:.1f} ms on the server; first action {np.round(chunk[0], 4).tolist()}")
+        print(
+            f"action chunk {list(chunk.shape)} in {policy.server_ms:.1f} ms on the server; first action {np.round(chunk[0], 4).tolist()}"
+        )
 
 
 if __name__ == "__main__":

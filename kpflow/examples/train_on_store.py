@@ -35,7 +35,9 @@ def walking_store(path: Path, episodes: int = 40) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("store", nargs="?", help="an episode store or LeRobot dataset (default: a small one written here)")
+    parser.add_argument(
+        "store", nargs="?", help="an episode store or LeRobot dataset (default: a small one written here)"
+    )
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--out", default="train_on_store")
     args = parser.parse_args()
@@ -49,7 +51,9 @@ def main() -> None:
                                 enable_progress_bar=False, enable_model_summary=False, default_root_dir=out)  # fmt: skip
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(out / "kcfm.ckpt")
-    print(f"trained {args.epochs} epochs: val loss {float(trainer.callback_metrics['val/loss']):.3f}; checkpoint {out / 'kcfm.ckpt'}")
+    print(
+        f"trained {args.epochs} epochs: val loss {float(trainer.callback_metrics['val/loss']):.3f}; checkpoint {out / 'kcfm.ckpt'}"
+    )
 
     policy = kpflow.load_policy(out / "kcfm.ckpt")  # weights_only loading, as deployment does
     policy.reset(seed=0)

@@ -84,10 +84,14 @@ def degrees(r):
 # orientations turn with the map where the path is: by the start box's 10 degrees at the start; at the end, the goal
 # box turned by -45 degrees, but the map is one smooth deformation of the whole plane fitted on both boxes, so there
 # it turns the demonstration's final 90 degrees by less than the box itself (to about 38 rather than 45)
-print(f"orientation at the start: {degrees(orientations[0]):.1f} deg demonstrated, "
-      f"{degrees(moved.orientations[0]):.1f} deg transported")
-print(f"orientation at the end:   {degrees(orientations[-1]):.1f} deg demonstrated, "
-      f"{degrees(moved.orientations[-1]):.1f} deg transported")
+print(
+    f"orientation at the start: {degrees(orientations[0]):.1f} deg demonstrated, "
+    f"{degrees(moved.orientations[0]):.1f} deg transported"
+)
+print(
+    f"orientation at the end:   {degrees(orientations[-1]):.1f} deg demonstrated, "
+    f"{degrees(moved.orientations[-1]):.1f} deg transported"
+)
 
 # ILWR's inverse is exact: back to the demonstration
 print(f"ILWR inverse: max |phi^-1(phi(x)) - x| = {(ilwr.inverse(moved.positions) - positions).abs().max():.1e}")
@@ -97,8 +101,10 @@ print(f"ILWR inverse: max |phi^-1(phi(x)) - x| = {(ilwr.inverse(moved.positions)
 gp_moved = transport_trajectory(gp, positions, velocities, n_samples=20, generator=torch.Generator().manual_seed(0))
 std = gp_moved.std.norm(dim=-1)  # [200]: the GP's standard deviation of phi(x) at each point
 far = gp.predict(torch.tensor([[20.0, 20.0]]))[1].sqrt().norm()
-print(f"GP std: {gp.predict(source)[1].sqrt().norm(dim=-1).max():.1e} at the keypoints, "
-      f"{std[0]:.3f} at the path's start, {std.max():.3f} at most along it, {far:.3f} far from every keypoint")
+print(
+    f"GP std: {gp.predict(source)[1].sqrt().norm(dim=-1).max():.1e} at the keypoints, "
+    f"{std[0]:.3f} at the path's start, {std.max():.3f} at most along it, {far:.3f} far from every keypoint"
+)
 print(f"ILWR and GP paths differ by {(moved.positions - gp_moved.positions).norm(dim=-1).max():.3f} at most")
 # --8<-- [end:uncertainty]
 
@@ -115,7 +121,9 @@ for lo, hi in zip(lower[::10], upper[::10]):
     axes[1].add_patch(plt.Rectangle(lo.tolist(), *(hi - lo).tolist(), color="tab:orange", alpha=0.08, lw=0))
 axes[1].scatter(*target.T, c="tab:red", label="target keypoints")
 for ax, x, r in ((axes[0], positions, orientations), (axes[1], moved.positions, moved.orientations)):
-    ax.quiver(*x[::25].T, *r[::25, :, 0].T, angles="xy", scale_units="xy", scale=3, width=0.004, color="0.3")  # the gripper's x axis
+    ax.quiver(
+        *x[::25].T, *r[::25, :, 0].T, angles="xy", scale_units="xy", scale=3, width=0.004, color="0.3"
+    )  # the gripper's x axis
 for ax, title in zip(axes, ("demonstrated scene", "new scene")):
     ax.set_title(title)
     ax.set_aspect("equal")

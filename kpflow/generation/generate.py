@@ -72,7 +72,9 @@ class Generator:
                  candidates: int | None = None, stop_early: bool = True):  # fmt: skip
         if n_sources < 1:
             raise ValueError(f"n_sources must be >= 1, got {n_sources}")
-        if candidates is not None and (isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1):
+        if candidates is not None and (
+            isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1
+        ):
             raise ValueError(f"candidates must be None (a source at random) or an integer >= 1; got {candidates!r}")
         self.task, self.families, self.n_sources, self.seed, self.render = task, dict(families), n_sources, seed, render
         self.candidates, self.stop_early = candidates, stop_early
@@ -91,7 +93,9 @@ class Generator:
             if success:
                 self.sources.append(segments)
         if not self.sources:
-            raise RuntimeError(f"{self.task.name}: none of the {self.n_sources} scripted source demonstrations succeeded")
+            raise RuntimeError(
+                f"{self.task.name}: none of the {self.n_sources} scripted source demonstrations succeeded"
+            )
 
     def choose_source(self, transport: SegmentTransport, index: int) -> int:
         """The source an attempt follows, from the scene just reset: with ``candidates`` None any source (drawn
@@ -174,7 +178,9 @@ def rate_table(summaries: dict[tuple[str, str], dict], throughput: dict[tuple[st
     ]
     for (variant, family), s in summaries.items():
         t = throughput[(variant, family)]
-        rate, real = ("-", "-") if not t["attempts_run"] else (f"{t['attempts_per_minute']:.1f}", f"{t['real_time']:.2f}")
+        rate, real = (
+            ("-", "-") if not t["attempts_run"] else (f"{t['attempts_per_minute']:.1f}", f"{t['real_time']:.2f}")
+        )
         rows.append(f"| {variant} | {family} | {s['trials']} | {success_cells(s)} | {rate} | {real} |")
     return "\n".join(rows) + "\n"
 
@@ -260,7 +266,9 @@ def write_results(folder: Path, manifest: dict, summaries: dict[tuple[str, str],
     write_json(Path(folder) / "results.json", results)
     header = f"# Generation: {manifest['task']}\n\n"
     if shards > 1:
-        header += f"Shard {shard} of {shards}: of {n} attempts per variant and family, the {len(range(shard, n, shards))} "
+        header += (
+            f"Shard {shard} of {shards}: of {n} attempts per variant and family, the {len(range(shard, n, shards))} "
+        )
         header += f"with index i % {shards} = {shard}"
     else:
         header += f"{n} attempts per variant and family"
@@ -273,7 +281,9 @@ def write_results(folder: Path, manifest: dict, summaries: dict[tuple[str, str],
     ran = sum(t["attempts_run"] for t in throughput.values())
     if ran < len(records):
         header += f" Resumed: {len(records) - ran} of the {len(records)} attempts were committed by an earlier run; "
-        header += f"the throughput columns time the {ran} this run made." if ran else "this run made none, so no throughput."
+        header += (
+            f"the throughput columns time the {ran} this run made." if ran else "this run made none, so no throughput."
+        )
     write_text(Path(folder) / "results.md", header + "\n\n" + rate_table(summaries, throughput))
     return results
 
@@ -303,13 +313,18 @@ def merge_shards(folders: Sequence[str | Path], out: str | Path, progress: bool 
     wanted = [(v, f) for v in manifest["variants"] for f in manifest["families"]]
     shard_rows = [_summary_rows(d, wanted) for d in folders]
     order = list(shard_rows[0])  # the run's order of families (generation.json lists them sorted)
-    cells = {(v, f): [CellJournal(d / v / f, v, f, shard_indices(n, count, k)) for k, d in enumerate(folders)] for v, f in order}
+    cells = {
+        (v, f): [CellJournal(d / v / f, v, f, shard_indices(n, count, k)) for k, d in enumerate(folders)]
+        for v, f in order
+    }
     shard_records = {key: [journal.finished() for journal in journals] for key, journals in cells.items()}
     env_args = _exported_env(folders)
     summaries, throughput, records = {}, {}, []
     with atomic_dir(out) as tmp:
         write_manifest(tmp, manifest)
-        for (variant, family), journals in tqdm(cells.items(), desc=f"merge into {out}", unit="cell", disable=not progress):
+        for (variant, family), journals in tqdm(
+            cells.items(), desc=f"merge into {out}", unit="cell", disable=not progress
+        ):
             cell = sorted((r for part in shard_records[(variant, family)] for r in part), key=lambda r: r["index"])
             folder = tmp / variant / family
             folder.mkdir(parents=True)
@@ -386,7 +401,7 @@ def _run_cell(folder: Path, generator: Generator, variant: str, family: str, ind
     the records and the throughput of the attempts run here."""
     journal = CellJournal(folder, variant, family, indices)
     records = journal.committed()
-    jobs = [(variant, i, family) for i in indices[len(records):]]
+    jobs = [(variant, i, family) for i in indices[len(records) :]]
     desc = f"{generator.task.name} {variant} {family}" + (f" (from attempt {len(records)})" if records else "")
     start = time.perf_counter()
     with journal:
@@ -396,7 +411,7 @@ def _run_cell(folder: Path, generator: Generator, variant: str, family: str, ind
                 journal.commit(record, episode)
                 records.append(record)
     wall = time.perf_counter() - start
-    sim_seconds = sum(r["steps"] for r in records[len(records) - len(jobs):]) / CONTROL_FREQ
+    sim_seconds = sum(r["steps"] for r in records[len(records) - len(jobs) :]) / CONTROL_FREQ
     run = {"attempts_run": len(jobs), "wall_s": wall, "attempts_per_minute": None, "real_time": None}
     if jobs:
         run.update(attempts_per_minute=60 * len(jobs) / wall, real_time=sim_seconds / wall)
@@ -430,5 +445,7 @@ def _film(out: Path, generator: Generator, variant: str, family: str, indices: l
         record, _ = filming.attempt(variant, index, family, frames)
         outcome = "success" if record["success"] else str(record["failure"]).replace(" ", "_")
         if frames:
-            paths.append(str(write_video(frames, out / f"{variant}_{family}_{index:02d}_{outcome}.mp4", fps=CONTROL_FREQ // 2)))
+            paths.append(
+                str(write_video(frames, out / f"{variant}_{family}_{index:02d}_{outcome}.mp4", fps=CONTROL_FREQ // 2))
+            )
     return paths

@@ -165,7 +165,9 @@ def read_shards(folders: Sequence[str | Path]) -> tuple[dict, list[Path]]:
     for folder, other in zip(folders[1:], settings[1:]):
         if other != settings[0]:
             what = _differences(settings[0], other, f"in {folders[0]}", f"in {folder}")
-            raise ValueError(f"{folders[0]} and {folder} are not shards of one run: their settings ({MANIFEST}) differ ({what})")
+            raise ValueError(
+                f"{folders[0]} and {folder} are not shards of one run: their settings ({MANIFEST}) differ ({what})"
+            )
     by_shard: dict[int, Path] = {}
     for folder, manifest in zip(folders, manifests):
         k = manifest.get("shard", 0)
@@ -232,7 +234,11 @@ class CellJournal:
             raise ValueError("finished() needs the cell's attempt indices")
         lines, torn = self._lines()
         if torn or len(lines) < len(self.indices):
-            what = "ends in a partly written line" if torn else f"records {len(lines)} of the cell's {len(self.indices)} attempts"
+            what = (
+                "ends in a partly written line"
+                if torn
+                else f"records {len(lines)} of the cell's {len(self.indices)} attempts"
+            )
             raise ValueError(f"{self.journal} {what}: the cell is unfinished (resume=true finishes its run)")
         records = self._records(lines)
         stored = self._stored_indices(mode="r")
@@ -264,13 +270,21 @@ class CellJournal:
         try:
             record = json.loads(line)
         except json.JSONDecodeError as error:
-            raise ValueError(f"{where} is not a JSON record ({error}): the cell is damaged (nothing was changed)") from None
-        if not isinstance(record, dict) or not set(RECORD_KEYS) <= set(record) or not isinstance(record["success"], bool):
+            raise ValueError(
+                f"{where} is not a JSON record ({error}): the cell is damaged (nothing was changed)"
+            ) from None
+        if (
+            not isinstance(record, dict)
+            or not set(RECORD_KEYS) <= set(record)
+            or not isinstance(record["success"], bool)
+        ):
             raise ValueError(f"{where} is not an attempt record (with {', '.join(RECORD_KEYS)}): the cell is damaged")
         expected = {"variant": self.variant, "index": self._index(i), "family": self.family}
         if any(record[k] != v for k, v in expected.items()):
             got = {k: record[k] for k in expected}
-            raise ValueError(f"{where} records attempt {got}, not {expected}: the cell is damaged (nothing was changed)")
+            raise ValueError(
+                f"{where} records attempt {got}, not {expected}: the cell is damaged (nothing was changed)"
+            )
         return record
 
     def _stored_indices(self, mode: str = "a") -> list[int]:
@@ -314,4 +328,8 @@ class CellJournal:
 
 
 def _brief(indices: list[int]) -> str:
-    return str(indices) if len(indices) <= 8 else f"[{', '.join(map(str, indices[:3]))}, ..., {indices[-1]}] ({len(indices)})"
+    return (
+        str(indices)
+        if len(indices) <= 8
+        else f"[{', '.join(map(str, indices[:3]))}, ..., {indices[-1]}] ({len(indices)})"
+    )

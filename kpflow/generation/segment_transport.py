@@ -70,7 +70,9 @@ class SegmentTransport:
     transform; otherwise a factory of the keypoint map, fitted on the reference object's keypoints (and the grip
     site's with ``gripper_keypoint``); ``in_hand`` corrects for the held object's pose in the jaws."""
 
-    def __init__(self, make_map: Callable[[], TransportMap] | None = None, gripper_keypoint: bool = False, in_hand: bool = True):
+    def __init__(
+        self, make_map: Callable[[], TransportMap] | None = None, gripper_keypoint: bool = False, in_hand: bool = True
+    ):
         self.make_map, self.gripper_keypoint, self.in_hand = make_map, gripper_keypoint, in_hand
 
     def keypoints(self, start: SegmentStart) -> np.ndarray:
@@ -89,7 +91,9 @@ class SegmentTransport:
             turn = r_n @ r_s.T
         else:
             kp_s, kp_n = (np.concatenate(list(start.keypoints.values())) for start in (source, now))
-            turn = fit_affine(*(torch.as_tensor(kp[None], dtype=torch.float64) for kp in (kp_s, kp_n)), "rigid")[0][0].numpy()
+            turn = fit_affine(*(torch.as_tensor(kp[None], dtype=torch.float64) for kp in (kp_s, kp_n)), "rigid")[0][
+                0
+            ].numpy()
             p_s, p_n = kp_s.mean(0), kp_n.mean(0)
         return float(np.linalg.norm(p_n - p_s) + Rotation.from_matrix(turn).magnitude())
 
@@ -106,7 +110,9 @@ class SegmentTransport:
         phi = self.make_map().fit(kp_s, kp_n)
         with torch.no_grad():
             moved = transport_trajectory(
-                phi, torch.as_tensor(traj.positions, dtype=torch.float64), orientations=torch.as_tensor(traj.rotations, dtype=torch.float64)
+                phi,
+                torch.as_tensor(traj.positions, dtype=torch.float64),
+                orientations=torch.as_tensor(traj.rotations, dtype=torch.float64),
             )
         return moved.positions.numpy(), moved.orientations.numpy(), moved.std.numpy()
 

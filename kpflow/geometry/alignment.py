@@ -81,9 +81,13 @@ def fit_affine(
         sv = torch.linalg.svdvals(weigh(x, 0.5))  # [B, D]
         if (sv[:, -1] <= 1e4 * eps * sv[:, 0]).any():
             shape = "collinear" if d == 2 else "coplanar or collinear"
-            raise ValueError(f"source keypoints are {shape}: a full affine map is undetermined (use rigid or similarity)")
+            raise ValueError(
+                f"source keypoints are {shape}: a full affine map is undetermined (use rigid or similarity)"
+            )
         ones = torch.ones(b, n, 1, dtype=source.dtype, device=source.device)
-        sol = torch.linalg.lstsq(weigh(torch.cat([x, ones], -1), 0.5), weigh(y, 0.5)).solution  # [B, D+1, D]: rows sqrt(w_i)
+        sol = torch.linalg.lstsq(
+            weigh(torch.cat([x, ones], -1), 0.5), weigh(y, 0.5)
+        ).solution  # [B, D+1, D]: rows sqrt(w_i)
         a = sol[:, :d].transpose(1, 2)
         return a, mu_t - (a @ mu_s[..., None]).squeeze(-1)
     h = weigh(x).transpose(1, 2) @ y / n  # [B, D, D]

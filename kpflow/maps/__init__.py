@@ -10,4 +10,15 @@ from kpflow.maps.learned import LearnedMap
 from kpflow.maps.matching import MatchResult, match_keypoints
 from kpflow.maps.mlp import MLPMap
 
-__all__ = ["AffineMap", "EnsembleMap", "FlowMap", "GPMap", "ILWRMap", "LearnedMap", "MLPMap", "MatchResult", "TransportMap", "match_keypoints"]
+__all__ = [
+    "AffineMap",
+    "EnsembleMap",
+    "FlowMap",
+    "GPMap",
+    "ILWRMap",
+    "LearnedMap",
+    "MLPMap",
+    "MatchResult",
+    "TransportMap",
+    "match_keypoints",
+]

@@ -72,7 +72,9 @@ class AlignedMap(TransportMap):
             if not ok:
                 return False
             fits.append((torch.from_numpy(a), torch.from_numpy(b)))
-        self._fit_alignment(source, target, fitted=(torch.stack([f[0] for f in fits]), torch.stack([f[1] for f in fits])))
+        self._fit_alignment(
+            source, target, fitted=(torch.stack([f[0] for f in fits]), torch.stack([f[1] for f in fits]))
+        )
         return True
 
     def _fit_alignment(self, source: torch.Tensor, target: torch.Tensor, fitted: tuple | None = None) -> None:

@@ -140,8 +140,7 @@ def jacobian_autograd(f, x: torch.Tensor) -> torch.Tensor:
         x = x.detach().requires_grad_(True)
         y = f(x)
         rows = [
-            torch.autograd.grad(y[..., i].sum(), x, retain_graph=i < y.shape[-1] - 1)[0]
-            for i in range(y.shape[-1])
+            torch.autograd.grad(y[..., i].sum(), x, retain_graph=i < y.shape[-1] - 1)[0] for i in range(y.shape[-1])
         ]
     return torch.stack(rows, dim=-2)
 

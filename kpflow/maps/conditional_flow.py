@@ -39,7 +39,9 @@ from torch import nn
 from kpflow.maps.validation import scale_floor
 
 
-def normalise(aligned_source: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def normalise(
+    aligned_source: torch.Tensor, target: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The normalised coordinates of a pair: ``a = n(A S + t)``, ``b = n(T)`` with ``n(y) = (y - m) / sigma``,
     ``m, sigma`` the targets' mean and RMS spread (:mod:`kpflow.maps.learned`). Returns ``(a, b, m, sigma)`` for
     pairs ``[B, N, D]`` (``m [B, 1, D]``, ``sigma [B, 1, 1]``)."""
@@ -88,7 +90,9 @@ class ConditionalFlow(nn.Module):
         if dim < 2:
             raise ValueError(f"a coupling flow needs dim >= 2, got {dim}")
         if coupling_depth not in (1, 2):
-            raise ValueError(f"coupling_depth must be 1 or 2 (hidden layers of each coupling's MLP), got {coupling_depth}")
+            raise ValueError(
+                f"coupling_depth must be 1 or 2 (hidden layers of each coupling's MLP), got {coupling_depth}"
+            )
         self.coupling_depth = coupling_depth
         self.n_keypoints, self.dim, self.n_layers, self.hidden, self.s_max = n_keypoints, dim, n_layers, hidden, s_max
         self.n_keep = dim // 2

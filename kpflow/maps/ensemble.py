@@ -22,7 +22,9 @@ class EnsembleMap(TransportMap):
 
     exact_inverse = False
 
-    def __init__(self, factory: Callable[..., TransportMap], n_members: int = 5, bootstrap: bool = False, seed: int = 0):
+    def __init__(
+        self, factory: Callable[..., TransportMap], n_members: int = 5, bootstrap: bool = False, seed: int = 0
+    ):
         super().__init__()
         if n_members < 2:
             raise ValueError(f"an ensemble needs at least 2 members; got {n_members}")

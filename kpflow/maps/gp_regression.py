@@ -43,7 +43,9 @@ def _format_bytes(n: float) -> str:
 class _ExactGP(gpytorch.models.ExactGP):
     """D independent outputs as a batch sharing one kernel and mean: inputs ``[D, N, d]``, targets ``[D, N]``."""
 
-    def __init__(self, x: torch.Tensor, y: torch.Tensor, likelihood, mean: gpytorch.means.Mean, kernel: gpytorch.kernels.Kernel):
+    def __init__(
+        self, x: torch.Tensor, y: torch.Tensor, likelihood, mean: gpytorch.means.Mean, kernel: gpytorch.kernels.Kernel
+    ):
         super().__init__(x, y, likelihood)
         self.mean_module, self.covar_module = mean, kernel
 
@@ -66,9 +68,13 @@ def derivative_prior(kernel: gpytorch.kernels.Kernel) -> torch.Tensor:
         return 1.0 / kernel.lengthscale.squeeze() ** 2
     if isinstance(kernel, k.MaternKernel):
         if kernel.nu == 0.5:
-            raise ValueError("a Matern 1/2 kernel is not mean-square differentiable: the Jacobian's variance is infinite")
+            raise ValueError(
+                "a Matern 1/2 kernel is not mean-square differentiable: the Jacobian's variance is infinite"
+            )
         return (3.0 if kernel.nu == 1.5 else 5.0 / 3.0) / kernel.lengthscale.squeeze() ** 2
-    raise ValueError(f"the Jacobian's variance is derived for RBF and Matern kernels and their scaled sums, not {type(kernel).__name__}")
+    raise ValueError(
+        f"the Jacobian's variance is derived for RBF and Matern kernels and their scaled sums, not {type(kernel).__name__}"
+    )
 
 
 class GPRegressor(nn.Module):
@@ -133,7 +139,9 @@ class GPRegressor(nn.Module):
         if lengthscale_bounds is not None:
             low, high = (float(v) for v in lengthscale_bounds)
             if not (0 < low < high < float("inf")):
-                raise ValueError(f"lengthscale_bounds must be (low, high) with 0 < low < high < inf, got {tuple(lengthscale_bounds)}")
+                raise ValueError(
+                    f"lengthscale_bounds must be (low, high) with 0 < low < high < inf, got {tuple(lengthscale_bounds)}"
+                )
             lengthscale_bounds = (low, high)
         kernel = kernel if kernel is not None else gpytorch.kernels.RBFKernel()
         kernel = kernel if isinstance(kernel, gpytorch.kernels.ScaleKernel) else gpytorch.kernels.ScaleKernel(kernel)
@@ -154,13 +162,23 @@ class GPRegressor(nn.Module):
         self.y_scale = y.square().mean().sqrt().clamp_min(1e-12 * self.x_scale)
         xs = ((x - self.x_mean) / self.x_scale).expand(d_out, n, x.shape[-1])
         ys = (y / self.y_scale).T.contiguous()
-        bounds = None if self.lengthscale_bounds is None else tuple(b / float(self.x_scale) for b in self.lengthscale_bounds)
+        bounds = (
+            None if self.lengthscale_bounds is None else tuple(b / float(self.x_scale) for b in self.lengthscale_bounds)
+        )
         unit = 1.0
         if self.lengthscale_unit == "diameter" and self.init_lengthscale:
             unit = float(torch.pdist(x.detach()).max() / self.x_scale) if n > 1 else 1.0
-        start = self.init_lengthscale * unit if self.init_lengthscale else (math.sqrt(bounds[0] * bounds[1]) if bounds else 1.0)
-        offsets = sorted((u for u in torch.linspace(-1, 1, self.restarts + 2).tolist() if abs(u) > 1e-9), key=lambda u: (-abs(u), u))
-        starts = [start] + [start * 10.0**u for u in offsets[: self.restarts]]  # a decade down and up first, then between
+        start = (
+            self.init_lengthscale * unit
+            if self.init_lengthscale
+            else (math.sqrt(bounds[0] * bounds[1]) if bounds else 1.0)
+        )
+        offsets = sorted(
+            (u for u in torch.linspace(-1, 1, self.restarts + 2).tolist() if abs(u) > 1e-9), key=lambda u: (-abs(u), u)
+        )
+        starts = [start] + [
+            start * 10.0**u for u in offsets[: self.restarts]
+        ]  # a decade down and up first, then between
         if bounds:
             starts = [min(max(s, bounds[0] * 1.001), bounds[1] * 0.999) for s in starts]
         best = None
@@ -178,12 +196,16 @@ class GPRegressor(nn.Module):
         self._chol = None  # built on first use by gradient_variance
         return self
 
-    def _model(self, xs: torch.Tensor, ys: torch.Tensor, lengthscale: float, bounds: tuple | None) -> tuple[_ExactGP, object]:
+    def _model(
+        self, xs: torch.Tensor, ys: torch.Tensor, lengthscale: float, bounds: tuple | None
+    ) -> tuple[_ExactGP, object]:
         """A fresh model from the templates at the initial hyper-parameters."""
         kernel, mean, likelihood = (copy.deepcopy(t) for t in self.templates)
         if likelihood is None:
             min_noise = self.min_noise or (1e-6 if xs.dtype == torch.float64 else 1e-4)
-            likelihood = gpytorch.likelihoods.GaussianLikelihood(noise_constraint=gpytorch.constraints.GreaterThan(min_noise)).to(xs)
+            likelihood = gpytorch.likelihoods.GaussianLikelihood(
+                noise_constraint=gpytorch.constraints.GreaterThan(min_noise)
+            ).to(xs)
             likelihood.noise = max(self.init_noise, min_noise * 1.01)
         else:
             likelihood = likelihood.to(xs)
@@ -213,7 +235,12 @@ class GPRegressor(nn.Module):
         likelihood.train()
         params = [p for p in model.parameters() if p.requires_grad]
         opt = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=self.iters, tolerance_grad=1e-4, tolerance_change=1e-6, line_search_fn="strong_wolfe"
+            params,
+            lr=1.0,
+            max_iter=self.iters,
+            tolerance_grad=1e-4,
+            tolerance_change=1e-6,
+            line_search_fn="strong_wolfe",
         )
         mll = gpytorch.mlls.ExactMarginalLogLikelihood(likelihood, model)
 
@@ -300,7 +327,9 @@ class GPRegressor(nn.Module):
         kern = self.model.covar_module
         with torch.enable_grad():
             kx = kern(xs, train).to_dense()  # [M, N]
-            g = torch.stack([torch.autograd.grad(kx[:, i].sum(), xs, retain_graph=True)[0] for i in range(train.shape[0])], 1)
+            g = torch.stack(
+                [torch.autograd.grad(kx[:, i].sum(), xs, retain_graph=True)[0] for i in range(train.shape[0])], 1
+            )
         with torch.no_grad():
             n = train.shape[0]
             flat = g.transpose(0, 1).reshape(n, -1)  # [N, M*d]

@@ -110,7 +110,7 @@ class ILWRMap(AlignedMap):
 
     def _width_grid(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         """The searched widths as -(rho |v|)^2: ``n_rho`` values geometric up to the diffeomorphism bound."""
-        return -(self.margin * SQRT_E_2) ** 2 * torch.logspace(-4, 0, self.n_rho, dtype=dtype, device=device)
+        return -((self.margin * SQRT_E_2) ** 2) * torch.logspace(-4, 0, self.n_rho, dtype=dtype, device=device)
 
     def _fused(self, x: torch.Tensor) -> bool:
         """Whether the compiled kernels (:mod:`.ilwr_kernels`) take this call: one keypoint set on the CPU in
@@ -125,7 +125,9 @@ class ILWRMap(AlignedMap):
         source, target = self._source.reshape(-1, n, d), self._target.reshape(-1, n, d)
         base = self.alignment._forward(source)
         if self.uncertainty_scale is not None:
-            s2 = torch.full(source.shape[:1], float(self.uncertainty_scale) ** 2, dtype=source.dtype, device=source.device)
+            s2 = torch.full(
+                source.shape[:1], float(self.uncertainty_scale) ** 2, dtype=source.dtype, device=source.device
+            )
         else:
             s2 = (target - base).square().mean((1, 2))
         width2 = 1.0 / (-self.neg_rho2).clamp_min(torch.finfo(source.dtype).tiny)  # [B, K]
@@ -138,10 +140,14 @@ class ILWRMap(AlignedMap):
 
     # ------------------------------------------------------------------ evaluate
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self._fused(x) and not any(p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)):
+        if self._fused(x) and not any(
+            p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)
+        ):
             al = self.alignment
             z = ilwr_kernels.apply_affine(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy())
-            out = ilwr_kernels.apply_steps(z, self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT)
+            out = ilwr_kernels.apply_steps(
+                z, self.centres[0].numpy(), self.vectors[0].numpy(), self.neg_rho2[0].numpy(), MIN_EXPONENT
+            )
             return torch.from_numpy(out)[None]
         return apply_steps(self.alignment._forward(x), self.centres, self.vectors, self.neg_rho2)
 
@@ -154,7 +160,9 @@ class ILWRMap(AlignedMap):
         return self.alignment._inverse(x)
 
     def _jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        if self._fused(x) and not any(p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)):
+        if self._fused(x) and not any(
+            p.requires_grad for p in (self.centres, self.vectors, self.neg_rho2, self.alignment.A, self.alignment.t)
+        ):
             al = self.alignment
             jac = ilwr_kernels.jacobian(x[0].numpy(), al.A[0].numpy(), al.t[0].numpy(), self.centres[0].numpy(), self.vectors[0].numpy(),
                                         self.neg_rho2[0].numpy(), MIN_EXPONENT)  # fmt: skip
@@ -176,7 +184,11 @@ class ILWRMap(AlignedMap):
     def _predict(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if self._chol is None:
             self._fit_uncertainty()
-        kx = torch.exp(-0.5 * torch.cdist(x, self._source.reshape(-1, *self._source.shape[-2:])).square() / self._ell2[:, None, None])
+        kx = torch.exp(
+            -0.5
+            * torch.cdist(x, self._source.reshape(-1, *self._source.shape[-2:])).square()
+            / self._ell2[:, None, None]
+        )
         a = torch.cholesky_solve(kx.transpose(1, 2), self._chol)  # [B, N, M]
         frac = (kx * a.transpose(1, 2)).sum(-1).clamp(0.0, 1.0)  # [B, M]
         var = (self._s2[:, None] * (1.0 - frac))[..., None].expand(-1, -1, x.shape[-1])
@@ -196,7 +208,9 @@ def _fit_steps_fused(source: torch.Tensor, target: torch.Tensor, alignment, n_st
     formulas, candidates and order): ``(centres, vectors, -rho^2)`` with a leading batch dimension of 1."""
     src, tgt = source[0].detach().numpy(), target[0].detach().numpy()
     z = ilwr_kernels.apply_affine(src, alignment.A[0].detach().numpy(), alignment.t[0].detach().numpy())
-    c, v, nr2, _ = ilwr_kernels.fit_steps(z, tgt, n_steps, beta, neg_grid.numpy(), tol, torch.finfo(torch.float64).tiny, MIN_EXPONENT)
+    c, v, nr2, _ = ilwr_kernels.fit_steps(
+        z, tgt, n_steps, beta, neg_grid.numpy(), tol, torch.finfo(torch.float64).tiny, MIN_EXPONENT
+    )
     return tuple(torch.from_numpy(arr)[None] for arr in (c, v, nr2))
 
 
@@ -250,7 +264,9 @@ def apply_steps(x: torch.Tensor, centres: torch.Tensor, vectors: torch.Tensor, n
     return x
 
 
-def invert_steps(y: torch.Tensor, centres: torch.Tensor, vectors: torch.Tensor, neg_rho2: torch.Tensor, iters: int) -> torch.Tensor:
+def invert_steps(
+    y: torch.Tensor, centres: torch.Tensor, vectors: torch.Tensor, neg_rho2: torch.Tensor, iters: int
+) -> torch.Tensor:
     """Undo the steps in reverse order; each one by solving g(t) = t - exp(-rho^2 |y - c - t v|^2) = 0 on [0, 1]."""
     for k in reversed(range(centres.shape[1])):
         v = vectors[:, k, None]  # [B, 1, D]

@@ -44,12 +44,16 @@ def _load(path: str, mtime_ns: int, dtype: torch.dtype, device: str) -> tuple[Co
     except UnsafeCheckpointError:
         raise
     except ValueError as e:  # it read, but not as a learned map (another model's checkpoint, a damaged file)
-        raise ValueError(f"{e}; a learned map needs a MapModule checkpoint (python train.py experiment=pusht_map)") from e
+        raise ValueError(
+            f"{e}; a learned map needs a MapModule checkpoint (python train.py experiment=pusht_map)"
+        ) from e
     flow = module.flow.to(device=device, dtype=dtype).eval().requires_grad_(False)
     return flow, str(module.hparams.alignment)
 
 
-def load_flow(path: str | os.PathLike, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> tuple[ConditionalFlow, str]:
+def load_flow(
+    path: str | os.PathLike, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"
+) -> tuple[ConditionalFlow, str]:
     """The trained flow of a :class:`~kpflow.maps.map_module.MapModule` checkpoint (frozen, in ``dtype`` on ``device``)
     and the alignment it was trained behind. Cached per file (re-read when the file changes), dtype and device.
 
@@ -61,7 +65,9 @@ def load_flow(path: str | os.PathLike, dtype: torch.dtype = torch.float64, devic
     except OSError:
         st = None
     if st is None or not stat.S_ISREG(st.st_mode):
-        raise FileNotFoundError(f"no learned-map checkpoint at {path} (train one: python train.py experiment=pusht_map)")
+        raise FileNotFoundError(
+            f"no learned-map checkpoint at {path} (train one: python train.py experiment=pusht_map)"
+        )
     return _load(p, st.st_mtime_ns, dtype, str(torch.device(device)))
 
 
@@ -103,11 +109,18 @@ class LearnedMap(AlignedMap):
     ) -> None:
         if (checkpoint is None) == (flow is None):
             raise ValueError("LearnedMap needs exactly one of checkpoint (a MapModule checkpoint) or flow")
-        loaded = load_flow(checkpoint) if checkpoint is not None else None  # fail here, with the path, not at the first fit
+        loaded = (
+            load_flow(checkpoint) if checkpoint is not None else None
+        )  # fail here, with the path, not at the first fit
         super().__init__(alignment if loaded is None else loaded[1] if loaded[1] != "none" else None)
         if int(refine_steps) < 0:
             raise ValueError(f"refine_steps must be >= 0, got {refine_steps}")
-        self.checkpoint, self.refine_steps, self._given_flow, self.compiled = checkpoint, int(refine_steps), flow, compiled
+        self.checkpoint, self.refine_steps, self._given_flow, self.compiled = (
+            checkpoint,
+            int(refine_steps),
+            flow,
+            compiled,
+        )
         self._loaded = {(torch.float64, "cpu"): loaded[0]} if loaded is not None else {}
         trained = flow if flow is not None else loaded[0]
         self.n_keypoints, self.dim = int(trained.n_keypoints), int(trained.dim)  #: the keypoint sets it was trained on
@@ -151,7 +164,15 @@ class LearnedMap(AlignedMap):
         with torch.no_grad():
             enc = {k: v.numpy() for k, v in flow.encode(a, b).items()}
         pts, vals = learned_kernels.condition_layers(
-            a.detach().numpy(), b.detach().numpy(), *weights, enc["pc"], enc["gates"], enc["width"], enc["step"], enc["ridge"], flow.s_max
+            a.detach().numpy(),
+            b.detach().numpy(),
+            *weights,
+            enc["pc"],
+            enc["gates"],
+            enc["width"],
+            enc["step"],
+            enc["ridge"],
+            flow.s_max,
         )
         return weights, (enc["pc"], enc["gates"], enc["width"], pts, vals, flow.s_max)
 

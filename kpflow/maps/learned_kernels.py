@@ -25,11 +25,19 @@ def pack(flow) -> tuple[np.ndarray, ...]:
     (``w2, b2`` empty, ``[K, 0, 0]`` and ``[K, 0]``, for a coupling depth of 1)."""
     as_np = lambda ts: np.ascontiguousarray(torch.stack(list(ts)).detach().to("cpu", torch.float64).numpy())  # noqa: E731
     k = flow.n_layers
-    w2, b2 = (as_np(m.weight for m in flow.w2), as_np(m.bias for m in flow.w2)) if len(flow.w2) else (np.zeros((k, 0, 0)), np.zeros((k, 0)))
+    w2, b2 = (
+        (as_np(m.weight for m in flow.w2), as_np(m.bias for m in flow.w2))
+        if len(flow.w2)
+        else (np.zeros((k, 0, 0)), np.zeros((k, 0)))
+    )
     return (
         np.ascontiguousarray(flow.rotations.detach().to("cpu", torch.float64).numpy()),
-        as_np(m.weight for m in flow.w1), as_np(m.bias for m in flow.w1), w2, b2,
-        as_np(m.weight for m in flow.w3), as_np(m.bias for m in flow.w3),
+        as_np(m.weight for m in flow.w1),
+        as_np(m.bias for m in flow.w1),
+        w2,
+        b2,
+        as_np(m.weight for m in flow.w3),
+        as_np(m.bias for m in flow.w3),
     )
 
 
@@ -68,7 +76,9 @@ def _shift_scale(k, keep, w1, b1, w2, b2, w3, b3, pc, gate, width, pts, vals, s_
 
 
 @numba.njit(cache=True)
-def _layer(k, u, inverse, rot, w1, b1, w2, b2, w3, b3, pc, gate, width, pts, vals, s_max, v, s, t, h1, h2):  # pragma: no cover
+def _layer(
+    k, u, inverse, rot, w1, b1, w2, b2, w3, b3, pc, gate, width, pts, vals, s_max, v, s, t, h1, h2
+):  # pragma: no cover
     """Layer k (or its inverse) applied in place to each row of ``u [M, D]``; returns the summed log-scales."""
     d, n_keep = u.shape[1], w1.shape[2]
     total = 0.0
@@ -147,7 +157,29 @@ def condition_layers(a, b, rot, w1, b1, w2, b2, w3, b3, pc, gate, width, step, r
             for i in range(n):
                 for o in range(n_move):
                     vals[bi, k, i, o] = step[bi, k] * sol[i, o]
-            _layer(k, p, False, rot, w1, b1, w2, b2, w3, b3, pc[bi], gate[bi], width[bi], pts[bi], vals[bi], s_max, v, s, t, h1, h2)
+            _layer(
+                k,
+                p,
+                False,
+                rot,
+                w1,
+                b1,
+                w2,
+                b2,
+                w3,
+                b3,
+                pc[bi],
+                gate[bi],
+                width[bi],
+                pts[bi],
+                vals[bi],
+                s_max,
+                v,
+                s,
+                t,
+                h1,
+                h2,
+            )
     return pts, vals
 
 
@@ -167,7 +199,29 @@ def transport(u, inverse, rot, w1, b1, w2, b2, w3, b3, pc, gate, width, pts, val
             row = out[bi, mi : mi + 1]
             for kk in range(n_layers):
                 k = n_layers - 1 - kk if inverse else kk
-                ld = _layer(k, row, inverse, rot, w1, b1, w2, b2, w3, b3, pc[bi], gate[bi], width[bi], pts[bi], vals[bi], s_max, v, s, t, h1, h2)
+                ld = _layer(
+                    k,
+                    row,
+                    inverse,
+                    rot,
+                    w1,
+                    b1,
+                    w2,
+                    b2,
+                    w3,
+                    b3,
+                    pc[bi],
+                    gate[bi],
+                    width[bi],
+                    pts[bi],
+                    vals[bi],
+                    s_max,
+                    v,
+                    s,
+                    t,
+                    h1,
+                    h2,
+                )
                 if not inverse:
                     logdet[bi, mi] += ld
     return out, logdet

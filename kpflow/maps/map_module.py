@@ -89,7 +89,9 @@ class MapModule(lightning.LightningModule):
             if not (math.isfinite(w) and w >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {w}")
         self.save_hyperparameters()
-        self.flow = ConditionalFlow(n_keypoints, dim, n_layers, hidden, context, encoder_depth, s_max, seed, coupling_depth)
+        self.flow = ConditionalFlow(
+            n_keypoints, dim, n_layers, hidden, context, encoder_depth, s_max, seed, coupling_depth
+        )
         self.register_buffer("far", far_points(dim, 64, far_radius, seed), persistent=False)
 
     def losses(self, batch: KeypointPairs) -> dict[str, torch.Tensor]:
@@ -112,7 +114,9 @@ class MapModule(lightning.LightningModule):
         out["loss"] = out["keypoints"] + h.far_weight * out["far"]
         if h.distill_weight > 0:  # (off by default: no flow pass over the queries then)
             if batch.queries.shape[1] == 0:
-                raise ValueError("distill_weight > 0 needs query points: set the data module's n_queries (e.g. data.n_queries=32)")
+                raise ValueError(
+                    "distill_weight > 0 needs query points: set the data module's n_queries (e.g. data.n_queries=32)"
+                )
             q, q_target = (aligned_q - m) / sigma, (batch.query_targets - m) / sigma
             out["distill"] = (self.flow(q, cond) - q_target).square().sum(-1).mean()
             out["loss"] = out["loss"] + h.distill_weight * out["distill"]

@@ -45,8 +45,14 @@ class MLPMap(AlignedMap):
             self.net = smooth_mlp(src.shape[-1], src.shape[-1], self.hidden, self.depth).to(src)
         anchors = anchor_points(src.shape[-1], src, seed=self.seed)
         self.losses = fit_regression(
-            self.net, self.net, (src - self.centre) / self.spread, (tgt - self.alignment._forward(src[None])[0]) / self.spread,
-            anchors, torch.zeros_like(anchors), self.prior_weight, self.steps,
+            self.net,
+            self.net,
+            (src - self.centre) / self.spread,
+            (tgt - self.alignment._forward(src[None])[0]) / self.spread,
+            anchors,
+            torch.zeros_like(anchors),
+            self.prior_weight,
+            self.steps,
         )
 
     def _forward_flat(self, x: torch.Tensor) -> torch.Tensor:

@@ -42,7 +42,13 @@ def fit_regression(
     evaluation."""
     params = [p for p in module.parameters()]
     opt = torch.optim.LBFGS(
-        params, lr=1.0, max_iter=steps, tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20, line_search_fn="strong_wolfe"
+        params,
+        lr=1.0,
+        max_iter=steps,
+        tolerance_grad=1e-10,
+        tolerance_change=1e-14,
+        history_size=20,
+        line_search_fn="strong_wolfe",
     )
     losses: list[float] = []
 

@@ -73,10 +73,14 @@ class PolicyLayout:
     def __post_init__(self) -> None:
         seen = sorted(i for idx in self.groups.values() for i in idx)
         if self.groups and seen != list(range(self.n_keypoints)):
-            raise ValueError(f"the groups {dict(self.groups)} must name each of the {self.n_keypoints} keypoints exactly once")
+            raise ValueError(
+                f"the groups {dict(self.groups)} must name each of the {self.n_keypoints} keypoints exactly once"
+            )
         for role, names in self.roles.items():
             if role not in ROLES or any(n not in self.groups for n in names):
-                raise ValueError(f"role {role!r} -> {names}: roles are {ROLES} and name groups of {sorted(self.groups)}")
+                raise ValueError(
+                    f"role {role!r} -> {names}: roles are {ROLES} and name groups of {sorted(self.groups)}"
+                )
         spatial = self.keypoint_dim + (6 if self.rotation else 0)
         if self.action_dim < self.keypoint_dim or spatial > self.action_dim:
             raise ValueError(f"actions of {self.action_dim} values cannot start with a {self.keypoint_dim}-D position"
@@ -90,7 +94,9 @@ class PolicyLayout:
                     self.indices(name)  # raises naming an unknown group
         for symmetry in self.symmetries:
             if len(symmetry.perm) != self.n_keypoints:
-                raise ValueError(f"symmetry {symmetry.name!r} relabels {len(symmetry.perm)} keypoints; the layout has {self.n_keypoints}")
+                raise ValueError(
+                    f"symmetry {symmetry.name!r} relabels {len(symmetry.perm)} keypoints; the layout has {self.n_keypoints}"
+                )
 
     def record(self) -> dict:
         """The layout as plain data: strings, numbers, lists and mappings (:meth:`from_record` reads it back)."""
@@ -114,7 +120,13 @@ class PolicyLayout:
             phases = r.get("phases")
             if phases is not None:
                 grip = {k: tuple(v) if isinstance(v, list) else v for k, v in phases["grip"].items()}
-                phases = Phases(Grip(**grip), tuple(Phase(**{k: tuple(v) if isinstance(v, list) else v for k, v in p.items()}) for p in phases["phases"]))
+                phases = Phases(
+                    Grip(**grip),
+                    tuple(
+                        Phase(**{k: tuple(v) if isinstance(v, list) else v for k, v in p.items()})
+                        for p in phases["phases"]
+                    ),
+                )
             return cls(
                 int(r["n_keypoints"]), int(r["keypoint_dim"]), int(r["action_dim"]),
                 {str(k): tuple(int(i) for i in v) for k, v in r.get("groups", {}).items()},
@@ -142,7 +154,9 @@ class PolicyLayout:
             elif name in self.roles:
                 out.update(i for g in self.roles[name] for i in self.groups[g])
             else:
-                raise ValueError(f"unknown keypoint group {name!r}; this task's groups are {sorted(self.groups)} and roles {sorted(self.roles)}")
+                raise ValueError(
+                    f"unknown keypoint group {name!r}; this task's groups are {sorted(self.groups)} and roles {sorted(self.roles)}"
+                )
         return tuple(sorted(out))
 
     def weights(self, weights: Mapping[str, float] | None) -> np.ndarray:
@@ -183,7 +197,9 @@ class ClosedLoop:
         if not self.queue:
             seen = dict(obs, keypoints_history=np.stack(self.history)) if self.n_obs > 1 else obs
             chunk = np.atleast_2d(np.asarray(self.policy.act(seen), dtype=np.float64))
-            if self.action_dim is not None and (chunk.ndim != 2 or chunk.shape[1] != self.action_dim or not np.isfinite(chunk).all()):
+            if self.action_dim is not None and (
+                chunk.ndim != 2 or chunk.shape[1] != self.action_dim or not np.isfinite(chunk).all()
+            ):
                 raise ValueError(f"the policy must return finite chunks [H, {self.action_dim}]; got {chunk.shape}")
             self.queue.extend(chunk)
             self.decisions += 1

@@ -64,7 +64,9 @@ def robot_and_rotation(layout: PolicyLayout | None, k: int) -> tuple[np.ndarray,
     """The robot's keypoint indices and whether actions carry a rotation, from the task's ``layout`` (``ValueError``
     without one, or when it names another number of keypoints than the ``k`` of the source index)."""
     if layout is None:
-        raise ValueError("a transporting policy needs the task's PolicyLayout (layout=task.policy_layout): which keypoints are the robot's")
+        raise ValueError(
+            "a transporting policy needs the task's PolicyLayout (layout=task.policy_layout): which keypoints are the robot's"
+        )
     if layout.n_keypoints != k:
         raise ValueError(f"the layout names {layout.n_keypoints} keypoints; the source index holds {k}")
     robot = layout.indices("robot")

@@ -82,11 +82,15 @@ class TransportConfig:
             if getattr(self, name) is not None and not isinstance(getattr(self, name), bool):
                 raise ValueError(f"transport.{name} must be true or false, got {getattr(self, name)!r}")
         if self.map is not None and (not isinstance(self.map, str) or not self.map.isidentifier()):
-            raise ValueError(f"transport.map must name a file of kpflow/conf/map/ (ilwr, gp, affine, ...), got {self.map!r}")
+            raise ValueError(
+                f"transport.map must name a file of kpflow/conf/map/ (ilwr, gp, affine, ...), got {self.map!r}"
+            )
         if self.map_options is not None:
             options = _plain("transport.map_options", dict(self.map_options))
             if any(k.startswith("_") for k in options):
-                raise ValueError(f"transport.map_options sets the map's own options only; {sorted(k for k in options if k.startswith('_'))} are refused")
+                raise ValueError(
+                    f"transport.map_options sets the map's own options only; {sorted(k for k in options if k.startswith('_'))} are refused"
+                )
             object.__setattr__(self, "map_options", options)
         if self.fit_on is not None:
             fit_on = self.fit_on if isinstance(self.fit_on, str) else tuple(str(n) for n in self.fit_on)
@@ -104,7 +108,9 @@ class TransportConfig:
             search = _plain("transport.search", dict(self.search))
             SourceSearch.of(search)  # refuses an unknown option, naming the known ones
             object.__setattr__(self, "search", search)
-        if self.alternatives is not None and (isinstance(self.alternatives, bool) or not isinstance(self.alternatives, int) or self.alternatives < 1):
+        if self.alternatives is not None and (
+            isinstance(self.alternatives, bool) or not isinstance(self.alternatives, int) or self.alternatives < 1
+        ):
             raise ValueError(f"transport.alternatives must be an integer >= 1, got {self.alternatives!r}")
 
     @classmethod
@@ -144,10 +150,17 @@ class TransportConfig:
         for layer in lower:
             given = given.on(layer)
         task = TransportConfig.of(defaults or {}, "the task's transport defaults")
-        segments, arm = (next(v for v in (getattr(given, n), getattr(task, n), DEFAULTS[n]) if v is not None) for n in ("segments", "arm"))
+        segments, arm = (
+            next(v for v in (getattr(given, n), getattr(task, n), DEFAULTS[n]) if v is not None)
+            for n in ("segments", "arm")
+        )
         given.check_used(segments, arm)
         resolved = {**DEFAULTS, **_used(task, segments, arm), **given.record(), "segments": segments, "arm": arm}
-        resolved["search"] = {**_used_search(DEFAULTS["search"], segments), **_used_search(task.search or {}, segments), **(given.search or {})}
+        resolved["search"] = {
+            **_used_search(DEFAULTS["search"], segments),
+            **_used_search(task.search or {}, segments),
+            **(given.search or {}),
+        }
         if segments:
             resolved["fit_on"] = "all"  # each phase's own (unused)
         return TransportConfig(**resolved)
@@ -162,9 +175,24 @@ class TransportConfig:
         if not arm and self.alternatives is not None:
             ignored.append("alternatives")
         if ignored:
-            why = "segments=true fits each phase's map on, and searches relative to, what the task's phases declare" if segments else ""
-            why = "; ".join(w for w in (why, "alternatives are the sources tried when the arm cannot follow (arm=true)" if not arm and "alternatives" in ignored else "") if w)
-            raise ValueError(f"the transport ignores {', '.join(ignored)} ({why}): drop {'it' if len(ignored) == 1 else 'them'}")
+            why = (
+                "segments=true fits each phase's map on, and searches relative to, what the task's phases declare"
+                if segments
+                else ""
+            )
+            why = "; ".join(
+                w
+                for w in (
+                    why,
+                    "alternatives are the sources tried when the arm cannot follow (arm=true)"
+                    if not arm and "alternatives" in ignored
+                    else "",
+                )
+                if w
+            )
+            raise ValueError(
+                f"the transport ignores {', '.join(ignored)} ({why}): drop {'it' if len(ignored) == 1 else 'them'}"
+            )
 
 
 def _used_search(search: Mapping, segments: bool | None) -> dict:
@@ -205,14 +233,21 @@ class PolicyConfig:
         if not isinstance(record, Mapping):
             raise ValueError(f"{where}: {CHECKPOINT_KEY!r} must be a mapping, got {type(record).__name__}")
         if unknown := sorted(set(map(str, record)) - {"kind", "transport", "layout"}):
-            raise ValueError(f"{where}: {CHECKPOINT_KEY!r} has unknown key(s) {unknown}; known: kind, transport, layout")
+            raise ValueError(
+                f"{where}: {CHECKPOINT_KEY!r} has unknown key(s) {unknown}; known: kind, transport, layout"
+            )
         layout = record.get("layout")
         if layout is not None:
             from .base import PolicyLayout
 
             PolicyLayout.from_record(layout, where)  # a malformed layout is refused now, naming the file
         try:
-            return cls(str(record.get("kind", "kcfm")), settings, TransportConfig.of(record.get("transport"), f"{where}: transport"), layout)
+            return cls(
+                str(record.get("kind", "kcfm")),
+                settings,
+                TransportConfig.of(record.get("transport"), f"{where}: transport"),
+                layout,
+            )
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
 
@@ -225,7 +260,9 @@ class PolicyConfig:
             out["layout"] = dict(self.layout)
         return out
 
-    def given(self, kind: str | None = None, transport: TransportConfig | Mapping | None = None, **settings) -> PolicyConfig:
+    def given(
+        self, kind: str | None = None, transport: TransportConfig | Mapping | None = None, **settings
+    ) -> PolicyConfig:
         """This config with ``kind``, transport options and settings given on top (None keeps this one's)."""
         merged = TransportConfig.of(transport).on(self.transport or TransportConfig())
         return replace(self, kind=kind or self.kind, settings=self.settings.given(**settings), transport=merged)
@@ -254,4 +291,6 @@ def map_factory(name: str, options: Mapping | None = None):
     try:
         return instantiate(cfg)
     except Exception as e:  # a missing required option (learned: its checkpoint), a wrong type
-        raise ValueError(f"transport.map={name!r} with options {dict(options or {})} does not build a map: {e}") from None
+        raise ValueError(
+            f"transport.map={name!r} with options {dict(options or {})} does not build a map: {e}"
+        ) from None

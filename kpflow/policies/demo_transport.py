@@ -61,7 +61,9 @@ class DemoTransportPolicy:
         pos, rot, std = moved.positions.numpy(), moved.orientations.numpy(), moved.std.numpy()
         self.stopped_at = None
         if self.max_std is not None:
-            pos, rot, std, demonstration = self._act_on_uncertainty(phi, demonstration, positions, rotations, pos, rot, std)
+            pos, rot, std, demonstration = self._act_on_uncertainty(
+                phi, demonstration, positions, rotations, pos, rot, std
+            )
         return demonstration.moved(pos, rot, std), phi
 
     def _act_on_uncertainty(self, phi, demonstration, positions, rotations, pos, rot, std):
@@ -71,7 +73,9 @@ class DemoTransportPolicy:
             if len(over):
                 n = self.stopped_at = int(over[0])
                 d = demonstration
-                demonstration = replace(d, positions=d.positions[:n], rotations=d.rotations[:n], grasp=d.grasp[:n], phases=d.phases[:n])
+                demonstration = replace(
+                    d, positions=d.positions[:n], rotations=d.rotations[:n], grasp=d.grasp[:n], phases=d.phases[:n]
+                )
                 pos, rot, std = pos[:n], rot[:n], std[:n]
             return pos, rot, std, demonstration
         lam = np.clip(u / self.max_std - 1.0, 0.0, 1.0)
@@ -79,7 +83,10 @@ class DemoTransportPolicy:
             with torch.no_grad():
                 rigid = transport_trajectory(phi.alignment, positions, orientations=rotations)
             # the alignment is fitted on the map's internal batch of one keypoint set: drop that axis
-            rigid_pos, rigid_rot = rigid.positions.numpy().reshape(pos.shape), rigid.orientations.numpy().reshape(rot.shape)
+            rigid_pos, rigid_rot = (
+                rigid.positions.numpy().reshape(pos.shape),
+                rigid.orientations.numpy().reshape(rot.shape),
+            )
             pos = (1 - lam[:, None]) * pos + lam[:, None] * rigid_pos
             delta = Rotation.from_matrix(rigid_rot) * Rotation.from_matrix(rot).inv()
             rot = (Rotation.from_rotvec(delta.as_rotvec() * lam[:, None]) * Rotation.from_matrix(rot)).as_matrix()

@@ -50,7 +50,9 @@ def layout_of(task) -> PolicyLayout:
     """The :class:`PolicyLayout` a task declares (``task.policy_layout``; the task may be a config node)."""
     layout = getattr(_built(task), "policy_layout", None)
     if not isinstance(layout, PolicyLayout):
-        raise ValueError(f"{type(task).__name__} declares no policy_layout: a learned or transporting policy needs the task's keypoint layout")
+        raise ValueError(
+            f"{type(task).__name__} declares no policy_layout: a learned or transporting policy needs the task's keypoint layout"
+        )
     return layout
 
 
@@ -151,7 +153,9 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
         make_map = map_factory("ilwr")
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"policy transportation (fit_on={fit_on})")
-    return TransportPolicy(search.index(_built(demos), layout, horizon), make_map, execute, max_step_px, fit, layout, **search.choice())
+    return TransportPolicy(
+        search.index(_built(demos), layout, horizon), make_map, execute, max_step_px, fit, layout, **search.choice()
+    )
 
 
 class PolicyBuilder:
@@ -181,7 +185,9 @@ class PolicyBuilder:
 
         overrides = dict(overrides or {})
         if unknown := sorted(set(overrides) - {"kind", "transport", *SETTINGS}):
-            raise ValueError(f"unknown policy option(s) {unknown}; the options are kind, transport and {', '.join(SETTINGS)}")
+            raise ValueError(
+                f"unknown policy option(s) {unknown}; the options are kind, transport and {', '.join(SETTINGS)}"
+            )
         self.checkpoint = resolve_release(checkpoint)
         self.model = model = load_checkpoint(KCFM, self.checkpoint, map_location="cpu")
         stored: PolicyConfig = model.policy_config
@@ -215,7 +221,9 @@ class PolicyBuilder:
             if transport.arm:
                 self.arm = getattr(task, "arm_limits", None)
                 if self.arm is None:
-                    raise ValueError(f"transport.arm=true checks chunks against the task's arm_limits; {type(task).__name__} declares none")
+                    raise ValueError(
+                        f"transport.arm=true checks chunks against the task's arm_limits; {type(task).__name__} declares none"
+                    )
             search = SourceSearch.of(transport.search)
             if demos is None:
                 self.index = search.reindexed(SourceIndex.load(source_index_path(self.checkpoint)), self.layout)
@@ -228,7 +236,16 @@ class PolicyBuilder:
     def build(self):
         """A fresh policy as :attr:`config` says."""
         if self.config.kind == "kcfm":
-            return make_kcfm(self.model, self.layout, self.steps, self.execute, self.input_margin, self.reach, self.turn_deg, self.solver)
+            return make_kcfm(
+                self.model,
+                self.layout,
+                self.steps,
+                self.execute,
+                self.input_margin,
+                self.reach,
+                self.turn_deg,
+                self.solver,
+            )
         t = self.config.transport
         return make_transported_kcfm(self.model, self.index, self.layout, self.make_map, self.steps, self.execute, t.pull_back, self.fit_on,
                                      self.input_margin, self.reach, self.turn_deg, self.solver, t.segments, self.search, self.arm,
@@ -248,7 +265,14 @@ def kcfm(checkpoint: str, task, steps: int | None = None, execute: int | None = 
          input_margin: float | None = INPUT_MARGIN, solver: str | None = None):  # fmt: skip
     """``policy=kcfm``: the K-CFM at ``checkpoint`` for ``task``, as it is (:func:`build` with ``kind=kcfm``; the
     settings None: the checkpoint's)."""
-    overrides = {"kind": "kcfm", "steps": steps, "execute": execute, "reach": reach, "turn_deg": turn_deg, "solver": solver}
+    overrides = {
+        "kind": "kcfm",
+        "steps": steps,
+        "execute": execute,
+        "reach": reach,
+        "turn_deg": turn_deg,
+        "solver": solver,
+    }
     return build(checkpoint, overrides, task, input_margin=input_margin)
 
 
@@ -269,7 +293,9 @@ def transported_kcfm(checkpoint: str, demos: ChunkDataModule | Mapping | None, t
     if sources == "auto":
         sources = "saved" if source_index_path(checkpoint).is_file() or demos is None else "data"
     if sources == "data" and demos is None:
-        raise ValueError("sources=data transports over the episodes of a data node: pass data=<node> (kpflow/conf/data/)")
+        raise ValueError(
+            "sources=data transports over the episodes of a data node: pass data=<node> (kpflow/conf/data/)"
+        )
     demos = demos if sources == "data" else None
     overrides = {"kind": "transported_kcfm", "transport": transport, "steps": steps, "execute": execute, "reach": reach, "turn_deg": turn_deg,
                  "solver": solver}  # fmt: skip

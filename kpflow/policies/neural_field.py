@@ -10,7 +10,9 @@ from torch import nn
 
 
 class NeuralVectorField(lightning.LightningModule):
-    def __init__(self, dim: int = 2, hidden: int = 128, depth: int = 3, lr: float = 3e-3, weight_decay: float = 1e-5) -> None:
+    def __init__(
+        self, dim: int = 2, hidden: int = 128, depth: int = 3, lr: float = 3e-3, weight_decay: float = 1e-5
+    ) -> None:
         super().__init__()
         self.save_hyperparameters()
         layers, width = [], dim

@@ -44,9 +44,13 @@ class Grip:
 
     def __post_init__(self) -> None:
         if len(self.pads) != 2 or len(set(self.pads)) != 2 or not self.grasp_from or not self.grasp_to:
-            raise ValueError(f"a grip needs two distinct pad keypoints and grasp keypoints at both ends; got {self.pads}, {self.grasp_from}, {self.grasp_to}")
+            raise ValueError(
+                f"a grip needs two distinct pad keypoints and grasp keypoints at both ends; got {self.pads}, {self.grasp_from}, {self.grasp_to}"
+            )
         if not (0 <= self.empty_below < self.closed_below and self.reach > 0):
-            raise ValueError(f"need 0 <= empty_below < closed_below and reach > 0; got {self.empty_below}, {self.closed_below}, {self.reach}")
+            raise ValueError(
+                f"need 0 <= empty_below < closed_below and reach > 0; got {self.empty_below}, {self.closed_below}, {self.reach}"
+            )
 
     def holding(self, keypoints: np.ndarray) -> np.ndarray:
         """``holding(K)`` for keypoint sets ``[..., K, D]``: a bool array ``[...]``."""
@@ -101,7 +105,9 @@ class Phases:
 
     def index(self, keypoints: np.ndarray) -> np.ndarray:
         """The phase of each keypoint set ``[..., K, D]`` as an index into :attr:`phases` (int array ``[...]``)."""
-        free, held = (next(i for i, p in enumerate(self.phases) if p.holding in (state, None)) for state in (False, True))
+        free, held = (
+            next(i for i, p in enumerate(self.phases) if p.holding in (state, None)) for state in (False, True)
+        )
         return np.where(self.grip.holding(keypoints), held, free)
 
     def of(self, keypoints: np.ndarray) -> Phase:

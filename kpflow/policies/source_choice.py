@@ -50,7 +50,11 @@ class SourceChoice:
         if not (np.isfinite(stuck_px) and stuck_px >= 0):
             raise ValueError(f"stuck_px must be a number >= 0, got {stuck_px!r}")
         self.index, self.candidates, self.temperature = index, int(candidates), float(temperature)
-        self.stuck_decisions, self.stuck_px, self.stuck_candidates = stuck_decisions, float(stuck_px), int(stuck_candidates)
+        self.stuck_decisions, self.stuck_px, self.stuck_candidates = (
+            stuck_decisions,
+            float(stuck_px),
+            int(stuck_candidates),
+        )
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:

@@ -43,11 +43,15 @@ class SourceSearch:
         if isinstance(search, SourceSearch):
             return search
         if not isinstance(search, Mapping):
-            raise ValueError(f"source_search must be a mapping of {[f.name for f in fields(cls)]}, got {type(search).__name__}")
+            raise ValueError(
+                f"source_search must be a mapping of {[f.name for f in fields(cls)]}, got {type(search).__name__}"
+            )
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(search) - known)
         if unknown:
-            raise ValueError(f"source_search has no option {', '.join(unknown)}; its options are {', '.join(sorted(known))}")
+            raise ValueError(
+                f"source_search has no option {', '.join(unknown)}; its options are {', '.join(sorted(known))}"
+            )
         values = dict(search)
         if values.get("weights") is not None:
             values["weights"] = {str(k): float(v) for k, v in dict(values["weights"]).items()}
@@ -65,7 +69,9 @@ class SourceSearch:
         """A :class:`SourceIndex` over every step of the episodes the data node ``demos`` trains on (its store, its
         first ``max_episodes``; goals read as the node says: ``data.goals``), chunks of ``horizon`` actions."""
         if not isinstance(demos, ChunkDataModule):
-            raise ValueError(f"demos must be a data node of demonstrations (a ChunkDataModule, kpflow/conf/data/), got {type(demos).__name__}")
+            raise ValueError(
+                f"demos must be a data node of demonstrations (a ChunkDataModule, kpflow/conf/data/), got {type(demos).__name__}"
+            )
         store = EpisodeStore(demos.path)
         n = store.n_episodes if demos.max_episodes is None else min(store.n_episodes, int(demos.max_episodes))
         return SourceIndex.from_store(store, horizon, layout.weights(self.weights), self.frame_indices(layout), range(n), demos.obs_key,
@@ -73,4 +79,6 @@ class SourceSearch:
 
     def reindexed(self, saved: SourceIndex, layout: PolicyLayout) -> SourceIndex:
         """A saved index (:meth:`SourceIndex.load`) searched with these weights and this frame."""
-        return SourceIndex(saved.keypoints, saved.chunks, layout.weights(self.weights), self.frame_indices(layout), saved.episodes)
+        return SourceIndex(
+            saved.keypoints, saved.chunks, layout.weights(self.weights), self.frame_indices(layout), saved.episodes
+        )

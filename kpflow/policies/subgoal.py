@@ -81,7 +81,9 @@ class SubgoalPolicy:
         if not object or not goal or set(object) & set(goal):
             raise ValueError(f"object and goal need >= 1 keypoint each and none in common; got {object} and {goal}")
         if self.turn_deg is not None and len(object) != len(goal):
-            raise ValueError(f"turn_deg needs the goal's keypoints in the object's order; got {len(object)} and {len(goal)}")
+            raise ValueError(
+                f"turn_deg needs the goal's keypoints in the object's order; got {len(object)} and {len(goal)}"
+            )
         self.policy, self.object, self.goal = policy, tuple(object), tuple(goal)
         self.n_obs = int(getattr(policy, "n_obs", 1))  # the observation history the rollout must hand over
         self.execute = getattr(policy, "execute", None)
@@ -108,7 +110,11 @@ class SubgoalPolicy:
                 a = subgoal_turn(current, self.object, self.goal, np.radians(self.turn_deg))
                 rotation = planar_rotation(a)
                 current[goal] = centre + (current[goal] - centre) @ rotation.T  # the shift is read off the turned goal
-            shift = np.zeros(current.shape[-1]) if self.reach is None else subgoal_shift(current, self.object, self.goal, self.reach)
+            shift = (
+                np.zeros(current.shape[-1])
+                if self.reach is None
+                else subgoal_shift(current, self.object, self.goal, self.reach)
+            )
             for kp in frames.values():
                 if rotation is not None:
                     kp[..., goal, :] = centre + (kp[..., goal, :] - centre) @ rotation.T
@@ -116,7 +122,9 @@ class SubgoalPolicy:
         for key, kp in frames.items():
             if not np.isfinite(kp).all():
                 largest = np.abs(np.asarray(obs[key], dtype=np.float64)).max()
-                raise ValueError(f"obs[{key!r}] is too large to move its goal within reach and turn: it overflowed (largest coordinate {largest:.4g})")
+                raise ValueError(
+                    f"obs[{key!r}] is too large to move its goal within reach and turn: it overflowed (largest coordinate {largest:.4g})"
+                )
         return {**obs, **frames}
 
     def act(self, obs: dict) -> np.ndarray:

@@ -45,7 +45,9 @@ class Symmetry:
 
     def __post_init__(self) -> None:
         if sorted(self.perm) != list(range(len(self.perm))):
-            raise ValueError(f"symmetry {self.name!r}: perm must be a permutation of 0..{len(self.perm) - 1}, got {self.perm}")
+            raise ValueError(
+                f"symmetry {self.name!r}: perm must be a permutation of 0..{len(self.perm) - 1}, got {self.perm}"
+            )
         if not np.isfinite(self.tool_turn):
             raise ValueError(f"symmetry {self.name!r}: tool_turn must be finite, got {self.tool_turn}")
 
@@ -59,7 +61,9 @@ def identity(k: int) -> Symmetry:
     return Symmetry("identity", tuple(range(k)))
 
 
-def phase_correspondences(symmetries: Sequence[Symmetry], k: int, fit_on: Sequence[int], holding: bool | None) -> list[Symmetry]:
+def phase_correspondences(
+    symmetries: Sequence[Symmetry], k: int, fit_on: Sequence[int], holding: bool | None
+) -> list[Symmetry]:
     """The correspondences a phase fitted on ``fit_on`` that holds (``holding``) chooses among: the identity first,
     then each symmetry that relabels a keypoint of ``fit_on`` or turns the tool, where it holds in the phase (a
     symmetry with ``holding`` set holds only in a phase with the same ``holding``); the identity alone without

@@ -116,7 +116,9 @@ def source_phases(index: SourceIndex, phases: Phases) -> np.ndarray:
     return which
 
 
-def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict, symmetries: Sequence[Symmetry] = ()) -> list[PhaseTransport]:
+def phase_transports(
+    index: SourceIndex, layout: PolicyLayout, phases: Phases, choice: dict, symmetries: Sequence[Symmetry] = ()
+) -> list[PhaseTransport]:
     """One :class:`PhaseTransport` per phase of ``phases``: the index's configurations of that phase
     (:func:`source_phases`) searched relative to its ``frame`` with its ``weights``, with the correspondences
     ``symmetries`` admit in it (:func:`~.symmetry.phase_correspondences`; none: the identity alone)."""
@@ -125,9 +127,15 @@ def phase_transports(index: SourceIndex, layout: PolicyLayout, phases: Phases, c
     for i, phase in enumerate(phases.phases):
         members = np.flatnonzero(which == i)
         if not len(members):
-            raise ValueError(f"no training configuration of the source index is in phase {phase.name!r}: it cannot be transported segment by segment")
-        sub = SourceIndex(index.keypoints[members], index.chunks[members], layout.weights(phase.weights), layout.indices(*phase.frame))
-        pulled = np.asarray(sorted({*layout.indices("robot"), *(layout.indices(*phase.carried) if phase.carried else ())}))
+            raise ValueError(
+                f"no training configuration of the source index is in phase {phase.name!r}: it cannot be transported segment by segment"
+            )
+        sub = SourceIndex(
+            index.keypoints[members], index.chunks[members], layout.weights(phase.weights), layout.indices(*phase.frame)
+        )
+        pulled = np.asarray(
+            sorted({*layout.indices("robot"), *(layout.indices(*phase.carried) if phase.carried else ())})
+        )
         fit_on = np.asarray(layout.indices(*phase.fit_on))
         correspondences = tuple(phase_correspondences(symmetries, layout.n_keypoints, fit_on, phase.holding))
         out.append(PhaseTransport(phase, SourceChoice(sub, **choice), members, fit_on, pulled, correspondences))
@@ -183,11 +191,15 @@ class TransportedKCFMPolicy:
         **choice,
     ) -> None:
         if arm is not None and not isinstance(arm, ArmLimits):
-            raise ValueError(f"arm must have cost(obs, chunk) (kpflow.policies.symmetry.ArmLimits), got {type(arm).__name__}")
+            raise ValueError(
+                f"arm must have cost(obs, chunk) (kpflow.policies.symmetry.ArmLimits), got {type(arm).__name__}"
+            )
         if not (isinstance(alternatives, int) and alternatives >= 1):
             raise ValueError(f"alternatives must be an integer >= 1, got {alternatives!r}")
         self.arm, self.alternatives = arm, alternatives
-        self.policy = KCFMPolicy(model, steps, execute, input_margin, solver)  # validates steps, solver, execute and input_margin
+        self.policy = KCFMPolicy(
+            model, steps, execute, input_margin, solver
+        )  # validates steps, solver, execute and input_margin
         self.n_obs = self.policy.n_obs
         k, d = int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim)
         if index.keypoints.shape[1:] != (k, d):
@@ -201,13 +213,17 @@ class TransportedKCFMPolicy:
         self.phases = None
         if segments:
             if layout is None or layout.phases is None:
-                raise ValueError("segments=true follows the phases a task declares (PolicyLayout.phases); this task declares none")
+                raise ValueError(
+                    "segments=true follows the phases a task declares (PolicyLayout.phases); this task declares none"
+                )
             self.phases = layout.phases
             self.transports = phase_transports(index, layout, layout.phases, choice, symmetries)
         else:
             fit = fitted_keypoints(fit_on, k)
             correspondences = tuple(phase_correspondences(symmetries, k, np.arange(k)[fit], None))
-            self.transports = [PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fit, robot, correspondences)]
+            self.transports = [
+                PhaseTransport(None, SourceChoice(index, **choice), np.arange(len(index)), fit, robot, correspondences)
+            ]
         self.last_transport = self.transports[0]
         self.last_source: int | None = None
         self.last_phase: str | None = None
@@ -255,7 +271,9 @@ class TransportedKCFMPolicy:
             self.model.check_in_range(obs["keypoints"], self.policy.input_margin)  # shape, finite, within range
             frames = [np.asarray(obs["keypoints"], dtype=np.float64)]
         elif "keypoints_history" not in obs:
-            raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, D]")
+            raise ValueError(
+                f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, D]"
+            )
         else:
             self.model.check_in_range(obs["keypoints_history"], self.policy.input_margin)
             frames = list(np.asarray(obs["keypoints_history"], dtype=np.float64))
@@ -293,15 +311,21 @@ class TransportedKCFMPolicy:
         dim = seen.shape[-1]
         out = transport_chunk(phi, chunk, dim, self.rotation)
         if correspondence.tool_turn and self.rotation:  # the tool turned about its own z axis: R -> R Rz(turn)
-            out[:, dim : dim + 6] = matrix_to_rot6d(rot6d_to_matrix(out[:, dim : dim + 6]) @ yaw_rotation(correspondence.tool_turn))
+            out[:, dim : dim + 6] = matrix_to_rot6d(
+                rot6d_to_matrix(out[:, dim : dim + 6]) @ yaw_rotation(correspondence.tool_turn)
+            )
         return out, phi, pullback.numpy()
 
-    def _followable(self, obs: dict, transport: PhaseTransport, which: int, first: int, target: np.ndarray, frames: list[np.ndarray]):
+    def _followable(
+        self, obs: dict, transport: PhaseTransport, which: int, first: int, target: np.ndarray, frames: list[np.ndarray]
+    ):
         """``(source, correspondence, (chunk, map, input))`` of the first candidate the arm can follow (module
         docstring): the phase's kept correspondence of the chosen source, else the cheapest of the others, else the
         next sources'; the first candidate when none can be followed."""
         near, _ = transport.choice.index.query_k(target, min(self.alternatives, len(transport.members)))
-        sources = [first] + [int(transport.members[j]) for j in near if int(transport.members[j]) != first][: self.alternatives - 1]
+        sources = [first] + [int(transport.members[j]) for j in near if int(transport.members[j]) != first][
+            : self.alternatives - 1
+        ]
         n, kept = len(transport.correspondences), self.kept.get(which)
         fallback = None
         for source in sources:

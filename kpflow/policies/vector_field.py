@@ -30,7 +30,9 @@ class GPVectorField:
     def prior(self, x: torch.Tensor) -> torch.Tensor:
         return torch.zeros_like(x) if self.goal is None else self.gain * (self.goal.to(x) - x)
 
-    def fit(self, positions: torch.Tensor, velocities: torch.Tensor, goal: torch.Tensor | None = None) -> "GPVectorField":
+    def fit(
+        self, positions: torch.Tensor, velocities: torch.Tensor, goal: torch.Tensor | None = None
+    ) -> "GPVectorField":
         d = positions.shape[-1]
         x, v = positions.reshape(-1, d), velocities.reshape(-1, d)
         if x.shape[0] > self.max_points:

@@ -8,4 +8,12 @@ from kpflow.serving.deployment import Deployment, load_deployment
 from kpflow.serving.protocol import PolicyMetadata
 from kpflow.serving.server import PolicyServer
 
-__all__ = ["BatchedNetwork", "Deployment", "PolicyClient", "PolicyMetadata", "PolicyServer", "PolicyServerError", "load_deployment"]
+__all__ = [
+    "BatchedNetwork",
+    "Deployment",
+    "PolicyClient",
+    "PolicyMetadata",
+    "PolicyServer",
+    "PolicyServerError",
+    "load_deployment",
+]

@@ -74,7 +74,9 @@ class _Call:
 def check_batching(max_batch: int, max_wait_ms: float) -> None:
     """``ValueError`` naming the value unless ``max_batch`` is an integer >= 1 and ``max_wait_ms`` a finite number >= 0."""
     if isinstance(max_batch, bool) or not isinstance(max_batch, numbers.Integral) or max_batch < 1:
-        raise ValueError(f"max_batch must be an integer >= 1 (the most rows of one forward pass; 1: no batching); got {max_batch!r}")
+        raise ValueError(
+            f"max_batch must be an integer >= 1 (the most rows of one forward pass; 1: no batching); got {max_batch!r}"
+        )
     if isinstance(max_wait_ms, bool) or not isinstance(max_wait_ms, numbers.Real) or not 0 <= max_wait_ms < math.inf:
         raise ValueError(f"max_wait_ms must be a finite number of milliseconds >= 0; got {max_wait_ms!r}")
 
@@ -122,7 +124,13 @@ class BatchedNetwork(nn.Module):
 
     traceable = False  # kpflow.policies.kcfm.traced.TracedNetwork calls it eagerly
 
-    def __init__(self, net: nn.Module, max_batch: int = DEFAULT_MAX_BATCH, max_wait_ms: float = DEFAULT_MAX_WAIT_MS, trace: bool = False) -> None:
+    def __init__(
+        self,
+        net: nn.Module,
+        max_batch: int = DEFAULT_MAX_BATCH,
+        max_wait_ms: float = DEFAULT_MAX_WAIT_MS,
+        trace: bool = False,
+    ) -> None:
         super().__init__()
         check_batching(max_batch, max_wait_ms)
         if not callable(net):
@@ -135,7 +143,9 @@ class BatchedNetwork(nn.Module):
         else:
             self._traced = None
         self.max_batch, self.max_wait_ms = int(max_batch), float(max_wait_ms)
-        self._queue = _Queue(self.max_batch, self.max_wait_ms / 1e3)  # a plain object: no nn.Module attribute hooks per call
+        self._queue = _Queue(
+            self.max_batch, self.max_wait_ms / 1e3
+        )  # a plain object: no nn.Module attribute hooks per call
         self.register_state_dict_post_hook(_without_prefix)
         self.register_load_state_dict_pre_hook(_with_prefix)
 
@@ -161,12 +171,19 @@ class BatchedNetwork(nn.Module):
         ``mean_batch`` (rows per forward pass)."""
         queue = self._queue
         with queue.cond:
-            return {"calls": queue.calls, "passes": queue.passes, "rows": queue.rows, "mean_batch": queue.rows / max(queue.passes, 1)}
+            return {
+                "calls": queue.calls,
+                "passes": queue.passes,
+                "rows": queue.rows,
+                "mean_batch": queue.rows / max(queue.passes, 1),
+            }
 
     def forward(self, x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None = None) -> torch.Tensor:
         """``net(x, t, c)``, possibly computed in one pass with other threads' calls."""
         if torch.jit.is_tracing():
-            raise RuntimeError("a BatchedNetwork is not traced: it gathers the calls of several threads at run time (trace=True traces inside)")
+            raise RuntimeError(
+                "a BatchedNetwork is not traced: it gathers the calls of several threads at run time (trace=True traces inside)"
+            )
         net = self.net
         call = None if _needs_grad(net, x, t, c) else _per_row(x, t, c)
         if call is None:
@@ -178,7 +195,9 @@ def _needs_grad(net: nn.Module, *tensors) -> bool:
     """Whether autograd would record ``net`` on ``tensors``."""
     if not torch.is_grad_enabled():
         return False
-    return any(isinstance(v, torch.Tensor) and v.requires_grad for v in tensors) or any(p.requires_grad for p in net.parameters())
+    return any(isinstance(v, torch.Tensor) and v.requires_grad for v in tensors) or any(
+        p.requires_grad for p in net.parameters()
+    )
 
 
 class _Queue:
@@ -256,7 +275,9 @@ def _run(net, batch: list[_Call]) -> None:
                 y = net(torch.cat([call.x for call in batch]), torch.cat([call.t for call in batch]), c)
                 rows = [call.rows for call in batch]
                 if not isinstance(y, torch.Tensor) or y.ndim < 1 or y.shape[0] != sum(rows):
-                    raise RuntimeError(f"the batched network returned {_describe(y)} for {sum(rows)} rows; it must return one row per input row")
+                    raise RuntimeError(
+                        f"the batched network returned {_describe(y)} for {sum(rows)} rows; it must return one row per input row"
+                    )
                 outs = y.split(rows)
     except BaseException as e:  # every caller of the batch raises it
         for call in batch:

@@ -37,7 +37,9 @@ class PolicyClient:
         deadline = time.monotonic() + wait  # a server still starting (loading its model) is waited for this long
         while True:
             try:
-                connection = connect(uri, open_timeout=timeout, close_timeout=timeout, compression=None, proxy=None, max_size=1 << 24)
+                connection = connect(
+                    uri, open_timeout=timeout, close_timeout=timeout, compression=None, proxy=None, max_size=1 << 24
+                )
                 self._ws = self._stack.enter_context(connection)
                 break
             except (OSError, TimeoutError) as e:
@@ -66,7 +68,9 @@ class PolicyClient:
         error reply or a closed connection."""
         data = pack(message)
         if len(data) > self.max_message_bytes:
-            raise PolicyServerError(f"the request is {len(data)} bytes; the server takes at most {self.max_message_bytes}")
+            raise PolicyServerError(
+                f"the request is {len(data)} bytes; the server takes at most {self.max_message_bytes}"
+            )
         try:
             self._ws.send(data)
         except ConnectionClosed as e:

@@ -74,9 +74,18 @@ def load_deployment(
 
         def make_policy() -> Policy:
             return BatchedPolicy(unbatched(), network)
+
     probe = make_policy()  # checks it all now
-    name = config.kind if config.transport is None else f"{config.kind}/{config.transport.map}" + ("/segments" if config.transport.segments else "")
-    limits = {n: v for n, v in (("reach", config.settings.reach), ("turn_deg", config.settings.turn_deg)) if v not in (None, False)}
+    name = (
+        config.kind
+        if config.transport is None
+        else f"{config.kind}/{config.transport.map}" + ("/segments" if config.transport.segments else "")
+    )
+    limits = {
+        n: v
+        for n, v in (("reach", config.settings.reach), ("turn_deg", config.settings.turn_deg))
+        if v not in (None, False)
+    }
     name = "/".join([name, *(f"{limit}={float(value):g}" for limit, value in limits.items())])
     k, d, n_obs = int(hp.n_keypoints), int(hp.keypoint_dim), int(hp.n_obs)
     observation = {"keypoints": [k, d]} if n_obs == 1 else {"keypoints_history": [n_obs, k, d]}

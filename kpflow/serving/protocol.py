@@ -66,7 +66,7 @@ def check_request(message: Any) -> tuple[str, Any]:
     unknown = sorted(set(message) - set(REQUESTS))
     if unknown or len(message) != 1:
         raise ValueError(f"a request must have exactly one key of {list(REQUESTS)}, got {sorted(message)}")
-    (kind, body), = message.items()
+    ((kind, body),) = message.items()
     return kind, body
 
 

@@ -49,13 +49,17 @@ def check_address(host: str, port: int) -> None:
         raise ValueError(f"cannot serve on {host}:{port}: the host {host!r} does not resolve ({e})") from None
     for family, kind, proto, _, address in addresses:
         with socket.socket(family, kind, proto) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does, and IPv6 only on IPv6
+            probe.setsockopt(
+                socket.SOL_SOCKET, socket.SO_REUSEADDR, 1
+            )  # as asyncio's server does, and IPv6 only on IPv6
             if family == socket.AF_INET6:
                 probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
             try:
                 probe.bind(address)
             except OSError as e:
-                raise ValueError(f"cannot serve on {host}:{port}: binding {address[0]} port {port} failed ({e.strerror or e})") from None
+                raise ValueError(
+                    f"cannot serve on {host}:{port}: binding {address[0]} port {port} failed ({e.strerror or e})"
+                ) from None
 
 
 class PolicyServer:
@@ -64,7 +68,13 @@ class PolicyServer:
     After start, ``port`` is the port it listens on.
     """
 
-    def __init__(self, deployment: Deployment, host: str = "127.0.0.1", port: int = 8000, max_message_bytes: int = MAX_MESSAGE_BYTES) -> None:
+    def __init__(
+        self,
+        deployment: Deployment,
+        host: str = "127.0.0.1",
+        port: int = 8000,
+        max_message_bytes: int = MAX_MESSAGE_BYTES,
+    ) -> None:
         if not 0 <= int(port) < 65536:
             raise ValueError(f"port must be in 0..65535, got {port}")
         if int(max_message_bytes) < 1024:
@@ -80,7 +90,9 @@ class PolicyServer:
         """The reply to one message (an error reply for anything malformed; the policy's own errors too)."""
         try:
             if len(message) > self.max_message_bytes:
-                raise ValueError(f"the message is {len(message)} bytes; this server takes at most {self.max_message_bytes}")
+                raise ValueError(
+                    f"the message is {len(message)} bytes; this server takes at most {self.max_message_bytes}"
+                )
             kind, body = check_request(unpack(message))
             if kind == "reset":
                 seed = check_seed(body)
@@ -89,7 +101,10 @@ class PolicyServer:
             obs = check_observation(body, self.metadata.observation)
             start = time.perf_counter()
             actions = await self._loop.run_in_executor(self._executor, policy.act, obs)
-            return {"actions": check_actions(actions, f"the served policy ({self.metadata.policy})"), "server_ms": 1e3 * (time.perf_counter() - start)}
+            return {
+                "actions": check_actions(actions, f"the served policy ({self.metadata.policy})"),
+                "server_ms": 1e3 * (time.perf_counter() - start),
+            }
         except (WireError, ValueError) as e:
             return {"error": str(e)}
         except Exception as e:  # the policy failed on a well-formed request: say so, keep serving
@@ -129,10 +144,17 @@ class PolicyServer:
             await self._serve(on_start)
         if self.deployment.network is not None:
             stats = self.deployment.network.stats()
-            log.info("batching: %d network calls in %d forward passes (%.2f rows each)", stats["calls"], stats["passes"], stats["mean_batch"])
+            log.info(
+                "batching: %d network calls in %d forward passes (%.2f rows each)",
+                stats["calls"],
+                stats["passes"],
+                stats["mean_batch"],
+            )
 
     async def _serve(self, on_start: Callable[[], None] | None) -> None:
-        async with serve(self._handle, self.host, self.port, max_size=HARD_LIMIT * self.max_message_bytes, compression=None) as server:
+        async with serve(
+            self._handle, self.host, self.port, max_size=HARD_LIMIT * self.max_message_bytes, compression=None
+        ) as server:
             self.port = server.sockets[0].getsockname()[1]
             log.info("serving %s on ws://%s:%d", self.metadata.policy, self.host, self.port)
             if on_start is not None:

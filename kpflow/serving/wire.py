@@ -19,7 +19,20 @@ import numpy as np
 #: The dtypes an array may have on the wire (little-endian, as ``dtype.str`` spells them, plus their big-endian twins).
 DTYPES = frozenset(
     np.dtype(t).newbyteorder(order).str
-    for t in ("bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64", "float16", "float32", "float64")
+    for t in (
+        "bool",
+        "int8",
+        "int16",
+        "int32",
+        "int64",
+        "uint8",
+        "uint16",
+        "uint32",
+        "uint64",
+        "float16",
+        "float32",
+        "float64",
+    )
     for order in "<>"
 )
 
@@ -32,7 +45,12 @@ def _encode(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         if obj.dtype.str not in DTYPES:
             raise TypeError(f"arrays of dtype {obj.dtype} cannot be sent (allowed: bool, int, uint, float)")
-        return {"__ndarray__": True, "data": np.ascontiguousarray(obj).tobytes(), "dtype": obj.dtype.str, "shape": list(obj.shape)}
+        return {
+            "__ndarray__": True,
+            "data": np.ascontiguousarray(obj).tobytes(),
+            "dtype": obj.dtype.str,
+            "shape": list(obj.shape),
+        }
     if isinstance(obj, np.generic):
         if obj.dtype.str not in DTYPES:
             raise TypeError(f"scalars of dtype {obj.dtype} cannot be sent")
@@ -58,7 +76,9 @@ def _array(obj: dict) -> np.ndarray:
         raise WireError("array data must be bytes")
     dtype = np.dtype(dtype)
     if len(data) != math.prod(shape) * dtype.itemsize:
-        raise WireError(f"array of shape {shape} and dtype {dtype} needs {math.prod(shape) * dtype.itemsize} bytes, got {len(data)}")
+        raise WireError(
+            f"array of shape {shape} and dtype {dtype} needs {math.prod(shape) * dtype.itemsize} bytes, got {len(data)}"
+        )
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
@@ -74,7 +94,9 @@ def unpack(data: bytes) -> Any:
         WireError: ``data`` is not one complete msgpack object, or holds an array that cannot be rebuilt safely.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise WireError(f"a message must be binary, got {type(data).__name__} (text frames are not part of the protocol)")
+        raise WireError(
+            f"a message must be binary, got {type(data).__name__} (text frames are not part of the protocol)"
+        )
     try:
         return msgpack.unpackb(data, object_hook=_decode, raw=False, strict_map_key=True)
     except WireError:

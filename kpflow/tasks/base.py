@@ -233,4 +233,8 @@ class GymTask(Task, abc.ABC):
     def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
         """``(success, failure reason, scores)`` of an evaluation episode (:class:`~kpflow.tasks.rollout.Episode`):
         by default the env's success, ``"time limit"`` otherwise, and the steps and decisions taken."""
-        return episode.success, None if episode.success else "time limit", {"steps": episode.steps, "decisions": episode.decisions}
+        return (
+            episode.success,
+            None if episode.success else "time limit",
+            {"steps": episode.steps, "decisions": episode.decisions},
+        )

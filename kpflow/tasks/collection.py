@@ -31,13 +31,26 @@ def collect_gym_episodes(task: GymTask, store_path: str | Path, n_episodes: int,
         raise ValueError(f"{task.name} has no scripted expert (GymTask.expert): collect its demonstrations another way")
     env = task.make_env(condition)
     attempts = stored = successes = steps = 0
-    with EpisodeStore(store_path, mode="a") as store, tqdm(total=n_episodes, desc=f"collect {task.name}", disable=not progress) as bar:
+    with (
+        EpisodeStore(store_path, mode="a") as store,
+        tqdm(total=n_episodes, desc=f"collect {task.name}", disable=not progress) as bar,
+    ):
         store.attrs.update({"task": task.name, "condition": condition})
         while stored < n_episodes:
             if attempts >= 10 * n_episodes:
-                raise RuntimeError(f"{task.name}'s expert succeeded {successes} times in {attempts} attempts: check the task")
+                raise RuntimeError(
+                    f"{task.name}'s expert succeeded {successes} times in {attempts} attempts: check the task"
+                )
             scene = seed + attempts
-            episode = rollout(env, expert, task.max_steps, scene, {"seed": scene}, ("keypoints",), action_dim=int(np.prod(env.action_space.shape)))
+            episode = rollout(
+                env,
+                expert,
+                task.max_steps,
+                scene,
+                {"seed": scene},
+                ("keypoints",),
+                action_dim=int(np.prod(env.action_space.shape)),
+            )
             attempts, successes = attempts + 1, successes + episode.success
             if episode.success or keep_failures:
                 store.add_episode(episode.records)

@@ -63,9 +63,15 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
                 f"{path} was refused: it holds pickled objects other than tensors and plain containers, which could "
                 f"run code when loaded (kpflow reads checkpoints with torch.load(weights_only=True)): {reason}"
             ) from None
-        raise ValueError(f"{path} is not a readable checkpoint (not a torch file: {unpickling_reason(lines)})") from None
+        raise ValueError(
+            f"{path} is not a readable checkpoint (not a torch file: {unpickling_reason(lines)})"
+        ) from None
     except Exception as e:  # torch raises several types for truncated or foreign files
-        reason = f"{type(e).__name__}: {e}" if str(e) else ("the file is empty" if path.stat().st_size == 0 else type(e).__name__)
+        reason = (
+            f"{type(e).__name__}: {e}"
+            if str(e)
+            else ("the file is empty" if path.stat().st_size == 0 else type(e).__name__)
+        )
         raise ValueError(f"{path} is not a readable checkpoint, truncated or not a torch file ({reason})") from None
     if not isinstance(checkpoint, dict) or not isinstance(checkpoint.get("state_dict"), dict):
         raise ValueError(f"{path} is not a Lightning checkpoint: no state_dict")
@@ -98,7 +104,9 @@ def check_finite(state_dict: dict[str, Any], path: str | Path) -> None:
     for name, value in state_dict.items():
         if isinstance(value, torch.Tensor) and value.is_floating_point() and not torch.isfinite(value).all():
             bad = int((~torch.isfinite(value)).sum())
-            raise ValueError(f"{path}: weight {name!r} holds {bad} NaN or inf value(s) of {value.numel()}; refusing to load it")
+            raise ValueError(
+                f"{path}: weight {name!r} holds {bad} NaN or inf value(s) of {value.numel()}; refusing to load it"
+            )
 
 
 def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -> M:
@@ -113,7 +121,9 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     checkpoint = read_checkpoint(path, map_location)
     hparams = checkpoint.get("hyper_parameters", {})
     check_hyper_parameters(hparams, str(path))  # before even the skeleton: its size follows them
-    complete = getattr(cls, "complete_state_dict", None)  # a released file may hold part of the weights (kpflow-release)
+    complete = getattr(
+        cls, "complete_state_dict", None
+    )  # a released file may hold part of the weights (kpflow-release)
     state = complete(checkpoint["state_dict"]) if complete else checkpoint["state_dict"]
     try:
         with torch.device("meta"):  # shapes only, no storage: whatever size the hyper-parameters ask for costs nothing
@@ -127,7 +137,9 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
         raise ValueError(f"{path} is not a readable {cls.__name__} checkpoint ({type(e).__name__}: {e})") from e
     if problems:
         more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
-        raise ValueError(f"{path}: its hyper-parameters do not match its weights, refusing to build the {cls.__name__}: {'; '.join(problems[:3])}{more}")
+        raise ValueError(
+            f"{path}: its hyper-parameters do not match its weights, refusing to build the {cls.__name__}: {'; '.join(problems[:3])}{more}"
+        )
     return model.eval()
 
 

@@ -23,7 +23,9 @@ def data_dir() -> Path:
     if env := os.environ.get(ENV):
         path = Path(env).expanduser()
         if path.exists() and not path.is_dir():
-            raise ValueError(f"{ENV}={env} is not a folder (it is a file): point {ENV} at a folder, which is created if missing, or unset it")
+            raise ValueError(
+                f"{ENV}={env} is not a folder (it is a file): point {ENV} at a folder, which is created if missing, or unset it"
+            )
         return path
     clone = clone_dir()
     return clone.parent / "data" if clone is not None else cache_dir().parent / "data"

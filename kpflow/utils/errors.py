@@ -46,8 +46,12 @@ def describe(error: BaseException) -> str:
 
     # a ??? left in the config, or a key pointing at one (policy.checkpoint: ${checkpoint}): name it and how to give it
     if isinstance(error, (MissingMandatoryValue, InterpolationToMissingValueError)):
-        pointed = isinstance(error, InterpolationToMissingValueError)  # its full_key is the pointing key, not the missing one
-        missing = (not pointed and getattr(error, "full_key", None)) or str(error).splitlines()[0].split(":")[-1].strip()
+        pointed = isinstance(
+            error, InterpolationToMissingValueError
+        )  # its full_key is the pointing key, not the missing one
+        missing = (not pointed and getattr(error, "full_key", None)) or str(error).splitlines()[0].split(":")[
+            -1
+        ].strip()
         return f"config key {missing} is required and not given: add {missing}=<value> to the command"
     message = str(error).strip() or type(error).__name__
     if isinstance(error, (KeyError,)) and message.startswith(("'", '"')):

@@ -55,7 +55,9 @@ def _open_lock_file(path: Path) -> int:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     except OSError as e:
         if e.errno == errno.ELOOP:
-            raise UnsafeLockFile(f"{path} is a symbolic link: a lock file is never followed (it would write into what it points to); remove the link") from None
+            raise UnsafeLockFile(
+                f"{path} is a symbolic link: a lock file is never followed (it would write into what it points to); remove the link"
+            ) from None
         raise
     info = os.fstat(fd)
     if not stat.S_ISREG(info.st_mode):
@@ -106,12 +108,18 @@ class FileLock:
                 holder = self.holder()
                 if holder == os.getpid():  # another handle of this very process: waiting would never end
                     self.release()
-                    raise LockHeld(f"{self.path} is held by this process already, through another open handle: close that first", self.path, holder) from None
+                    raise LockHeld(
+                        f"{self.path} is held by this process already, through another open handle: close that first",
+                        self.path,
+                        holder,
+                    ) from None
                 if deadline is not None and time.monotonic() >= deadline:
                     self.release()
                     who = f"process {holder}" if holder else "another process"
                     after = f" after {wait} s" if wait else ""
-                    raise LockHeld(f"{self.path} is held by {who}{after}: wait for it to finish, or wait longer", self.path, holder) from None
+                    raise LockHeld(
+                        f"{self.path} is held by {who}{after}: wait for it to finish, or wait longer", self.path, holder
+                    ) from None
                 if not waiting and on_wait is not None:
                     on_wait(holder)
                 waiting = True

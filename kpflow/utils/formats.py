@@ -65,14 +65,18 @@ def _check_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
     try:
         info = archive.getinfo(f"{name}.npy")
     except KeyError:
-        raise ValueError(f"{path} has no array {name!r} (it has {sorted(n.removesuffix('.npy') for n in archive.namelist())})") from None
+        raise ValueError(
+            f"{path} has no array {name!r} (it has {sorted(n.removesuffix('.npy') for n in archive.namelist())})"
+        ) from None
     _check_ratio(info, path, f"array {name!r}")
     with archive.open(info) as member:
         try:
             version = np.lib.format.read_magic(member)
             if version not in ((1, 0), (2, 0)):  # 3.0 exists for structured dtypes with unicode names only
                 raise ValueError(f"format version {version} is not read")
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
             shape, _, dtype = read_header(member)
         except ValueError as e:
             raise ValueError(f"{path}: array {name!r} has a damaged header ({e})") from None
@@ -81,11 +85,16 @@ def _check_member(archive: zipfile.ZipFile, name: str, path: Path) -> None:
         raise ValueError(f"{path}: array {name!r} has dtype {dtype}; kpflow reads bool, integer and float arrays")
     declared = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     if header + declared != info.file_size:
-        raise ValueError(f"{path}: array {name!r} declares {shape} x {dtype} ({declared} bytes) but holds {info.file_size - header}")
+        raise ValueError(
+            f"{path}: array {name!r} declares {shape} x {dtype} ({declared} bytes) but holds {info.file_size - header}"
+        )
 
 
 def _check_ratio(info: zipfile.ZipInfo, path: Path, what: str) -> None:
-    if info.compress_type != zipfile.ZIP_STORED and info.file_size > MAX_DEFLATE_RATIO * info.compress_size + EXPANSION_SLACK:
+    if (
+        info.compress_type != zipfile.ZIP_STORED
+        and info.file_size > MAX_DEFLATE_RATIO * info.compress_size + EXPANSION_SLACK
+    ):
         raise ValueError(
             f"{path}: {what} claims {info.file_size} bytes from {info.compress_size} stored, beyond {MAX_DEFLATE_RATIO} times "
             f"plus {EXPANSION_SLACK} bytes; refusing to decompress it"
@@ -117,7 +126,9 @@ def read_yaml(path: str | Path):
     try:
         for event in yaml.parse(text, Loader=yaml.SafeLoader):
             if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None):
-                raise ValueError(f"{path} uses YAML anchors or aliases, which kpflow refuses (they can expand without bound)")
+                raise ValueError(
+                    f"{path} uses YAML anchors or aliases, which kpflow refuses (they can expand without bound)"
+                )
     except yaml.YAMLError as e:
         raise ValueError(f"{path} is not valid YAML ({e})") from None
     return OmegaConf.create(text)
@@ -171,7 +182,9 @@ def check_parquet_rows(files: list[Path], rows: int, columns: dict[str, int], wh
                 column = group.column(c)
                 name = column.path_in_schema.split(".list.")[0]  # a list column's values are "<name>.list.element"
                 width = columns.get(name)
-                if width is not None and column.num_values > (width + 1) * group.num_rows:  # + 1: a null row's one level
+                if (
+                    width is not None and column.num_values > (width + 1) * group.num_rows
+                ):  # + 1: a null row's one level
                     raise ValueError(
                         f"{where}: {f.name} declares {column.num_values} values in column {name} over {group.num_rows} rows, "
                         f"more than the {width} per row the dataset's features give; refusing to decode it"

@@ -47,7 +47,9 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
         pid = entry.name[len(prefix) :].split(".", 1)[0]
         if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
             continue
-        shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(missing_ok=True)
+        shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink(
+            missing_ok=True
+        )
         removed.append(entry)
     return removed
 
@@ -153,7 +155,11 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         lock = FileLock(lock_path, wait=0)
     except LockHeld as e:
         who = f"process {e.holder}" if e.holder else "another process"
-        raise LockHeld(f"{path} is being written by {who} ({lock_path.name} is held): wait for it to finish, or write elsewhere", e.path, e.holder) from None
+        raise LockHeld(
+            f"{path} is being written by {who} ({lock_path.name} is held): wait for it to finish, or write elsewhere",
+            e.path,
+            e.holder,
+        ) from None
     try:
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists already")

@@ -73,18 +73,26 @@ def check_hyper_parameters(hparams: Mapping, where: str) -> None:
     hyper-parameter of :data:`LIMITS` is not a plain ``int`` (each item, for a list), or when it is negative or beyond
     its limit (module docstring); keys it does not set are not checked here."""
     if not isinstance(hparams, Mapping):
-        raise ValueError(f"{where}: hyper_parameters is a {type(hparams).__name__}, not a mapping of names to values; refusing to build it")
+        raise ValueError(
+            f"{where}: hyper_parameters is a {type(hparams).__name__}, not a mapping of names to values; refusing to build it"
+        )
     tensors = _tensor_keys(hparams)
     if tensors:
-        raise ValueError(f"{where}: hyper-parameter {tensors[0]} is a tensor, not a plain number or list (hyper-parameters are plain values); refusing to build it")
+        raise ValueError(
+            f"{where}: hyper-parameter {tensors[0]} is a tensor, not a plain number or list (hyper-parameters are plain values); refusing to build it"
+        )
     for key, most in LIMITS.items():
         value = _lookup(hparams, key)
         if value is None:
             continue
         for item in value if isinstance(value, (list, tuple)) else [value]:
             if isinstance(item, bool) or not isinstance(item, int):
-                raise ValueError(f"{where}: hyper-parameter {key} = {item!r} is a {type(item).__name__}, not a whole number (int); refusing to build it")
+                raise ValueError(
+                    f"{where}: hyper-parameter {key} = {item!r} is a {type(item).__name__}, not a whole number (int); refusing to build it"
+                )
             if item < 0:
                 raise ValueError(f"{where}: hyper-parameter {key} = {item} is negative; refusing to build it")
             if item > most:
-                raise ValueError(f"{where}: hyper-parameter {key} = {item} is beyond kpflow's limit {most} (kpflow/utils/limits.py); refusing to build it")
+                raise ValueError(
+                    f"{where}: hyper-parameter {key} = {item} is beyond kpflow's limit {most} (kpflow/utils/limits.py); refusing to build it"
+                )

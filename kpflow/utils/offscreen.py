@@ -55,7 +55,9 @@ def render(env, camera: str, height: int, width: int, depth: bool = False, segme
         raise ValueError("this environment has no offscreen renderer: build it with render=True to take camera frames")
     own_renderer(env)  # a renderer made after the env was built (robosuite's hard reset) is owned too
     context.gl_ctx.make_current()
-    return env.sim.render(camera_name=camera, width=int(width), height=int(height), depth=depth, segmentation=segmentation)
+    return env.sim.render(
+        camera_name=camera, width=int(width), height=int(height), depth=depth, segmentation=segmentation
+    )
 
 
 def metric_depth(sim, zbuffer: np.ndarray, camera: str) -> np.ndarray:

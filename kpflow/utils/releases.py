@@ -61,7 +61,9 @@ def file_name(name: str) -> str:
         ValueError: ``name`` is empty or a path (a released file is named by its name alone).
     """
     if not name or name in (".", "..") or "/" in name or "\\" in name:
-        raise ValueError(f"release:{name} is not a released file's name: give its name alone, e.g. release:pusht_standard_fast")
+        raise ValueError(
+            f"release:{name} is not a released file's name: give its name alone, e.g. release:pusht_standard_fast"
+        )
     return name if Path(name).suffix else f"{name}.ckpt"
 
 
@@ -84,7 +86,9 @@ def release_path(name: str) -> Path:
             return folder / file
         looked.append(f"{folder} ({what}{'' if folder.is_dir() else ', missing'})")
         if folder.is_dir():  # the names release: takes (a source index goes with its checkpoint)
-            held |= {p.stem if p.suffix == ".ckpt" else p.name for p in folder.iterdir() if p.suffix in (".ckpt", ".zarr")}
+            held |= {
+                p.stem if p.suffix == ".ckpt" else p.name for p in folder.iterdir() if p.suffix in (".ckpt", ".zarr")
+            }
     there = f"; released there: {', '.join(sorted(held))}" if held else ""
     raise FileNotFoundError(
         f"no released file {file}: looked in {'; '.join(looked)}{there}. Download it from kpflow's GitHub release "

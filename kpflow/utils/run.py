@@ -124,7 +124,9 @@ def run_folder_contents(out: Path) -> list[str]:
     """What ``out`` holds besides the bookkeeping of Hydra (its job log and ``.hydra``) and of the run lock."""
     if not out.is_dir():
         return []
-    return sorted(p.name for p in out.iterdir() if not (p.name in (".hydra", RUN_LOCK) or (p.suffix == ".log" and p.is_file())))
+    return sorted(
+        p.name for p in out.iterdir() if not (p.name in (".hydra", RUN_LOCK) or (p.suffix == ".log" and p.is_file()))
+    )
 
 
 def remove_unused_run_folder(out: Path) -> None:

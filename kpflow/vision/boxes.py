@@ -52,7 +52,9 @@ def voxel_centres(points: np.ndarray, voxel: float) -> np.ndarray:
     cells = np.floor(points / voxel).astype(np.int64)
     cells -= cells.min(0)
     span = cells.max(0) + 1
-    _, inverse, counts = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(
+        (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_inverse=True, return_counts=True
+    )
     sums = np.stack([np.bincount(inverse, points[:, i], len(counts)) for i in range(3)], -1)
     return sums / counts[:, None]
 
@@ -85,11 +87,15 @@ def fit_footprint_box(
     if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
         raise ValueError(f"points must be finite [N, 3]; got shape {list(p.shape)}")
     if not voxel > 0 or not 0 < top_fraction <= 1 or (link is not None and not link > 0):
-        raise ValueError(f"voxel and link must be > 0 (link may be None) and top_fraction in (0, 1]; got {voxel}, {link} and {top_fraction}")
+        raise ValueError(
+            f"voxel and link must be > 0 (link may be None) and top_fraction in (0, 1]; got {voxel}, {link} and {top_fraction}"
+        )
     v = voxel_centres(p, voxel) if len(p) else np.zeros((0, 3))
     v = v if link is None else largest_cluster(v, link)
     if len(v) < min_voxels:
-        raise ValueError(f"the object is seen in {len(v)} voxels of {voxel * 1e3:g} mm, fewer than {min_voxels}: occluded, out of view or not segmented")
+        raise ValueError(
+            f"the object is seen in {len(v)} voxels of {voxel * 1e3:g} mm, fewer than {min_voxels}: occluded, out of view or not segmented"
+        )
     rect = shapely.minimum_rotated_rectangle(shapely.multipoints(v[:, :2]))
     corners = np.asarray(rect.exterior.coords)[:4] if rect.geom_type == "Polygon" else _degenerate(v[:, :2])
     centre = corners.mean(0)

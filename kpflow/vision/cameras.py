@@ -49,9 +49,13 @@ class CameraFrame:
         if h is None:
             raise ValueError(f"camera {self.name!r}: depth must be [H, W]; got shape {np.shape(self.depth)}")
         if np.shape(self.rgb) != (h, w, 3):
-            raise ValueError(f"camera {self.name!r}: rgb must be [H, W, 3] = [{h}, {w}, 3] like the depth; got {np.shape(self.rgb)}")
+            raise ValueError(
+                f"camera {self.name!r}: rgb must be [H, W, 3] = [{h}, {w}, 3] like the depth; got {np.shape(self.rgb)}"
+            )
         if self.segmentation is not None and np.shape(self.segmentation) != (h, w):
-            raise ValueError(f"camera {self.name!r}: segmentation must be [H, W] = [{h}, {w}]; got {np.shape(self.segmentation)}")
+            raise ValueError(
+                f"camera {self.name!r}: segmentation must be [H, W] = [{h}, {w}]; got {np.shape(self.segmentation)}"
+            )
         if np.shape(self.intrinsics) != (3, 3) or np.shape(self.cam_to_world) != (4, 4):
             raise ValueError(
                 f"camera {self.name!r}: intrinsics must be 3 x 3 and cam_to_world 4 x 4; got {np.shape(self.intrinsics)} and {np.shape(self.cam_to_world)}"
@@ -70,7 +74,9 @@ class CameraFrame:
     def points(self, mask: np.ndarray | None = None) -> np.ndarray:
         """World points ``[N, 3]`` (float64) of the pixels in ``mask [H, W]`` (all when None) that have depth."""
         if mask is not None and np.shape(mask) != self.shape:
-            raise ValueError(f"camera {self.name!r}: mask must be [H, W] = {list(self.shape)}; got {list(np.shape(mask))}")
+            raise ValueError(
+                f"camera {self.name!r}: mask must be [H, W] = {list(self.shape)}; got {list(np.shape(mask))}"
+            )
         keep = self.valid_depth() if mask is None else self.valid_depth() & np.asarray(mask, bool)
         v, u = np.nonzero(keep)
         if len(v) == 0:

@@ -49,7 +49,9 @@ class GroundedSAM:
             raise ValueError(f"thresholds must lie in [0, 1]; got box {box_threshold}, text {text_threshold}")
         detector, sam = _folder(detector, "Grounding DINO checkpoint"), _folder(sam, "SAM checkpoint")
         load = {"local_files_only": True}
-        self.detector = GroundingDinoForObjectDetection.from_pretrained(detector, use_safetensors=True, **load).to(device).eval()
+        self.detector = (
+            GroundingDinoForObjectDetection.from_pretrained(detector, use_safetensors=True, **load).to(device).eval()
+        )
         self.detector_processor = GroundingDinoProcessor.from_pretrained(detector, **load)
         self.sam = SamModel.from_pretrained(sam, use_safetensors=True, **load).to(device).eval()
         self.sam_processor = SamProcessor.from_pretrained(sam, **load)
@@ -68,7 +70,11 @@ class GroundedSAM:
         inputs = self.detector_processor(images=rgb, text=self.prompt(name), return_tensors="pt").to(self.device)
         outputs = self.detector(**inputs)
         found = self.detector_processor.post_process_grounded_object_detection(
-            outputs, inputs["input_ids"], threshold=self.box_threshold, text_threshold=self.text_threshold, target_sizes=[rgb.shape[:2]]
+            outputs,
+            inputs["input_ids"],
+            threshold=self.box_threshold,
+            text_threshold=self.text_threshold,
+            target_sizes=[rgb.shape[:2]],
         )[0]
         if not len(found["scores"]):
             return None
@@ -78,7 +84,9 @@ class GroundedSAM:
     @torch.no_grad()
     def segment_box(self, rgb: np.ndarray, box: np.ndarray) -> np.ndarray:
         """SAM's mask ``[H, W]`` bool of the object in ``box`` (pixels) of ``rgb``."""
-        inputs = self.sam_processor(images=rgb, input_boxes=[[np.asarray(box, float).tolist()]], return_tensors="pt").to(self.device)
+        inputs = self.sam_processor(
+            images=rgb, input_boxes=[[np.asarray(box, float).tolist()]], return_tensors="pt"
+        ).to(self.device)
         outputs = self.sam(**inputs, multimask_output=False)
         masks = self.sam_processor.image_processor.post_process_masks(outputs.pred_masks.cpu(), inputs["original_sizes"].cpu(),
                                                                       inputs["reshaped_input_sizes"].cpu())  # fmt: skip

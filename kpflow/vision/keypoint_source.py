@@ -62,7 +62,9 @@ class KeypointSource:
             return None
         unknown = set(self.filter) - {"window", "gate", "gate_deg", "patience"}
         if unknown:
-            raise ValueError(f"unknown pose filter options {sorted(unknown)}; it takes window, gate, gate_deg, patience")
+            raise ValueError(
+                f"unknown pose filter options {sorted(unknown)}; it takes window, gate, gate_deg, patience"
+            )
         return PoseFilter(**self.filter)
 
     @property

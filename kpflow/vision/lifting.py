@@ -26,7 +26,7 @@ F64 = torch.float64
 
 def _f64(x: torch.Tensor | np.ndarray, name: str, last: tuple[int, ...]) -> torch.Tensor:
     t = torch.as_tensor(x, dtype=F64)
-    if t.ndim < len(last) or tuple(t.shape[-len(last):]) != last:
+    if t.ndim < len(last) or tuple(t.shape[-len(last) :]) != last:
         raise ValueError(f"{name} must have shape [..., {', '.join(map(str, last))}], got {list(t.shape)}")
     return t
 

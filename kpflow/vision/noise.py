@@ -52,7 +52,16 @@ class CameraNoise:
     pose_m: float = 0.002
 
     def __post_init__(self) -> None:
-        for name in ("subpixel", "hole_fraction", "edge_holes", "edge_jump", "depth_unit", "mask_px", "pose_deg", "pose_m"):
+        for name in (
+            "subpixel",
+            "hole_fraction",
+            "edge_holes",
+            "edge_jump",
+            "depth_unit",
+            "mask_px",
+            "pose_deg",
+            "pose_m",
+        ):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 raise ValueError(f"camera noise {name} must be finite and >= 0; got {value!r}")
@@ -76,7 +85,9 @@ class CameraNoise:
         valid = np.isfinite(d) & (d > 0)
         if self.edge_holes:
             filled = np.where(valid, d, 0.0)
-            jump = np.maximum(ndimage.maximum_filter(filled, 3) - ndimage.minimum_filter(np.where(valid, d, np.inf), 3), 0.0)
+            jump = np.maximum(
+                ndimage.maximum_filter(filled, 3) - ndimage.minimum_filter(np.where(valid, d, np.inf), 3), 0.0
+            )
             valid &= ~ndimage.binary_dilation(jump > self.edge_jump, iterations=int(self.edge_holes))
         d = d + self.depth_std(np.where(valid, d, 0.0)) * rng.standard_normal(d.shape)
         if self.hole_fraction:
@@ -101,10 +112,14 @@ class CameraNoise:
             return ndimage.binary_dilation(m, iterations=k)
         return ndimage.binary_erosion(m, iterations=-k) if k < 0 else m
 
-    def frame(self, frame: CameraFrame, rng: np.random.Generator, calibration: np.random.Generator | None = None) -> CameraFrame:
+    def frame(
+        self, frame: CameraFrame, rng: np.random.Generator, calibration: np.random.Generator | None = None
+    ) -> CameraFrame:
         """The frame the sensor gives: noisy depth and the pose its calibration reports, drawn from ``calibration``
         (None: ``rng``; a generator seeded the same way at every capture keeps a camera's error fixed, as one
         calibration does); colour and instance ids as rendered, masks get their error from :meth:`mask` when a
         segmenter reads them."""
         depth = self.depth(frame.depth, rng)
-        return replace(frame, depth=depth, cam_to_world=self.pose(frame.cam_to_world, rng if calibration is None else calibration))
+        return replace(
+            frame, depth=depth, cam_to_world=self.pose(frame.cam_to_world, rng if calibration is None else calibration)
+        )

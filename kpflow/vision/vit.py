@@ -61,8 +61,7 @@ class Attention(nn.Module):
         self.proj = nn.Linear(dim, dim)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``x [B, N, D]`` -> (output ``[B, N, D]``, attention ``[B, heads, N, N]``, keys ``[B, heads, N, D / heads]``).
-        """
+        """``x [B, N, D]`` -> (output ``[B, N, D]``, attention ``[B, heads, N, N]``, keys ``[B, heads, N, D / heads]``)."""
         b, n, d = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
         attn = ((q @ k.transpose(-2, -1)) * self.scale).softmax(dim=-1)
@@ -160,8 +159,7 @@ class VisionTransformer(nn.Module):
         return torch.cat([self.pos_embed[:, :1], patch_pos], dim=1)
 
     def prepare_tokens(self, x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
-        """Image ``[B, 3, H, W]`` -> tokens ``[B, 1 + h*w, D]`` (CLS first) with positions added, and the grid (h, w).
-        """
+        """Image ``[B, 3, H, W]`` -> tokens ``[B, 1 + h*w, D]`` (CLS first) with positions added, and the grid (h, w)."""
         if x.shape[-2] < self.patch_size or x.shape[-1] < self.patch_size:
             raise ValueError(f"image {tuple(x.shape[-2:])} is smaller than one {self.patch_size}-pixel patch")
         tokens, grid = self.patch_embed(x)
@@ -220,8 +218,7 @@ class VisionTransformer(nn.Module):
 
 
 def vit_small(patch_size: int = 8, img_size: int = 224) -> VisionTransformer:
-    """DINO's ViT-S (ViT-S/8 by default): embed_dim 384, depth 12, 6 heads, MLP ratio 4, qkv bias, LayerNorm eps 1e-6.
-    """
+    """DINO's ViT-S (ViT-S/8 by default): embed_dim 384, depth 12, 6 heads, MLP ratio 4, qkv bias, LayerNorm eps 1e-6."""
     return VisionTransformer(img_size=img_size, patch_size=patch_size, embed_dim=384, depth=12, num_heads=6)
 
 

@@ -37,11 +37,15 @@ class ArmReport(Report, Protocol):
     #: showcase trials per condition and keypoint source that :meth:`figures` draws (re-run with the first map)
     examples: int
 
-    def scores(self, env, source: Demonstration, view: Any, trajectory: Trajectory | None, execution: Execution | None) -> dict:
+    def scores(
+        self, env, source: Demonstration, view: Any, trajectory: Trajectory | None, execution: Execution | None
+    ) -> dict:
         """The trial's scores (``trajectory`` and ``execution`` are None when no keypoints were found)."""
 
 
-def first_trials(trials: list[TrialResult], n: int, videos: int, keep: Callable[[TrialResult], bool] = lambda t: True) -> list[tuple[TrialResult, bool]]:
+def first_trials(
+    trials: list[TrialResult], n: int, videos: int, keep: Callable[[TrialResult], bool] = lambda t: True
+) -> list[tuple[TrialResult, bool]]:
     """The first ``n`` trials that ``keep`` accepts of every (condition, variant) cell, the first ``videos`` of each
     filmed."""
     seen: Counter = Counter()

@@ -30,7 +30,9 @@ def box_corner_error(corners: np.ndarray, truth: tuple[np.ndarray, np.ndarray, n
 class PackingReport:
     examples = 2
 
-    def scores(self, env, source: Demonstration, view, trajectory: Trajectory | None, execution: Execution | None) -> dict:
+    def scores(
+        self, env, source: Demonstration, view, trajectory: Trajectory | None, execution: Execution | None
+    ) -> dict:
         return {
             "min_singular_value": execution.min_singular_value,
             "max_tracking_error": float(execution.tracking_error.max()),
@@ -40,7 +42,10 @@ class PackingReport:
 
     def summarise(self, trials: list[TrialResult]) -> dict:
         rows = [{"success": t.success, "failure": t.failure} for t in trials]
-        return {**success_summary(rows), "box_error_mm_median": float(np.median([t.scores["box_error_mm"] for t in trials]))}
+        return {
+            **success_summary(rows),
+            "box_error_mm_median": float(np.median([t.scores["box_error_mm"] for t in trials])),
+        }
 
     def table(self, summaries: dict[tuple, dict], axes: list[str]) -> str:
         names = " | ".join(axes)
@@ -76,7 +81,11 @@ class PackingReport:
             ax.scatter(kp[:, i], kp[:, j], c="k", s=10)
             for n, shown in enumerate(t for t in showcase if t.index < self.examples):
                 colour = f"C{n}"
-                p, k, tip = shown.artefacts["trajectory"].positions, shown.artefacts["keypoints"].target, shown.artefacts["execution"].tip
+                p, k, tip = (
+                    shown.artefacts["trajectory"].positions,
+                    shown.artefacts["keypoints"].target,
+                    shown.artefacts["execution"].tip,
+                )
                 label = f"{shown.scene['object_type']} ({'ok' if shown.success else shown.failure})"
                 ax.plot(p[:, i], p[:, j], "-", color=colour, lw=1.2, label=label)
                 ax.plot(tip[:, i], tip[:, j], ":", color=colour, lw=1)

@@ -57,7 +57,12 @@ class PushTReport:
         """The first ``videos`` successes and the first ``videos`` failures of each split, all filmed."""
         successes = first_trials(trials, videos, videos, lambda t: t.success)
         failures = first_trials(trials, videos, videos, lambda t: not t.success)
-        return [pick for condition in dict.fromkeys(t.condition for t in trials) for pick in successes + failures if pick[0].condition == condition]
+        return [
+            pick
+            for condition in dict.fromkeys(t.condition for t in trials)
+            for pick in successes + failures
+            if pick[0].condition == condition
+        ]
 
     def figures(self, out: Path, trial, trials: list[TrialResult], showcase: list[TrialResult]) -> list[str]:
         """``success.png``: success per split at both thresholds with 95% intervals, and the histogram of each
@@ -80,7 +85,13 @@ class PushTReport:
         ax.set_title(trial.policy_name)
         ax.legend(loc="lower left")
         for p in splits:
-            bx.hist([t.scores["max_coverage"] for t in trials if t.condition == p], bins=20, range=(0, 1), alpha=0.6, label=p)
+            bx.hist(
+                [t.scores["max_coverage"] for t in trials if t.condition == p],
+                bins=20,
+                range=(0, 1),
+                alpha=0.6,
+                label=p,
+            )
         bx.set_xlabel("max coverage in the episode")
         bx.set_ylabel("episodes")
         bx.legend(loc="upper left")

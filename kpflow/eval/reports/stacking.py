@@ -58,12 +58,17 @@ class StackingReport:
     def __init__(self, good_mm: float = 20.0, examples: int = 2):
         self.good_mm, self.examples = float(good_mm), int(examples)
 
-    def scores(self, env, source: Demonstration, view, trajectory: Trajectory | None, execution: Execution | None) -> dict:
+    def scores(
+        self, env, source: Demonstration, view, trajectory: Trajectory | None, execution: Execution | None
+    ) -> dict:
         kept, errors = view.pairs.kept, pair_errors_mm(source, view)
         out = {
             "n_pairs": int(kept.sum()),
             "rejected": int((~kept).sum()),
-            "pairs_on": {name: int(sum(bool(k) and label == name for k, label in zip(kept, view.pairs.labels))) for name in BLOCKS},
+            "pairs_on": {
+                name: int(sum(bool(k) and label == name for k, label in zip(kept, view.pairs.labels)))
+                for name in BLOCKS
+            },
             "pair_error_mm": float(np.median(errors[kept])) if kept.any() else float("nan"),
             "grasp_error_deg": float("nan"),
             "grasp_error_mm": float("nan"),
@@ -75,7 +80,9 @@ class StackingReport:
         if trajectory is not None:
             out["grasp_error_deg"], out["grasp_error_mm"] = grasp_errors(source, trajectory, view.poses)
             cheese_yaw, lettuce_yaw = yaw_of(env.object_pose(CHEESE)[1]), yaw_of(env.object_pose(LETTUCE)[1])
-            out["place_yaw_error_deg"] = float(np.rad2deg(abs(nearest_half_turn(cheese_yaw, lettuce_yaw) - lettuce_yaw)))
+            out["place_yaw_error_deg"] = float(
+                np.rad2deg(abs(nearest_half_turn(cheese_yaw, lettuce_yaw) - lettuce_yaw))
+            )
             out["max_std"] = float(trajectory.std.max())
         return out
 

@@ -17,7 +17,11 @@ def step_limits(trial) -> str:
     limits = trial.describe()["max_steps"]
     if not isinstance(limits, dict):
         return str(limits)
-    return str(next(iter(set(limits.values())))) if len(set(limits.values())) == 1 else ", ".join(f"{c}: {n}" for c, n in limits.items())
+    return (
+        str(next(iter(set(limits.values()))))
+        if len(set(limits.values())) == 1
+        else ", ".join(f"{c}: {n}" for c, n in limits.items())
+    )
 
 
 def success_within(trials: list[TrialResult], steps: int) -> dict:
@@ -59,7 +63,9 @@ class SuccessReport:
                 "|---|" + "---|" * len(axes) + "---|---|---|" + "---|" * len(self.within) + "---|"]  # fmt: skip
         for cell, s in summaries.items():
             steps = "-" if np.isnan(s["steps_median"]) else f"{s['steps_median']:.0f}"  # no success, no median
-            short = "".join(f" {rate_cell(s[f'successes_within_{h}'], s['trials'], s[f'ci_within_{h}'])} |" for h in self.within)
+            short = "".join(
+                f" {rate_cell(s[f'successes_within_{h}'], s['trials'], s[f'ci_within_{h}'])} |" for h in self.within
+            )
             rows.append(f"| {' | '.join(cell)} | {s['trials']} | {success_cells(s)} |{short} {steps} |")
         return "\n".join(rows) + "\n"
 

@@ -68,11 +68,20 @@ def initial_rotations(d: int, n_starts: int) -> np.ndarray:
     if d == 2:
         return planar_rotation(np.linspace(0, 2 * math.pi, n_starts, endpoint=False))
     yaws = np.linspace(0, 2 * math.pi, n_starts, endpoint=False)
-    tilts = [(0.0, 0.0), (math.pi, 0.0), (math.pi / 2, 0.0), (-math.pi / 2, 0.0), (0.0, math.pi / 2), (0.0, -math.pi / 2)]
+    tilts = [
+        (0.0, 0.0),
+        (math.pi, 0.0),
+        (math.pi / 2, 0.0),
+        (-math.pi / 2, 0.0),
+        (0.0, math.pi / 2),
+        (0.0, -math.pi / 2),
+    ]
     return np.stack([Rotation.from_euler("zyx", [y, p, r]).as_matrix() for r, p in tilts for y in yaws])
 
 
-def assign(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_distance: float | None) -> tuple[np.ndarray, float, float]:
+def assign(
+    s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_distance: float | None
+) -> tuple[np.ndarray, float, float]:
     """One-to-one assignment of the moved source to the target (``linear_sum_assignment``): ``perm [N]`` (-1:
     unmatched), the score (mean over the source of the squared distance, truncated at ``max_distance^2`` where a
     point stays unmatched; without ``max_distance``, over the matched pairs) and the matched pairs' RMS."""

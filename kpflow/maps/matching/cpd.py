@@ -26,7 +26,9 @@ def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, w: fl
         warnings.simplefilter("ignore")
         moved, _ = RigidRegistration(X=(y - centre) / spread, Y=start, w=w, max_iterations=max_iters).register()
         if nonrigid:
-            moved = DeformableRegistration(X=(y - centre) / spread, Y=moved, w=w, beta=beta, alpha=lam, max_iterations=max_iters).register()[0]
+            moved = DeformableRegistration(
+                X=(y - centre) / spread, Y=moved, w=w, beta=beta, alpha=lam, max_iterations=max_iters
+            ).register()[0]
     moved = moved * spread + centre
     rot, t = rigid_pose(s, moved)
     return rot, t, moved

@@ -10,7 +10,9 @@ from scipy.optimize import linear_sum_assignment
 from .base import rigid_pose
 
 
-def register(s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_iters: int = 20) -> tuple[np.ndarray, np.ndarray]:
+def register(
+    s: np.ndarray, y: np.ndarray, rot: np.ndarray, t: np.ndarray, max_iters: int = 20
+) -> tuple[np.ndarray, np.ndarray]:
     """Refine the rigid pose ``(rot, t)`` of source ``s [N, D]`` onto target ``y [M, D]``."""
     pairs = None
     for _ in range(max_iters):

@@ -65,9 +65,13 @@ def match_keypoints(
     src = as_float_tensor(source, "source")
     tgt = as_float_tensor(target, "target")
     if src.ndim != 2 or tgt.ndim != 2 or src.shape[-1] != tgt.shape[-1] or src.shape[-1] not in (2, 3):
-        raise ValueError(f"source and target must be [N, 2] and [M, 2] (or [.., 3]); got {tuple(src.shape)} and {tuple(tgt.shape)}")
+        raise ValueError(
+            f"source and target must be [N, 2] and [M, 2] (or [.., 3]); got {tuple(src.shape)} and {tuple(tgt.shape)}"
+        )
     if min(len(src), len(tgt)) < src.shape[-1] + 1:
-        raise ValueError(f"matching needs at least {src.shape[-1] + 1} points in each set; got {len(src)} and {len(tgt)}")
+        raise ValueError(
+            f"matching needs at least {src.shape[-1] + 1} points in each set; got {len(src)} and {len(tgt)}"
+        )
     if max_distance is not None and not max_distance > 0:
         raise ValueError(f"max_distance must be > 0 or None, got {max_distance}")
     check_finite(src, "source")

@@ -15,14 +15,20 @@ def check_goal_frame(goal_frame, n_keypoints: int) -> None:
         return
     form = '{"keypoints": [G indices], "template": [G points [x, y]]}'
     if not isinstance(goal_frame, dict) or set(goal_frame) != {"keypoints", "template"}:
-        raise ValueError(f"goal_frame must be None or {form} (the goal's keypoints and their body frame); got {goal_frame!r}")
+        raise ValueError(
+            f"goal_frame must be None or {form} (the goal's keypoints and their body frame); got {goal_frame!r}"
+        )
     index, template = goal_frame["keypoints"], np.asarray(goal_frame["template"], dtype=np.float64)
     if not (isinstance(index, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool) for i in index)):
         raise ValueError(f"goal_frame['keypoints'] must list keypoint indices; got {index!r}")
     if len(index) < 2 or len(set(index)) != len(index) or not all(0 <= i < n_keypoints for i in index):
-        raise ValueError(f"goal_frame['keypoints'] must list at least 2 distinct indices in 0..{n_keypoints - 1}; got {index}")
+        raise ValueError(
+            f"goal_frame['keypoints'] must list at least 2 distinct indices in 0..{n_keypoints - 1}; got {index}"
+        )
     if template.shape != (len(index), 2) or not np.isfinite(template).all():
-        raise ValueError(f"goal_frame['template'] must hold {len(index)} finite points [x, y], one per goal keypoint; got shape {template.shape}")
+        raise ValueError(
+            f"goal_frame['template'] must hold {len(index)} finite points [x, y], one per goal keypoint; got shape {template.shape}"
+        )
     if np.ptp(template, axis=0).max() == 0:
         raise ValueError("goal_frame['template'] is one point: the goal's rotation would be undetermined")
 
@@ -37,15 +43,25 @@ def check_frames(goal_frame, relative: bool, origin, n_keypoints: int, keypoint_
     if goal_frame is not None and action_dim != 2:
         raise ValueError(f"goal_frame maps actions into the goal's plane: it needs 2-D actions; got {action_dim}")
     if relative and action_dim != 2:
-        raise ValueError(f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}")
+        raise ValueError(
+            f"relative actions are offsets from the agent keypoint: they need 2-D actions; got {action_dim}"
+        )
     if origin is None:
         return
-    if isinstance(origin, bool) or not isinstance(origin, (int, np.integer)) or not -n_keypoints <= origin < n_keypoints:
+    if (
+        isinstance(origin, bool)
+        or not isinstance(origin, (int, np.integer))
+        or not -n_keypoints <= origin < n_keypoints
+    ):
         raise ValueError(f"origin must be a keypoint index in [-{n_keypoints}, {n_keypoints}); got {origin!r}")
     if goal_frame is not None or relative:
-        raise ValueError("origin translates keypoints and actions to one keypoint: use it without goal_frame and relative")
+        raise ValueError(
+            "origin translates keypoints and actions to one keypoint: use it without goal_frame and relative"
+        )
     if action_dim < keypoint_dim:
-        raise ValueError(f"origin needs actions that start with a position of keypoint_dim={keypoint_dim} values; got action_dim={action_dim}")
+        raise ValueError(
+            f"origin needs actions that start with a position of keypoint_dim={keypoint_dim} values; got action_dim={action_dim}"
+        )
 
 
 def to_frame(points: torch.Tensor, rot: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:

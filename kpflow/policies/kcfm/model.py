@@ -156,18 +156,27 @@ class KCFM(lightning.LightningModule):
         self.objective = build_objective(objective, **(objective_options or {}))  # validates the name and options
         check_sampler(self.objective, sample_steps, solver)
         self.save_hyperparameters()
-        cond_dim, times = keypoint_dim * n_keypoints * n_obs, dict(n_times=self.objective.n_times, time_scale=self.objective.time_scale)
+        cond_dim, times = (
+            keypoint_dim * n_keypoints * n_obs,
+            dict(n_times=self.objective.n_times, time_scale=self.objective.time_scale),
+        )
         if network == "unet":
-            self.net = ConditionalUnet1D(action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim, **times)
+            self.net = ConditionalUnet1D(
+                action_dim, cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim, **times
+            )
         else:
-            self.net = ConditionalTransformer1D(action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim, **times)
+            self.net = ConditionalTransformer1D(
+                action_dim, cond_dim, horizon, d_model, n_layers, n_heads, time_dim, **times
+            )
         self.ema_net = copy.deepcopy(self.net).requires_grad_(False)
         self.register_buffer("kp_mean", torch.zeros(keypoint_dim * n_keypoints))
         self.register_buffer("kp_std", torch.ones(keypoint_dim * n_keypoints))
         self.register_buffer("action_center", torch.zeros(action_dim))
         self.register_buffer("action_scale", torch.ones(action_dim))
         self.register_buffer("stats_set", torch.tensor(False))
-        self.settings = PolicySettings()  # how it acts once released (kpflow/policies/settings.py): read from its checkpoint
+        self.settings = (
+            PolicySettings()
+        )  # how it acts once released (kpflow/policies/settings.py): read from its checkpoint
         self.policy_config = None  # what it is and how it acts (kpflow/policies/config.py): read from its checkpoint
 
     # ------------------------------------------------------------------------------------ normalisation
@@ -195,7 +204,9 @@ class KCFM(lightning.LightningModule):
         for name, x in (("keypoints", kp), ("actions", act)):
             bad = ~torch.isfinite(x).reshape(len(x), -1).all(-1)
             if bad.any():
-                raise ValueError(f"training {name} contain NaN or inf (rows {torch.nonzero(bad).flatten()[:10].tolist()})")
+                raise ValueError(
+                    f"training {name} contain NaN or inf (rows {torch.nonzero(bad).flatten()[:10].tolist()})"
+                )
         frame = self.action_frame(kp)
         if frame is not None:
             act = to_frame(act, *frame)
@@ -226,9 +237,13 @@ class KCFM(lightning.LightningModule):
                 "or call set_normalisation() first"
             )
         if getattr(ds, "horizon", self.hparams.horizon) != self.hparams.horizon:
-            raise ValueError(f"the data's chunk horizon {ds.horizon} differs from the model's horizon={self.hparams.horizon}")
+            raise ValueError(
+                f"the data's chunk horizon {ds.horizon} differs from the model's horizon={self.hparams.horizon}"
+            )
         if getattr(ds, "n_obs", 1) != self.hparams.n_obs:
-            raise ValueError(f"the data's observation history n_obs={getattr(ds, 'n_obs', 1)} differs from the model's n_obs={self.hparams.n_obs}")
+            raise ValueError(
+                f"the data's observation history n_obs={getattr(ds, 'n_obs', 1)} differs from the model's n_obs={self.hparams.n_obs}"
+            )
         obs, chunks, mask = ds.arrays()  # one row per step of the training episodes only
         self.set_normalisation(obs, chunks, mask)
 
@@ -262,7 +277,9 @@ class KCFM(lightning.LightningModule):
                     self.net.load_state_dict(teacher.ema_net.state_dict())
                     self.ema_net.load_state_dict(teacher.ema_net.state_dict())
                 except RuntimeError as e:
-                    raise ValueError(f"initialise=True starts the student from the teacher's weights, but their networks differ ({e})") from None
+                    raise ValueError(
+                        f"initialise=True starts the student from the teacher's weights, but their networks differ ({e})"
+                    ) from None
         steps, solver = self.objective.teacher_steps, self.objective.teacher_solver
         check_sampler(teacher.objective, steps, solver)
 
@@ -272,7 +289,9 @@ class KCFM(lightning.LightningModule):
 
         self.objective.attach(teacher_sample)
 
-    def _stats_frame(self, history: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def _stats_frame(
+        self, history: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> torch.Tensor:
         """World keypoint frames ``[B, n_obs, K, D]`` (float64) in the frame the keypoint statistics are in: every
         frame in the current (last) frame's goal frame if ``goal_frame`` (``pose``: that frame's :meth:`goal_pose`,
         when the caller has it already), relative to the current frame's ``origin`` keypoint if one is set, else as
@@ -302,7 +321,9 @@ class KCFM(lightning.LightningModule):
         b, n = kp.shape[:2]
         return ((kp.reshape(b, n, -1) - self.kp_mean.double()) / self.kp_std.double()).reshape(b, -1).float()
 
-    def action_frame(self, keypoints: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
+    def action_frame(
+        self, keypoints: torch.Tensor, pose: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The rigid frame ``(R [B, 2, 2], p [B, 2])`` that actions are predicted in, for keypoints ``[B, K, 2]``.
 
         ``R`` is the goal's rotation with ``goal_frame`` (else the identity), ``p`` the agent (the last keypoint) with
@@ -320,7 +341,10 @@ class KCFM(lightning.LightningModule):
         if hp.goal_frame is not None:
             rot, origin = self.goal_pose(kp) if pose is None else pose
         else:
-            rot, origin = torch.eye(2, dtype=kp.dtype, device=kp.device).expand(len(kp), 2, 2), torch.zeros_like(kp[:, 0])
+            rot, origin = (
+                torch.eye(2, dtype=kp.dtype, device=kp.device).expand(len(kp), 2, 2),
+                torch.zeros_like(kp[:, 0]),
+            )
         return rot, kp[:, -1] if hp.relative else origin
 
     def normalise_actions(self, actions: torch.Tensor, frame=None) -> torch.Tensor:
@@ -348,10 +372,14 @@ class KCFM(lightning.LightningModule):
         if "history" in batch:
             return batch["history"]
         if self.hparams.n_obs != 1:
-            raise ValueError(f"the model conditions on n_obs={self.hparams.n_obs} frames: the batch needs 'history' [B, n_obs, K, D]")
+            raise ValueError(
+                f"the model conditions on n_obs={self.hparams.n_obs} frames: the batch needs 'history' [B, n_obs, K, D]"
+            )
         return batch["obs"][:, None]
 
-    def loss(self, batch: dict, net: torch.nn.Module | None = None, generator: torch.Generator | None = None) -> torch.Tensor:
+    def loss(
+        self, batch: dict, net: torch.nn.Module | None = None, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
         """The objective's masked regression loss on a :class:`~kpflow.data.chunks.ChunkDataset` batch.
 
         ``L = masked_mse(net(x_t, t, c[i]), target, mask[i])`` with ``(x_t, t, target, i)`` the objective's
@@ -384,7 +412,12 @@ class KCFM(lightning.LightningModule):
     def validation_step(self, batch, batch_idx: int) -> None:
         # EMA weights, and noise fixed per batch so that the validation loss compares across epochs.
         generator = torch.Generator(device=self.device).manual_seed(batch_idx)
-        self.log("val/loss", self.loss(batch, net=self.ema_net, generator=generator), prog_bar=True, batch_size=len(batch["actions"]))
+        self.log(
+            "val/loss",
+            self.loss(batch, net=self.ema_net, generator=generator),
+            prog_bar=True,
+            batch_size=len(batch["actions"]),
+        )
 
     @torch.no_grad()
     def on_train_batch_end(self, outputs, batch, batch_idx: int) -> None:
@@ -446,7 +479,9 @@ class KCFM(lightning.LightningModule):
             kp = kp[:, None] if n == 1 else kp[None]
         if kp.ndim != 4 or kp.shape[1:] != (n, k, d) or len(kp) == 0:
             single = f"[{k}, {d}], [B, {k}, {d}] or " if n == 1 else ""
-            raise ValueError(f"keypoints must have shape {single}[{n}, {k}, {d}] or [B, {n}, {k}, {d}] (n_obs={n} frames) with B >= 1; got {shape}")
+            raise ValueError(
+                f"keypoints must have shape {single}[{n}, {k}, {d}] or [B, {n}, {k}, {d}] (n_obs={n} frames) with B >= 1; got {shape}"
+            )
         kp = kp.to(self.device, torch.float64)
         bad = ~torch.isfinite(kp).reshape(len(kp), -1).all(-1)
         if bad.any():
@@ -488,7 +523,9 @@ class KCFM(lightning.LightningModule):
         if self.hparams.get("origin") is not None:  # statistics relative to a keypoint say nothing of the world
             frames = [(f" relative to keypoint {self.hparams.origin}", stats_frame)]
         else:
-            frames = [("", kp)] + ([(" in the goal's frame", stats_frame)] if self.hparams.goal_frame is not None else [])
+            frames = [("", kp)] + (
+                [(" in the goal's frame", stats_frame)] if self.hparams.goal_frame is not None else []
+            )
         for where, x in frames:
             outside = ~((x >= lo_ok) & (x <= hi_ok))  # NaN (a frame that overflowed) counts as outside
             if outside.any():
@@ -526,7 +563,11 @@ class KCFM(lightning.LightningModule):
         else the model's ``sample_steps`` and ``solver`` (checkpoints from before those: 10 calls of the objective's
         first solver)."""
         steps = steps if steps is not None else self.settings.steps or int(self.hparams.get("sample_steps", 10))
-        solver = solver if solver is not None else self.settings.solver or self.hparams.get("solver") or self.objective.solvers[0]
+        solver = (
+            solver
+            if solver is not None
+            else self.settings.solver or self.hparams.get("solver") or self.objective.solvers[0]
+        )
         check_sampler(self.objective, steps, solver)
         return int(steps), solver
 
@@ -557,6 +598,8 @@ class KCFM(lightning.LightningModule):
         x = self.objective.sample(lambda x, t: net(x, t, c), noise, steps, solver)
         return self.denormalise_actions(x, frame)
 
-    def forward(self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None) -> torch.Tensor:
+    def forward(
+        self, keypoints, steps: int | None = None, generator: torch.Generator | None = None, solver: str | None = None
+    ) -> torch.Tensor:
         """Same as :meth:`sample`."""
         return self.sample(keypoints, steps, generator, solver)

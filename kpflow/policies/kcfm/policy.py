@@ -96,6 +96,8 @@ class KCFMPolicy:
         elif "keypoints_history" in obs:
             keypoints = obs["keypoints_history"]
         else:
-            raise ValueError(f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]")
+            raise ValueError(
+                f"this K-CFM conditions on the last {self.n_obs} observations: pass obs['keypoints_history'] [{self.n_obs}, K, 2]"
+            )
         chunk = self.model.sample(keypoints, self.steps, self.generator, self.solver, self.network, self.input_margin)
         return check_actions(chunk[0, : self.execute].detach().to("cpu", torch.float64).numpy(), "the K-CFM")

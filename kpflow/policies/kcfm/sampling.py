@@ -13,7 +13,9 @@ def check_sampler(objective, steps, solver: str | None) -> None:
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_STEPS:
         raise ValueError(f"steps must be an integer in 1..{MAX_STEPS} (network calls per chunk); got {steps!r}")
     if solver is not None and solver not in objective.solvers:
-        raise ValueError(f"solver must be one of {objective.solvers} for this objective ({type(objective).__name__}); got {solver!r}")
+        raise ValueError(
+            f"solver must be one of {objective.solvers} for this objective ({type(objective).__name__}); got {solver!r}"
+        )
 
 
 # -------------------------------------------------------------------------------------------- goal frame

@@ -172,7 +172,9 @@ class SuctionArmEnv(ManipulationEnv):
         rot = Rotation.from_euler("z", yaw)
         offset = rot.apply([centre[0], centre[1], 0.0])  # the body origin is not the box's centre
         pos = (x - offset[0], y - offset[1], self.table_top + half[2] - centre[2] + 1e-3)
-        self.sim.data.set_joint_qpos(self.objects[name].joints[0], np.concatenate([pos, rot.as_quat(scalar_first=True)]))
+        self.sim.data.set_joint_qpos(
+            self.objects[name].joints[0], np.concatenate([pos, rot.as_quat(scalar_first=True)])
+        )
 
     def park_object(self, name: str) -> None:
         """Put object ``name`` on the floor far from the table (each object has its own spot)."""

@@ -12,7 +12,12 @@ SINGULAR_LIMIT = 0.02  # smallest singular value of the arm's Jacobian below whi
 
 
 def follow(
-    env, trajectory: Trajectory, settle: int = 20, touching: set[int] = frozenset(), frames: list | None = None, frame_every: int = 2
+    env,
+    trajectory: Trajectory,
+    settle: int = 20,
+    touching: set[int] = frozenset(),
+    frames: list | None = None,
+    frame_every: int = 2,
 ) -> dict:
     """Command each step of ``trajectory`` on ``env`` (after ``reset_to``), then hold the last pose ``settle`` steps.
 

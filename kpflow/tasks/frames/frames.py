@@ -76,7 +76,9 @@ class Frame:
         p = torch.as_tensor(position, dtype=dtype)
         R = torch.as_tensor(rotation_matrix, dtype=dtype)
         if p.shape != (3,) or R.shape != (3, 3):
-            raise ValueError(f"from_3d needs position [3] and rotation [3, 3], got {tuple(p.shape)} and {tuple(R.shape)}")
+            raise ValueError(
+                f"from_3d needs position [3] and rotation [3, 3], got {tuple(p.shape)} and {tuple(R.shape)}"
+            )
         return cls(p, R)
 
     @classmethod

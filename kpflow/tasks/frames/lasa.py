@@ -118,7 +118,9 @@ def load_lasa(
     positions = torch.as_tensor(pos, dtype=torch.float64)
     th0, th1 = end_heading(positions, 0), end_heading(positions, -1)
     dth = torch.atan2(torch.sin(th1 - th0), torch.cos(th1 - th0))
-    arc = torch.cat([torch.zeros(1, dtype=torch.float64), torch.linalg.vector_norm(positions.diff(dim=0), dim=-1).cumsum(0)])
+    arc = torch.cat(
+        [torch.zeros(1, dtype=torch.float64), torch.linalg.vector_norm(positions.diff(dim=0), dim=-1).cumsum(0)]
+    )
     orientations = rotation_2d(th0 + dth * arc / arc[-1])
     return Demonstration(
         positions.to(dtype),

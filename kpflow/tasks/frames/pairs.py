@@ -21,12 +21,19 @@ class FramesPairs:
     Otherwise both are configurations of one geometry whose frames turn independently by up to ``max_turn_deg``
     (:func:`~kpflow.tasks.frames.turns.turned_configs`, the multi-frame benchmark's distribution)."""
 
-    def __init__(self, frame_size: float = 0.1, min_distance: float = 0.8, max_turn_deg: float | None = None, shift: float = 0.1) -> None:
+    def __init__(
+        self, frame_size: float = 0.1, min_distance: float = 0.8, max_turn_deg: float | None = None, shift: float = 0.1
+    ) -> None:
         if not frame_size > 0:
             raise ValueError(f"frame_size must be > 0, got {frame_size}")
         if max_turn_deg is not None and not 0 <= max_turn_deg <= 360:
             raise ValueError(f"max_turn_deg must be in [0, 360] or None, got {max_turn_deg}")
-        self.frame_size, self.min_distance, self.max_turn_deg, self.shift = float(frame_size), float(min_distance), max_turn_deg, float(shift)
+        self.frame_size, self.min_distance, self.max_turn_deg, self.shift = (
+            float(frame_size),
+            float(min_distance),
+            max_turn_deg,
+            float(shift),
+        )
 
     def _keypoints(self, configs) -> np.ndarray:
         return scene_keypoints(list(configs), self.frame_size).numpy()

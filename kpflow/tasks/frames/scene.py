@@ -23,12 +23,18 @@ class Scene:
 
     def as_dict(self) -> dict:
         """The two frames' positions and rotations as lists (the demonstration is left out)."""
-        return {f"{name}_{part}": getattr(getattr(self, name), part).tolist() for name in ("start", "goal") for part in ("position", "rotation")}
+        return {
+            f"{name}_{part}": getattr(getattr(self, name), part).tolist()
+            for name in ("start", "goal")
+            for part in ("position", "rotation")
+        }
 
 
 def moved(frame: Frame, dx: float, dy: float, dtheta: float) -> Frame:
     """A 2-D frame translated by (dx, dy) and turned by dtheta."""
-    return Frame.from_2d(float(frame.position[0]) + dx, float(frame.position[1]) + dy, float(frame.theta) + dtheta, dtype=frame.dtype)
+    return Frame.from_2d(
+        float(frame.position[0]) + dx, float(frame.position[1]) + dy, float(frame.theta) + dtheta, dtype=frame.dtype
+    )
 
 
 def random_scenes(n: int, n_points: int, seed: int, min_distance: float = 0.8, wiggle: float = 0.15) -> list[Scene]:

@@ -26,7 +26,9 @@ class TransportedDemo:
     velocities: torch.Tensor
 
 
-def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], TransportMap], frame_size: float, horizon: float) -> list[TransportedDemo]:
+def transport_into(
+    scenes: list[Scene], target: int, make_map: Callable[[], TransportMap], frame_size: float, horizon: float
+) -> list[TransportedDemo]:
     """The paper's Eq. 6: every demonstration but the target's, transported into scene ``target``.
 
     For each other scene j, phi_j is fitted from j's frame keypoints to the target's (phi_j(S_j) ~= S_target) and
@@ -44,14 +46,21 @@ def transport_into(scenes: list[Scene], target: int, make_map: Callable[[], Tran
         demos = [scenes[j].demo for j in others]
         sources = torch.stack([scenes[j].keypoints(frame_size) for j in others])
         phi = make_map().fit(sources, target_kp.expand_as(sources))
-        batch = transport_trajectory(phi, *(torch.stack([getattr(d, f) for d in demos]) for f in ("positions", "velocities", "orientations")))
-        moved = [TransportedTrajectory(batch.positions[i], batch.std[i], batch.velocities[i], batch.orientations[i]) for i in range(len(others))]
+        batch = transport_trajectory(
+            phi, *(torch.stack([getattr(d, f) for d in demos]) for f in ("positions", "velocities", "orientations"))
+        )
+        moved = [
+            TransportedTrajectory(batch.positions[i], batch.std[i], batch.velocities[i], batch.orientations[i])
+            for i in range(len(others))
+        ]
     else:
         moved = []
         for j in others:
             scene = scenes[j]
             phi = make_map().fit(scene.keypoints(frame_size), target_kp)
-            moved.append(transport_trajectory(phi, scene.demo.positions, scene.demo.velocities, scene.demo.orientations))
+            moved.append(
+                transport_trajectory(phi, scene.demo.positions, scene.demo.velocities, scene.demo.orientations)
+            )
     return [TransportedDemo(j, m, lookahead_velocity(m.positions, duration, horizon)) for j, m in zip(others, moved)]
 
 

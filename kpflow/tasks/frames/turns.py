@@ -30,7 +30,9 @@ class TurnedFamily:
     demos: list[list[Demonstration]]
 
 
-def turned_configs(base: tuple[Frame, Frame], n: int, g: torch.Generator, max_turn: float, shift: float) -> list[tuple[Frame, Frame]]:
+def turned_configs(
+    base: tuple[Frame, Frame], n: int, g: torch.Generator, max_turn: float, shift: float
+) -> list[tuple[Frame, Frame]]:
     """``n`` configurations of the frames ``base``: each frame turned about its origin by an angle uniform in
     ``[-max_turn / 2, max_turn / 2]`` and shifted by up to ``shift`` per axis, independently (drawn from ``g``)."""
     configs = []
@@ -54,7 +56,9 @@ def turned_families(
 ) -> list[TurnedFamily]:
     """``n_families`` families of the module docstring, reproducible from ``seed`` (float64)."""
     if n_families < 1 or n_configs < 2 or n_demonstrators < 1:
-        raise ValueError(f"need n_families >= 1, n_configs >= 2 and n_demonstrators >= 1; got {n_families}, {n_configs}, {n_demonstrators}")
+        raise ValueError(
+            f"need n_families >= 1, n_configs >= 2 and n_demonstrators >= 1; got {n_families}, {n_configs}, {n_demonstrators}"
+        )
     if not 0 <= max_turn <= 2 * math.pi or shift < 0:
         raise ValueError(f"max_turn must be in [0, 2 pi] and shift >= 0; got {max_turn}, {shift}")
     low, high = (float(v) for v in tangent_range)

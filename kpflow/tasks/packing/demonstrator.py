@@ -20,7 +20,9 @@ PLACE_CLEARANCE = 0.015  # m between the object's bottom and the container's flo
 RETREAT = 0.12
 
 
-def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: float, table_height: float) -> Trajectory:
+def plan_packing(
+    start_pos, start_rot, box: dict, container_pos, container_yaw: float, table_height: float
+) -> Trajectory:
     """The scripted demonstration for an object ``box`` (from :func:`~.perception.object_box`) and a container at
     ``container_pos`` (centre, m) with yaw ``container_yaw`` (module docstring)."""
     top, (cx, cy), yaw = box["top"], box["centre"], box["yaw"]
@@ -41,7 +43,9 @@ def plan_packing(start_pos, start_rot, box: dict, container_pos, container_yaw: 
     return segments_to_trajectory(start_pos, start_rot, segments)
 
 
-def execute(env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> Execution:
+def execute(
+    env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2
+) -> Execution:
     """Run ``trajectory`` on ``env`` (a :class:`~.env.PackingEnv` after ``reset_to``) and say how it went.
 
     Each step commands the pose; while ``grasp`` is on the cup seals as soon as it is within reach of the object,

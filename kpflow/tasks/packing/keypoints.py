@@ -23,7 +23,9 @@ GROUPS = {"start": slice(0, 8), "object": slice(8, 16), "lifted": slice(16, 24),
 LIFT = 0.25  # m: how high the object is lifted before it is carried
 
 
-def packing_keypoints(start_pose: tuple[np.ndarray, np.ndarray], box: dict, container_centre: np.ndarray, container_yaw: float) -> np.ndarray:
+def packing_keypoints(
+    start_pose: tuple[np.ndarray, np.ndarray], box: dict, container_centre: np.ndarray, container_yaw: float
+) -> np.ndarray:
     """The 32 keypoints ``[32, 3]`` (module docstring) of a scene whose end effector is at ``start_pose`` (position,
     rotation), whose object has ``box`` (:func:`~.perception.object_box`'s or :func:`~.perception.true_object_box`'s
     dict) and whose container's volume is centred at ``container_centre [3]``, turned by ``container_yaw``."""

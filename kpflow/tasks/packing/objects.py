@@ -20,4 +20,3 @@ OBJECT_TYPES: dict[str, Callable[[str], MujocoObject]] = {
     "can": lambda name: CanObject(name=name),
     "cereal": lambda name: CerealObject(name=name),
 }
-

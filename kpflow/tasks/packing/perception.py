@@ -43,7 +43,9 @@ def footprint_rectangle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
     return np.array([cx, cy]), np.array([w, h]), float(np.deg2rad(angle))
 
 
-def canonical_box(centre: np.ndarray, size: np.ndarray, angle: float, reference_yaw: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
+def canonical_box(
+    centre: np.ndarray, size: np.ndarray, angle: float, reference_yaw: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, float]:
     """The same rectangle with its first axis the longer one and its yaw the one nearest ``reference_yaw`` (a
     rectangle is unchanged by half turns: yaw in ``(reference - pi/2, reference + pi/2]``), so that boxes of
     different scenes list their corners in corresponding order."""
@@ -89,7 +91,13 @@ def true_object_box(env, table_height: float, reference_yaw: float = 0.0) -> dic
     centre, rot, half = env.object_box()
     centre_xy, size, yaw = canonical_box(centre[:2], 2 * half[:2], yaw_of(rot), reference_yaw)
     top = float(centre[2] + half[2])
-    return {"centre": centre_xy, "size": size, "yaw": yaw, "top": top, "corners": box_corners(centre_xy, size, yaw, table_height, top)}
+    return {
+        "centre": centre_xy,
+        "size": size,
+        "yaw": yaw,
+        "top": top,
+        "corners": box_corners(centre_xy, size, yaw, table_height, top),
+    }
 
 
 def container_pose(image: dict, reference_yaw: float | None = None) -> tuple[np.ndarray, float]:

@@ -42,9 +42,16 @@ class PackingTask(ArmTask):
     name = "packing"
     conditions = CONDITIONS
 
-    def __init__(self, camera_size: tuple[int, int] = (480, 640), source: dict | None = None, keypoints: KeypointSource | None = None):
+    def __init__(
+        self,
+        camera_size: tuple[int, int] = (480, 640),
+        source: dict | None = None,
+        keypoints: KeypointSource | None = None,
+    ):
         self.camera_size = tuple(camera_size)
-        self.source_scene = Scene(**{k: (tuple(v) if k != "object_type" else v) for k, v in source.items()}) if source else SOURCE_SCENE
+        self.source_scene = (
+            Scene(**{k: (tuple(v) if k != "object_type" else v) for k, v in source.items()}) if source else SOURCE_SCENE
+        )
         self.keypoints = keypoints or KeypointSource()
         self.keypoint_sources = (self.keypoints.kind,)
         if self.keypoints.camera and (self.keypoints.segmenter is not None or self.keypoints.cameras or
@@ -59,7 +66,9 @@ class PackingTask(ArmTask):
     def sample_scene(self, condition: str, index: int, seed: int = 0) -> Scene:
         return sample_scene(condition, index, seed, self.source_scene)
 
-    def _view(self, env: PackingEnv, scene: Scene, reference_yaw: float, container_yaw: float | None = None) -> PackingView:
+    def _view(
+        self, env: PackingEnv, scene: Scene, reference_yaw: float, container_yaw: float | None = None
+    ) -> PackingView:
         """The scene's keypoints: the object's box and the container's pose from the simulator, or from the camera
         (reseeded by the scene, so a scene shows the same whichever came before); the symmetric ones ordered by
         the turns nearest ``reference_yaw`` (the object's) and ``container_yaw``."""
@@ -83,9 +92,13 @@ class PackingTask(ArmTask):
         trajectory = plan_packing(*env.ee_pose(), view.box, container_pos, yaw_of(container_rot), TABLE_TOP)
         return Demonstration(scene, view, trajectory, execute(env, trajectory))
 
-    def observe(self, env: PackingEnv, scene: Scene, source: Demonstration, keypoint_source: str | None = None) -> tuple[Keypoints, PackingView]:
+    def observe(
+        self, env: PackingEnv, scene: Scene, source: Demonstration, keypoint_source: str | None = None
+    ) -> tuple[Keypoints, PackingView]:
         if keypoint_source not in (None, self.keypoints.kind):
-            raise ValueError(f"this packing task reads its keypoints from {self.keypoints.kind!r}, not {keypoint_source!r} (keypoints=...)")
+            raise ValueError(
+                f"this packing task reads its keypoints from {self.keypoints.kind!r}, not {keypoint_source!r} (keypoints=...)"
+            )
         view = self._view(env, scene, source.observation.box["yaw"], source.observation.container_yaw)
         return Keypoints(source.observation.keypoints, view.keypoints), view
 

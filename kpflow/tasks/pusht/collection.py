@@ -22,13 +22,28 @@ from kpflow.utils.video import write_video
 
 
 def collect_episode(
-    policy, split: str, index: int, seed: int, goal: str, max_steps: int, success_threshold: float = 0.95, render: bool = False
+    policy,
+    split: str,
+    index: int,
+    seed: int,
+    goal: str,
+    max_steps: int,
+    success_threshold: float = 0.95,
+    render: bool = False,
 ) -> tuple[int, EpisodeResult]:
     """Roll out ``policy`` (``reset``/``act``; None: the scripted expert planned for the configuration) on
     configuration ``index`` of ``split`` (``standard``: Diffusion Policy's start state for seed ``index``), reseeded by
     ``seed`` and ``index``, and record it."""
-    config = PushTTask().sample_scene(split, index, seed) if split == "standard" else split_config(split, index, seed, goal)
-    env = PushTEnv(split=split, goal=goal, success_threshold=success_threshold, render_size=256, render_mode="rgb_array" if render else None)
+    config = (
+        PushTTask().sample_scene(split, index, seed) if split == "standard" else split_config(split, index, seed, goal)
+    )
+    env = PushTEnv(
+        split=split,
+        goal=goal,
+        success_threshold=success_threshold,
+        render_size=256,
+        render_mode="rgb_array" if render else None,
+    )
     actor = PushTTask().demonstrator(config) if policy is None else policy
     result = run_episode(env, actor, config, max_steps, seed=seed * 100_003 + index, record=True, render=render)
     return index, result
@@ -43,11 +58,21 @@ def _job(args) -> tuple[int, EpisodeResult]:
     return collect_episode(_POLICY, *args)
 
 
-def collection_attrs(n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool, source: str = "expert") -> dict:
+def collection_attrs(
+    n_episodes: int, split: str, goal: str, seed: int, max_steps: int, keep_failures: bool, source: str = "expert"
+) -> dict:
     """The store attrs that identify a collection (including how many episodes it is meant to hold): a store is
     continued only by a collection with the same ones."""
-    return {"task": "pusht", "source": source, "n_episodes": n_episodes, "split": split, "goal": goal, "seed": seed,
-            "max_steps": max_steps, "keep_failures": keep_failures}
+    return {
+        "task": "pusht",
+        "source": source,
+        "n_episodes": n_episodes,
+        "split": split,
+        "goal": goal,
+        "seed": seed,
+        "max_steps": max_steps,
+        "keep_failures": keep_failures,
+    }
 
 
 def collect_pusht(
@@ -81,17 +106,29 @@ def collect_pusht(
 
     Returns a summary (episodes, resumed_from, attempts, successes, steps of the episodes collected now, paths).
     """
-    for name, value, lo in (("n_episodes", n_episodes, 1), ("workers", workers, 1), ("max_steps", max_steps, 1), ("videos", videos, 0), ("seed", seed, 0)):
+    for name, value, lo in (
+        ("n_episodes", n_episodes, 1),
+        ("workers", workers, 1),
+        ("max_steps", max_steps, 1),
+        ("videos", videos, 0),
+        ("seed", seed, 0),
+    ):
         Key(int, lo=lo).check(name, value)
-    n_episodes, workers, max_steps, videos, seed = map(int, (n_episodes, workers, max_steps, videos, seed))  # plain ints for the attrs
+    n_episodes, workers, max_steps, videos, seed = map(
+        int, (n_episodes, workers, max_steps, videos, seed)
+    )  # plain ints for the attrs
     Key(int, lo=0).check("first_index", first_index)
     splits = (*SPLITS, "standard") if policy is not None else SPLITS  # the expert plans for Table 1's workspaces only
     if split not in splits:
-        raise ValueError(f"unknown Push-T split {split!r} for {'a policy' if policy is not None else 'the expert'}; choose one of {splits}")
+        raise ValueError(
+            f"unknown Push-T split {split!r} for {'a policy' if policy is not None else 'the expert'}; choose one of {splits}"
+        )
     if goal not in GOAL_MODES:
         raise ValueError(f"unknown goal mode {goal!r}; choose one of {GOAL_MODES}")
     if (policy is None) != (source == "expert"):
-        raise ValueError(f"source names who acts: 'expert' without a policy, another name with one; got source={source!r} and policy={policy!r}")
+        raise ValueError(
+            f"source names who acts: 'expert' without a policy, another name with one; got source={source!r} and policy={policy!r}"
+        )
     want = collection_attrs(n_episodes, split, goal, seed, max_steps, bool(keep_failures), source)
     if (Path(store_path) / "meta" / "episode_ends").exists():
         check_collection(EpisodeStore(store_path), want)  # before the write lock repairs anything
@@ -116,14 +153,18 @@ def check_collection(store: EpisodeStore, want: dict) -> None:
         return
     attrs = store.attrs.asdict()
     optional = ("n_episodes", "max_steps", "keep_failures")  # absent from stores collected before they were recorded
-    differ = {k: (attrs.get(k), v) for k, v in want.items() if attrs.get(k) != v and not (k in optional and k not in attrs)}
+    differ = {
+        k: (attrs.get(k), v) for k, v in want.items() if attrs.get(k) != v and not (k in optional and k not in attrs)
+    }
     if differ:
         raise ValueError(
             f"{store.path} holds {len(store)} episodes of another collection ({', '.join(f'{k}: {a!r} there, {b!r} asked' for k, (a, b) in differ.items())}); "
             "collect into another path"
         )
     if len(store) > want["n_episodes"]:
-        raise ValueError(f"{store.path} already holds {len(store)} episodes, more than the {want['n_episodes']} asked for")
+        raise ValueError(
+            f"{store.path} already holds {len(store)} episodes, more than the {want['n_episodes']} asked for"
+        )
     if len(store) and "config_index" not in store.episode_attrs(len(store) - 1):
         raise ValueError(f"{store.path}: its last episode has no config_index, so the collection cannot be continued")
 
@@ -137,7 +178,13 @@ def _collect(store, n_episodes, have, start, want, workers, videos, video_dir, p
     results = pool.imap(_job, jobs) if pool is not None else map(_job, jobs)
     if progress and kept < n_episodes:
         print(f"collecting {n_episodes - kept} Push-T episodes into {store.path}", file=sys.stderr, flush=True)
-    bar = tqdm(total=n_episodes, initial=have, desc=f"collect pusht/{split} ({want['source']})", unit="ep", disable=not progress)
+    bar = tqdm(
+        total=n_episodes,
+        initial=have,
+        desc=f"collect pusht/{split} ({want['source']})",
+        unit="ep",
+        disable=not progress,
+    )
     try:
         while kept < n_episodes:
             index, result = next(results)
@@ -145,7 +192,12 @@ def _collect(store, n_episodes, have, start, want, workers, videos, video_dir, p
             successes += result.success
             if not (result.success or want["keep_failures"]):
                 continue
-            attrs = {"config_index": index, "success": result.success, "coverage": result.coverage, "steps": result.steps}
+            attrs = {
+                "config_index": index,
+                "success": result.success,
+                "coverage": result.coverage,
+                "steps": result.steps,
+            }
             store.add_episode(result.episode, attrs=attrs)
             steps.append(result.steps)
             if result.frames is not None and kept < videos:

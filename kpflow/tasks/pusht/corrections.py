@@ -43,11 +43,18 @@ class Takeover:
     """
 
     def __init__(self, expert: PushTExpert, stuck_steps: int, takeover_steps: int, min_progress: float = 0.01):
-        self.expert, self.stuck_steps, self.takeover_steps, self.min_progress = expert, stuck_steps, takeover_steps, min_progress
+        self.expert, self.stuck_steps, self.takeover_steps, self.min_progress = (
+            expert,
+            stuck_steps,
+            takeover_steps,
+            min_progress,
+        )
 
     def start(self, env: PushTEnv, obs: dict, info: dict, seed: int | None) -> None:
         if self.expert.workspace.name != env.workspace.name:
-            raise ValueError(f"the expert's workspace {self.expert.workspace.name!r} is not the env's {env.workspace.name!r}")
+            raise ValueError(
+                f"the expert's workspace {self.expert.workspace.name!r} is not the env's {env.workspace.name!r}"
+            )
         self.region, self.seed = float(env.workspace.region), seed
         self.best = self.reference = float(info["coverage"])
         self.last_progress = 0  # step at which the best coverage last rose by min_progress (or the expert handed back)
@@ -173,8 +180,16 @@ def collect_corrections(
     try:
         for r in range(first, first + rounds):
             policy = make_policy(store)
-            report = dict(round=r, episodes=0, successes=0, policy_successes=0, takeovers=0, expert_steps=0,
-                          episodes_added=0, chunks_added=0)
+            report = dict(
+                round=r,
+                episodes=0,
+                successes=0,
+                policy_successes=0,
+                takeovers=0,
+                expert_steps=0,
+                episodes_added=0,
+                chunks_added=0,
+            )
             for e in range(episodes_per_round):
                 index = CONFIG_OFFSET * (r + 1) + e
                 config = split_config(split, index, seed, goal)
@@ -187,8 +202,14 @@ def collect_corrections(
                     n = len(segment["action"])
                     if n < 2:
                         continue
-                    attrs = {"source": "correction", "round": r, "config_index": index, "segment": k,
-                             "success": info["success"], "steps": n}
+                    attrs = {
+                        "source": "correction",
+                        "round": r,
+                        "config_index": index,
+                        "segment": k,
+                        "success": info["success"],
+                        "steps": n,
+                    }
                     store.add_episode(segment, attrs=attrs)
                     report["episodes_added"] += 1
                     report["chunks_added"] += n
@@ -198,8 +219,7 @@ def collect_corrections(
                 report["takeovers"] += info["n_takeovers"]
                 report["expert_steps"] += info["expert_steps"]
                 bar.update(1)
-                bar.set_postfix(round=r, success=f"{report['successes']}/{report['episodes']}",
-                                steps=store.n_steps)
+                bar.set_postfix(round=r, success=f"{report['successes']}/{report['episodes']}", steps=store.n_steps)
             report["dataset_steps"] = store.n_steps
             reports.append(report)
     finally:

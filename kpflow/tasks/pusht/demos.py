@@ -81,6 +81,13 @@ def pusht_datamodule(
     hindsight = pusht_hindsight(goals)  # a bad name is refused before anything is collected
     ensure_pusht_demos(path, n_episodes, seed, workers)
     return ChunkDataModule(
-        path, horizon=horizon, batch_size=batch_size, val_fraction=val_fraction, seed=seed, n_obs=n_obs, hindsight=hindsight,
-        relabel_fragments=relabel_fragments, max_episodes=max_episodes,
+        path,
+        horizon=horizon,
+        batch_size=batch_size,
+        val_fraction=val_fraction,
+        seed=seed,
+        n_obs=n_obs,
+        hindsight=hindsight,
+        relabel_fragments=relabel_fragments,
+        max_episodes=max_episodes,
     )

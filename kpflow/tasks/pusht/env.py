@@ -39,7 +39,11 @@ def _checked(value, name: str, what: str, labels: tuple[str, ...], workspace) ->
     return arr
 
 
-_STATE = ("state", "5 finite numbers (agent x, y, block x, y, angle)", ("agent x", "agent y", "block x", "block y", "angle"))
+_STATE = (
+    "state",
+    "5 finite numbers (agent x, y, block x, y, angle)",
+    ("agent x", "agent y", "block x", "block y", "angle"),
+)
 _GOAL = ("goal_pose", "3 finite numbers (goal x, y, angle)", ("goal x", "goal y", "angle"))
 
 
@@ -197,7 +201,12 @@ class PushTEnv(gym.Env):
             "block_pose": pose,
             "goal_pose": goal,
         }
-        info = {"coverage": cov, "is_success": cov >= self.success_threshold, "block_pose": pose, "n_steps": self.n_steps}
+        info = {
+            "coverage": cov,
+            "is_success": cov >= self.success_threshold,
+            "block_pose": pose,
+            "n_steps": self.n_steps,
+        }
         return obs, info
 
     # ------------------------------------------------------------------------------------------------ render
@@ -207,9 +216,7 @@ class PushTEnv(gym.Env):
         physics = self.physics
         keypoints = None
         if self.render_keypoints:
-            keypoints = np.concatenate(
-                [t_keypoints(physics.block_pose), self._goal_keypoints, physics.agent_pos[None]]
-            )
+            keypoints = np.concatenate([t_keypoints(physics.block_pose), self._goal_keypoints, physics.agent_pos[None]])
         return render_scene(
             self.workspace,
             physics.block_pose,

@@ -111,5 +111,3 @@ def outline_coverage(block_outline: np.ndarray, goal: shapely.Polygon) -> float:
 def coverage(block_pose, goal_pose) -> float:
     """Share of the goal T covered by the block T: ``area(goal & block) / area(goal)``."""
     return outline_coverage(to_world(block_pose, OUTLINE), t_polygon(goal_pose))
-
-

@@ -89,10 +89,11 @@ class PushTPairs:
         return out
 
     def __call__(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        target = np.stack([self._demo_step(rng) if rng.random() < self.demo_fraction else self._reset(rng) for _ in range(n)])
+        target = np.stack(
+            [self._demo_step(rng) if rng.random() < self.demo_fraction else self._reset(rng) for _ in range(n)]
+        )
         source = np.empty_like(target)
         for i, t in enumerate(tqdm(target, desc="Push-T pairs: nearest sources", disable=n < 1000)):
             near, _ = self.index.query_k(t, self.candidates)
             source[i] = self.index.keypoints[near[rng.integers(len(near))]]
         return source, target
-

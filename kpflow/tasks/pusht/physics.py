@@ -108,5 +108,8 @@ class PushTPhysics:
         agent, space = self.agent, self.space
         for _ in range(SUBSTEPS):
             (px, py), (vx, vy) = agent.position, agent.velocity
-            agent.velocity = (vx + (KP * (tx - px) + KV * (0.0 - vx)) * DT, vy + (KP * (ty - py) + KV * (0.0 - vy)) * DT)
+            agent.velocity = (
+                vx + (KP * (tx - px) + KV * (0.0 - vx)) * DT,
+                vy + (KP * (ty - py) + KV * (0.0 - vy)) * DT,
+            )
             space.step(DT)

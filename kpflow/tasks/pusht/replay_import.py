@@ -52,7 +52,9 @@ FIELDS = ("keypoints", "action", "agent_pos", "block_pose", "goal_pose", "state"
 # ----------------------------------------------------------------------------------------------- reading
 
 
-def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_pusht_replay(
+    source: str | os.PathLike, max_episodes: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read and validate a standard Push-T replay buffer.
 
     Returns ``state`` ``[N, 5]``, ``action`` ``[N, 2]`` (float64) and ``episode_ends`` ``[E]`` (int64), cut to the
@@ -82,7 +84,9 @@ def read_pusht_replay(source: str | os.PathLike, max_episodes: int | None = None
         rows = np.flatnonzero(~np.isfinite(values).all(axis=1))
         if len(rows):
             episode = int(np.searchsorted(ends, rows[0], side="right"))
-            raise ValueError(f"{path}: {name} contains NaN or inf ({len(rows)} rows; first row {rows[0]}, episode {episode})")
+            raise ValueError(
+                f"{path}: {name} contains NaN or inf ({len(rows)} rows; first row {rows[0]}, episode {episode})"
+            )
     return state, action, ends
 
 
@@ -104,7 +108,9 @@ def _replay_arrays(path: Path) -> dict:
             raise ValueError(f"{path}: {name} has shape {list(array.shape)}; expected {expected} ({meaning})")
         kinds = "iu" if name == "meta/episode_ends" else "f"
         if array.dtype.kind not in kinds:
-            raise ValueError(f"{path}: {name} has dtype {array.dtype}; expected {'an integer' if kinds == 'iu' else 'a float'} dtype")
+            raise ValueError(
+                f"{path}: {name} has dtype {array.dtype}; expected {'an integer' if kinds == 'iu' else 'a float'} dtype"
+            )
         arrays[name] = array
 
     return arrays
@@ -121,7 +127,9 @@ def _episode_ends(arrays: dict, path: Path) -> np.ndarray:
         raise ValueError(f"{path}: meta/episode_ends is empty: the buffer holds no episodes")
     bad = np.flatnonzero(np.diff(np.concatenate([[0], ends])) <= 0)
     if len(bad):
-        raise ValueError(f"{path}: meta/episode_ends is not strictly increasing from 0 at index {bad[0]} (episode lengths must be >= 1)")
+        raise ValueError(
+            f"{path}: meta/episode_ends is not strictly increasing from 0 at index {bad[0]} (episode lengths must be >= 1)"
+        )
     if ends[-1] > n_rows:
         raise ValueError(f"{path}: meta/episode_ends[-1] = {ends[-1]} exceeds the {n_rows} rows of data/state")
     return ends
@@ -243,7 +251,12 @@ def agent_velocities(agent_pos0, action: np.ndarray) -> tuple[np.ndarray, np.nda
 def _summary(x: np.ndarray) -> dict[str, float]:
     if not len(x):
         return {"median": float("nan"), "p90": float("nan"), "max": float("nan"), "mean": float("nan")}
-    return {"median": float(np.median(x)), "p90": float(np.percentile(x, 90)), "max": float(x.max()), "mean": float(x.mean())}
+    return {
+        "median": float(np.median(x)),
+        "p90": float(np.percentile(x, 90)),
+        "max": float(x.max()),
+        "mean": float(x.mean()),
+    }
 
 
 def replay_errors(
@@ -324,8 +337,13 @@ def main(argv=None) -> int:
         description="Import a standard Push-T replay buffer (pusht_cchi_v7_replay.zarr) into a kpflow episode store.",
     )
     ap.add_argument("source", type=Path, help="standard replay buffer (zarr v2 folder)")
-    ap.add_argument("dest", type=Path, nargs="?", default=None,
-                    help="kpflow episode store to create (default: pusht_human.zarr in kpflow's data folder, where data=pusht_human reads)")
+    ap.add_argument(
+        "dest",
+        type=Path,
+        nargs="?",
+        default=None,
+        help="kpflow episode store to create (default: pusht_human.zarr in kpflow's data folder, where data=pusht_human reads)",
+    )
     ap.add_argument("--max-episodes", type=int, default=None, help="import only the first N episodes")
     ap.add_argument("--overwrite", action="store_true", help="replace DEST if it already holds episodes")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -336,8 +354,10 @@ def main(argv=None) -> int:
         args.dest = data_dir() / "pusht_human.zarr"
         print(f"importing into {args.dest}", file=sys.stderr, flush=True)
     store = import_pusht_replay(args.source, args.dest, args.max_episodes, not args.no_progress, args.overwrite)
-    print(f"imported {store.n_episodes} episodes ({store.n_steps} steps) from {args.source} into {args.dest}; "
-          f"fields: {', '.join(store.fields)}")
+    print(
+        f"imported {store.n_episodes} episodes ({store.n_steps} steps) from {args.source} into {args.dest}; "
+        f"fields: {', '.join(store.fields)}"
+    )
     return 0
 
 

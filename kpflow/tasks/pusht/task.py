@@ -28,7 +28,9 @@ FIRST_CONFIG = 10_000  # the first evaluation configuration of each split
 STANDARD_EPISODES, STANDARD_MAX_STEPS = 500, 300  # Diffusion Policy's Push-T test protocol (LeRobot's 500 episodes)
 
 
-def protocol_counts(n_configs: int, standard_episodes: int = STANDARD_EPISODES, standard_first_seed: int = STANDARD_FIRST_SEED):
+def protocol_counts(
+    n_configs: int, standard_episodes: int = STANDARD_EPISODES, standard_first_seed: int = STANDARD_FIRST_SEED
+):
     """``(n_trials, first_index)`` of :func:`~kpflow.eval.trials.run_trials`, per condition: ``n_configs``
     configurations of each split from :data:`FIRST_CONFIG`, and ``standard_episodes`` standard episodes from
     ``standard_first_seed``."""
@@ -57,7 +59,9 @@ class PushTTask(GymTask):
     def make_env(self, condition: str = "in_distribution", render: bool = False, **kwargs) -> PushTEnv:
         """The env of ``condition``'s workspace (``render``: 256-px RGB frames; ``kwargs``: :class:`~.env.PushTEnv`'s
         options)."""
-        return PushTEnv(split=condition, **({"render_size": 256, "render_mode": "rgb_array"} if render else {}), **kwargs)
+        return PushTEnv(
+            split=condition, **({"render_size": 256, "render_mode": "rgb_array"} if render else {}), **kwargs
+        )
 
     def sample_scene(self, condition: str, index: int, seed: int = 0) -> Config:
         """Configuration ``index`` of ``condition``; for ``standard`` the index is Diffusion Policy's env seed."""

@@ -71,15 +71,21 @@ class KeyboardTeleop:
     ) -> None:
         pg = self._pg = _import_pygame()
         if env.render_mode != "rgb_array":
-            raise ValueError(f"teleoperation shows env.render(): the env needs render_mode='rgb_array', not {env.render_mode!r}")
+            raise ValueError(
+                f"teleoperation shows env.render(): the env needs render_mode='rgb_array', not {env.render_mode!r}"
+            )
         self.env, self.store = env, store
         self.step_px, self.fine_px, self.fps = float(step_px), float(fine_px), fps
         self._set_store_attrs()
         self._directions = {
-            pg.K_RIGHT: (1, 0), pg.K_d: (1, 0),
-            pg.K_LEFT: (-1, 0), pg.K_a: (-1, 0),
-            pg.K_DOWN: (0, 1), pg.K_s: (0, 1),  # image rows grow with world y
-            pg.K_UP: (0, -1), pg.K_w: (0, -1),
+            pg.K_RIGHT: (1, 0),
+            pg.K_d: (1, 0),
+            pg.K_LEFT: (-1, 0),
+            pg.K_a: (-1, 0),
+            pg.K_DOWN: (0, 1),
+            pg.K_s: (0, 1),  # image rows grow with world y
+            pg.K_UP: (0, -1),
+            pg.K_w: (0, -1),
         }
         self._shift = {pg.K_LSHIFT, pg.K_RSHIFT}
         self._held: set[int] = set()
@@ -88,14 +94,18 @@ class KeyboardTeleop:
         pg.display.init()
         pg.font.init()
         self._screen = pg.display.set_mode((window_size, window_size + _STATUS_PX))
-        pg.display.set_caption("Push-T teleop: arrows/WASD move (shift: fine), space pause, Enter save, Backspace discard, Esc quit")
+        pg.display.set_caption(
+            "Push-T teleop: arrows/WASD move (shift: fine), space pause, Enter save, Backspace discard, Esc quit"
+        )
         self._font = pg.font.Font(None, 24)
         self._clock = pg.time.Clock()
 
     def _set_store_attrs(self) -> None:
         """Write task, split and goal mode to the store's attrs; refuse a store recorded with other ones."""
         expected = {"task": "pusht", "split": self.env.split, "goal": self.env.goal_mode}
-        clash = {k: self.store.attrs[k] for k in expected if k in self.store.attrs and self.store.attrs[k] != expected[k]}
+        clash = {
+            k: self.store.attrs[k] for k in expected if k in self.store.attrs and self.store.attrs[k] != expected[k]
+        }
         if clash:
             raise ValueError(f"{self.store.path} holds demonstrations with {clash}; this session records {expected}")
         self.store.attrs.update(expected)
@@ -191,7 +201,9 @@ class KeyboardTeleop:
         self._event_source = event_source or self._pg.event.get
         max_steps = self.env.max_steps if max_steps is None else max_steps
         self.env.reset(seed=seed)  # the seed's configuration of the env's split
-        result = run_episode(self.env, self, self.env.config, UNBOUNDED if max_steps is None else max_steps, record=True)
+        result = run_episode(
+            self.env, self, self.env.config, UNBOUNDED if max_steps is None else max_steps, record=True
+        )
         if self.quit_requested or self.discard_requested:
             return None
         attrs = {"seed": int(seed), "success": result.success, "coverage": result.coverage, "source": "teleop"}

@@ -52,7 +52,9 @@ def plan_stacking(start_pos, start_rot, cheese: tuple, lettuce: tuple) -> Trajec
     return segments_to_trajectory(start_pos, start_rot, segments)
 
 
-def execute(env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2) -> Execution:
+def execute(
+    env, trajectory: Trajectory, settle: int = 20, frames: list | None = None, frame_every: int = 2
+) -> Execution:
     """Run ``trajectory`` on a :class:`~.env.StackingEnv` (after ``reset_to``) and say how it went.
 
     Returns the :class:`~kpflow.tasks.base.Execution`: :func:`~kpflow.tasks.arm.execution.follow`'s record with ``success`` (the cheese rests on the lettuce,

@@ -61,6 +61,4 @@ def sample_scene(condition: str, index: int, seed: int = 0, source: Scene = SOUR
         if np.linalg.norm(xy[0] - xy[1]) >= MIN_GAP:
             break
     yaws = [pose[2] + rng.uniform(-YAW_RANGE, YAW_RANGE) for pose in (source.cheese_pose, source.lettuce_pose)]
-    return Scene(
-        (float(xy[0][0]), float(xy[0][1]), float(yaws[0])), (float(xy[1][0]), float(xy[1][1]), float(yaws[1]))
-    )
+    return Scene((float(xy[0][0]), float(xy[0][1]), float(yaws[0])), (float(xy[1][0]), float(xy[1][1]), float(yaws[1])))

@@ -44,7 +44,12 @@ class StackingTask(ArmTask):
     name = "stacking"
     conditions = CONDITIONS
 
-    def __init__(self, camera_size: tuple[int, int] = (480, 480), source: dict | None = None, matcher: Matcher | dict | None = None):
+    def __init__(
+        self,
+        camera_size: tuple[int, int] = (480, 480),
+        source: dict | None = None,
+        matcher: Matcher | dict | None = None,
+    ):
         self.camera_size = tuple(camera_size)
         self.source_scene = Scene(**{k: tuple(v) for k, v in source.items()}) if source else SOURCE_SCENE
         self.matcher = matcher if isinstance(matcher, Matcher) else Matcher(**(matcher or {}))
@@ -85,7 +90,8 @@ class StackingTask(ArmTask):
         if not pairs.kept.any():
             return None, view
         keypoints = Keypoints(
-            np.concatenate([before.start_box, pairs.source[pairs.kept]]), np.concatenate([now.start_box, pairs.target[pairs.kept]])
+            np.concatenate([before.start_box, pairs.source[pairs.kept]]),
+            np.concatenate([now.start_box, pairs.target[pairs.kept]]),
         )
         return keypoints, view
 

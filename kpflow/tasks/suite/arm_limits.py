@@ -66,9 +66,13 @@ class SuiteArmLimits:
     def cost(self, obs: dict, chunk: np.ndarray) -> float:
         """:func:`arm_path_cost` of ``chunk [H, 10]`` (position, 6-D rotation, gripper) from ``obs``."""
         if "joints" not in obs:
-            raise ValueError("checking a chunk against the arm needs the arm's joints in the observation (obs['joints'] [7])")
+            raise ValueError(
+                "checking a chunk against the arm needs the arm's joints in the observation (obs['joints'] [7])"
+            )
         joints, keypoints = np.asarray(obs["joints"], float), np.asarray(obs["keypoints"], float)
         a, b = keypoints[self.pads[0]], keypoints[self.pads[1]]
         yaw = float(np.arctan2(a[1] - b[1], a[0] - b[0]) + np.pi)  # the pads lie across the jaws
         chunk = np.asarray(chunk, float)
-        return arm_path_cost(float(joints[6]), yaw, self.base_xy, chunk[:, :3], rot6d_to_matrix(chunk[:, 3:9]), np.inf, self.reach)
+        return arm_path_cost(
+            float(joints[6]), yaw, self.base_xy, chunk[:, :3], rot6d_to_matrix(chunk[:, 3:9]), np.inf, self.reach
+        )

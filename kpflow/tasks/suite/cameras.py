@@ -51,7 +51,9 @@ class SuiteCameras:
         have = [model.camera_id2name(i) for i in range(model.ncam)]
         missing = [n for n in self.names if n not in have]
         if missing:
-            raise ValueError(f"{env.spec.name} has no camera {missing}; its cameras are {have} (keypoints.cameras=[...])")
+            raise ValueError(
+                f"{env.spec.name} has no camera {missing}; its cameras are {have} (keypoints.cameras=[...])"
+            )
 
     def check(self, env) -> None:
         """Refuse cameras the model lacks, or an environment that cannot render."""
@@ -72,7 +74,9 @@ class SuiteCameras:
                 CameraFrame(
                     name,
                     np.ascontiguousarray(rgb[::-1]),
-                    np.ascontiguousarray(metric_depth(sim, depth, name)[::-1]),  # a broken z-buffer refused, not clipped
+                    np.ascontiguousarray(
+                        metric_depth(sim, depth, name)[::-1]
+                    ),  # a broken z-buffer refused, not clipped
                     camera_utils.get_camera_intrinsic_matrix(sim, name, h, w),
                     camera_utils.get_camera_extrinsic_matrix(sim, name),
                     np.ascontiguousarray(ids[::-1]),

@@ -31,7 +31,11 @@ APPROACH = 0.10  # m above the grasp point before going down
 LIFT = 0.12  # m the object is lifted after the grasp
 CLOSE_STEPS = 12  # control steps holding still while the jaws close (and open)
 RETREAT = {"cubeB": 0.12, "bin": 0.06, "peg": 0.12}  # m up after opening
-CARRY_CLEARANCE = {"cubeB": 0.06, "bin": 0.14, "peg": 0.20}  # m of the held object's centre above its goal while carried
+CARRY_CLEARANCE = {
+    "cubeB": 0.06,
+    "bin": 0.14,
+    "peg": 0.20,
+}  # m of the held object's centre above its goal while carried
 #: where the can goes in its quarter of the target bin (from the bin's centre): the quarter's corner nearest the robot,
 #: kept one can's radius and 1 cm from its walls; the quarter is at the Panda's reach, and 1.5 cm further out (the
 #: first choice, (0.05, 0.065)) the elbow often ended a place at its stop
@@ -94,7 +98,9 @@ def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
         turns = smallest + np.pi / 2 * np.arange(-2, 3)
         costs = [cost((goal + yaw_rotation(t) @ (grip - pos))[None], (yaw_rotation(t) @ grip_rot)[None]) for t in turns]
         if not np.isfinite(min(costs)):
-            raise ValueError(f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range")
+            raise ValueError(
+                f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range"
+            )
         return goal, float(turns[int(np.argmin(costs))])
     raise ValueError(f"no placement on a {kind!r}")
 

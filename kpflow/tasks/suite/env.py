@@ -89,7 +89,9 @@ class SuiteEnv:
         self.fixture_home = {name: model.body_pos[b].copy() for name, b in self.fixture_body.items()}
         self._fixture_home_quat = {name: model.body_quat[b].copy() for name, b in self.fixture_body.items()}
         #: the bodies a scene may remove (Square's round peg in MimicGen's d1, d2): their ids and where robosuite puts them
-        self._removable = {b: (model.body_name2id(b), model.body_pos[model.body_name2id(b)].copy()) for b in spec.removable_bodies}
+        self._removable = {
+            b: (model.body_name2id(b), model.body_pos[model.body_name2id(b)].copy()) for b in spec.removable_bodies
+        }
         self.joint_limits = np.array(model.jnt_range[robot._ref_joint_indexes])
         pads = robot.gripper["right"].important_geoms
         self._pads = [model.geom_name2id(pads[side][0]) for side in ("left_fingerpad", "right_fingerpad")]
@@ -110,12 +112,16 @@ class SuiteEnv:
         env, data, model = self.env, self.sim.data, self.sim.model
         removed = tuple(getattr(scene, "removed", ()))
         if unknown := sorted(set(removed) - set(self._removable)):
-            raise ValueError(f"the scene removes {unknown}, which no variant of {self.spec.name} removes (removable: {sorted(self._removable)})")
+            raise ValueError(
+                f"the scene removes {unknown}, which no variant of {self.spec.name} removes (removable: {sorted(self._removable)})"
+            )
         env.reset()
         for name, (body, home) in self._removable.items():  # out of the scene (MimicGen's x = -10 m), or where built
             model.body_pos[body] = (*REMOVED_AT, home[2]) if name in removed else home
         for name, body in self.fixture_body.items():
-            model.body_pos[body] = self.fixture_home[name] + np.asarray(scene.fixture_offsets.get(name, (0.0, 0.0, 0.0)))
+            model.body_pos[body] = self.fixture_home[name] + np.asarray(
+                scene.fixture_offsets.get(name, (0.0, 0.0, 0.0))
+            )
             yaw = getattr(scene, "fixture_yaws", {}).get(name, 0.0)
             built = Rotation.from_quat(self._fixture_home_quat[name], scalar_first=True)
             model.body_quat[body] = (Rotation.from_euler("z", yaw) * built).as_quat(scalar_first=True)

@@ -46,7 +46,9 @@ class SuiteGymEnv(gym.Env):
         self.perception = SimulatorPoses() if perception is None else perception
         self.observation_space = gym.spaces.Dict({"keypoints": gym.spaces.Box(-np.inf, np.inf, (n_keypoints, 3), np.float64),
                                                   "joints": gym.spaces.Box(*sim.joint_limits.T, (ARM_JOINTS,), np.float64)})  # fmt: skip
-        bound = np.array([WORKSPACE_M] * 3 + [1.0] * 7)  # a position in the world (m), a 6-D rotation's columns, the gripper
+        bound = np.array(
+            [WORKSPACE_M] * 3 + [1.0] * 7
+        )  # a position in the world (m), a 6-D rotation's columns, the gripper
         self.action_space = gym.spaces.Box(-bound, bound, (ACTION_DIM,), np.float64)
         self._names = policy_objects(sim.spec)
         self._poses, self._read, self._closed, self._unseen, self._obs = None, True, False, 0, None
@@ -95,11 +97,17 @@ class SuiteGymEnv(gym.Env):
         except (TypeError, ValueError):
             a = None
         if a is None or a.shape != (ACTION_DIM,) or not np.isfinite(a).all():
-            raise ValueError(f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {action!r}")
+            raise ValueError(
+                f"action must be {ACTION_DIM} finite numbers (position [3], 6-D rotation [6], gripper [1]), got {action!r}"
+            )
         first, second = a[3:6], a[6:9]
         n1 = np.linalg.norm(first)
-        if n1 < 1e-9 or np.linalg.norm(second - (first @ second) / n1**2 * first) < 1e-9 * max(1.0, np.linalg.norm(second)):
-            raise ValueError(f"action's 6-D rotation {a[3:9].tolist()} has a zero column or two parallel ones: it names no rotation")
+        if n1 < 1e-9 or np.linalg.norm(second - (first @ second) / n1**2 * first) < 1e-9 * max(
+            1.0, np.linalg.norm(second)
+        ):
+            raise ValueError(
+                f"action's 6-D rotation {a[3:9].tolist()} has a zero column or two parallel ones: it names no rotation"
+            )
         return np.clip(a[:3], -WORKSPACE_M, WORKSPACE_M), rot6d_to_matrix(a[3:9]), bool(a[9] > 0)
 
     def step(self, action):

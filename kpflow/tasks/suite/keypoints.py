@@ -40,7 +40,15 @@ NUT_GRASP = 0.054  # where the jaws close on the handle (its centre), along the 
 NUT_HANDLE_HALF = (0.025, 0.0159, 0.01)  # half extents of the handle bar (the last: its top above its centre)
 PEG_HALF, PEG_HEIGHT = 0.016, 0.1  # half side, and half length (its body origin is at its middle)
 BIN_HALF = (0.195, 0.245)
-SYMMETRY = {"cube": 4, "can": 0, "nut": 1, "nut_handle": 2, "nut_ring": 4, "peg": 4, "bin": 2}  # turns that leave it unchanged (0: any)
+SYMMETRY = {
+    "cube": 4,
+    "can": 0,
+    "nut": 1,
+    "nut_handle": 2,
+    "nut_ring": 4,
+    "peg": 4,
+    "bin": 2,
+}  # turns that leave it unchanged (0: any)
 
 
 def reduced_yaw(yaw: float, order: int, reference: float) -> float:
@@ -53,7 +61,10 @@ def _square(centre, yaw: float, half_x: float, half_y: float, height: float = 0.
     """The 4 corners ``(+,+), (-,+), (-,-), (+,-)`` of a horizontal rectangle turned by ``yaw``, ``height`` above
     ``centre``."""
     r = yaw_rotation(yaw)
-    return [np.asarray(centre) + r @ np.array([sx * half_x, sy * half_y, height]) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    return [
+        np.asarray(centre) + r @ np.array([sx * half_x, sy * half_y, height])
+        for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    ]
 
 
 def _box(centre, yaw, half) -> np.ndarray:
@@ -61,7 +72,9 @@ def _box(centre, yaw, half) -> np.ndarray:
     return np.asarray(centre) + (signs * np.asarray(half)) @ yaw_rotation(yaw).T
 
 
-def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw: float = 0.0, half: float | None = None) -> np.ndarray:
+def object_keypoints(
+    kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw: float = 0.0, half: float | None = None
+) -> np.ndarray:
     """The keypoints ``[N, 3]`` of an object of ``kind`` at body pose ``(pos, rot)`` (module docstring), symmetric
     ones ordered by the turn nearest ``reference_yaw``; ``half`` is a cube's half side."""
     order = SYMMETRY.get(kind)
@@ -72,7 +85,10 @@ def object_keypoints(kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw:
     if kind == "cube":
         return _box(pos, yaw, (half, half, half))
     if kind == "can":
-        ring = [pos + yaw_rotation(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.arange(4) * np.pi / 2]
+        ring = [
+            pos + yaw_rotation(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
+            for a in np.arange(4) * np.pi / 2
+        ]
         return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
     if kind == "nut_handle":
         centre = pos + yaw_rotation(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
@@ -119,7 +135,9 @@ class SimulatorPoses:
         """Nothing to forget."""
 
 
-def pose_keypoints(spec: TaskSpec, name: str, pose: ObjectPose, reference_yaw: float = 0.0, kind: str | None = None) -> np.ndarray:
+def pose_keypoints(
+    spec: TaskSpec, name: str, pose: ObjectPose, reference_yaw: float = 0.0, kind: str | None = None
+) -> np.ndarray:
     """:func:`object_keypoints` of object ``name`` at ``pose`` (``kind`` overrides the task's, e.g. ``nut_ring``)."""
     return object_keypoints(kind or spec.kinds[name], pose.pos, pose.rot, reference_yaw, pose.half)
 
@@ -234,4 +252,6 @@ def policy_keypoints(env, spec: TaskSpec, poses: dict[str, ObjectPose] | None = 
     jaws = yaw_of(env.ee_pose()[1])
     names = policy_objects(spec)
     poses = {n: object_pose(env, spec, n) for n in names} if poses is None else poses
-    return np.concatenate([pose_keypoints(spec, n, poses[n], jaws) for n in names] + [gripper_keypoints(env), env.finger_pads()])
+    return np.concatenate(
+        [pose_keypoints(spec, n, poses[n], jaws) for n in names] + [gripper_keypoints(env), env.finger_pads()]
+    )

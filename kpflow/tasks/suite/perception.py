@@ -82,7 +82,9 @@ def object_points(frames: Sequence[CameraFrame], masks: Sequence[np.ndarray], er
     return points, support
 
 
-def pose_from_box(kind: str, box: FootprintBox, support: float | None = None) -> tuple[np.ndarray, np.ndarray, float | None]:
+def pose_from_box(
+    kind: str, box: FootprintBox, support: float | None = None
+) -> tuple[np.ndarray, np.ndarray, float | None]:
     """``(pos [3], rot [3, 3], half)`` of an object of ``kind`` whose :class:`FootprintBox` is ``box`` (module
     docstring), standing on a surface at height ``support`` (None: unknown); ``half``: a cube's half side, else
     None."""
@@ -156,7 +158,14 @@ class CameraKeypoints:
     def from_source(cls, source: KeypointSource) -> CameraKeypoints:
         """The perception a :class:`~kpflow.vision.keypoint_source.KeypointSource` (``kind="camera"``) describes."""
         cameras = SuiteCameras(source.cameras or DEFAULT_CAMERAS, source.height, source.width)
-        return cls(cameras, source.noise, source.segmenter, source.seed, temporal=source.temporal, pose_filter=source.pose_filter())
+        return cls(
+            cameras,
+            source.noise,
+            source.segmenter,
+            source.seed,
+            temporal=source.temporal,
+            pose_filter=source.pose_filter(),
+        )
 
     def reseed(self, *keys: int) -> None:
         """Start a new scene: restart the depth and mask errors' stream at ``(seed, *keys)`` (e.g. an attempt's
@@ -201,7 +210,9 @@ class CameraKeypoints:
             points, support = object_points(frames, masks, self.erode, self.smooth)
             box = fit_footprint_box(points, self.voxel, self.top_fraction)
         except ValueError as e:
-            raise ValueError(f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}") from None
+            raise ValueError(
+                f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}"
+            ) from None
         pose = ObjectPose(*pose_from_box(kind, box, support))
         if self.pose_filter is not None:
             seen = self.pose_filter.update(name, pose.pos, yaw_of(pose.rot), SYMMETRY[kind], pose.half)

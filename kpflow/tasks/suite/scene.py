@@ -42,12 +42,16 @@ class Scene:
     def __post_init__(self):
         for name, (pos, quat) in self.objects.items():
             if len(pos) != 3 or len(quat) != 4 or not np.all(np.isfinite([*pos, *quat])):
-                raise ValueError(f"object {name!r} needs a finite position [3] and quaternion [4]; got {pos!r}, {quat!r}")
+                raise ValueError(
+                    f"object {name!r} needs a finite position [3] and quaternion [4]; got {pos!r}, {quat!r}"
+                )
             if not abs(np.linalg.norm(quat) - 1.0) < 1e-6:
                 raise ValueError(f"object {name!r}'s quaternion is not a unit quaternion: {quat!r}")
         for name, scale in self.scales.items():
             if name not in self.objects or not (np.isfinite(scale) and 0.1 <= scale <= 10):
-                raise ValueError(f"scale {scale!r} of {name!r}: scales are factors in 0.1..10 of the scene's objects {sorted(self.objects)}")
+                raise ValueError(
+                    f"scale {scale!r} of {name!r}: scales are factors in 0.1..10 of the scene's objects {sorted(self.objects)}"
+                )
         for name, yaw in self.fixture_yaws.items():
             if not np.isfinite(yaw):
                 raise ValueError(f"fixture {name!r}'s yaw must be finite, got {yaw!r}")
@@ -65,7 +69,9 @@ class Scene:
     def from_dict(cls, d: dict) -> Scene:
         objects = {k: (tuple(v["pos"]), tuple(v["quat"])) for k, v in d["objects"].items()}
         offsets = {k: tuple(v) for k, v in d.get("fixture_offsets", {}).items()}
-        return cls(objects, offsets, dict(d.get("scales", {})), dict(d.get("fixture_yaws", {})), tuple(d.get("removed", ())))
+        return cls(
+            objects, offsets, dict(d.get("scales", {})), dict(d.get("fixture_yaws", {})), tuple(d.get("removed", ()))
+        )
 
 
 def _seed_samplers(sampler, rng) -> None:
@@ -117,7 +123,9 @@ def _draw(spec: TaskSpec, env, fixture_home: dict, variant: str, rng) -> tuple[d
     """One draw of object poses (joint name -> (pos, quat)), fixture offsets and yaws, and object scales."""
     offsets, yaws = {}, {}
     if variant == "wide":
-        offsets = {f: (float(rng.uniform(*xr)), float(rng.uniform(*yr)), 0.0) for f, (xr, yr) in spec.wide_fixtures.items()}
+        offsets = {
+            f: (float(rng.uniform(*xr)), float(rng.uniform(*yr)), 0.0) for f, (xr, yr) in spec.wide_fixtures.items()
+        }
     placed = {}
     shipped = env.placement_initializer
     _seed_samplers(shipped, rng)
@@ -171,10 +179,15 @@ def sample_scene(spec: TaskSpec, env, variant: str, index: int, seed: int = 0) -
         if _clear(spec, env.fixture_home, placed, offsets, clearance):
             break
     else:
-        raise RuntimeError(f"{spec.name}/{variant}: no scene with the fixtures {clearance} m clear in {_MAX_DRAWS} draws")
+        raise RuntimeError(
+            f"{spec.name}/{variant}: no scene with the fixtures {clearance} m clear in {_MAX_DRAWS} draws"
+        )
     for name, scale in scales.items():  # stand a resized object on the table: its centre moves with its half height
         pos = placed[spec.object_joints[name]][0]
         pos[2] += (scale - 1.0) * env.home_half_height(name)
-    objects = {name: (tuple(map(float, placed[j][0])), tuple(map(float, placed[j][1]))) for name, j in spec.object_joints.items()}
+    objects = {
+        name: (tuple(map(float, placed[j][0])), tuple(map(float, placed[j][1])))
+        for name, j in spec.object_joints.items()
+    }
     removed = spec.mimicgen[variant].removed if variant in spec.mimicgen else ()
     return Scene(objects, offsets, scales, yaws, removed)

@@ -130,7 +130,12 @@ class TaskSpec:
     def variants(self) -> tuple[str, ...]:
         """The scene variants this task has (:mod:`.scene`)."""
         far = self.far_objects or self.far_fixtures
-        return ("d0", "wide") + (("far",) if far else ()) + (("resized",) if self.resize_objects else ()) + tuple(self.mimicgen)
+        return (
+            ("d0", "wide")
+            + (("far",) if far else ())
+            + (("resized",) if self.resize_objects else ())
+            + tuple(self.mimicgen)
+        )
 
     @property
     def removable_bodies(self) -> tuple[str, ...]:

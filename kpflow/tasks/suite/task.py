@@ -37,7 +37,9 @@ from .perception import CameraKeypoints
 from .scene import Scene, sample_scene
 from .specs import task_spec
 
-TRACKING_LIMIT = 0.03  # m between the commanded and the measured grip site at a segment's end: the arm did not get there
+TRACKING_LIMIT = (
+    0.03  # m between the commanded and the measured grip site at a segment's end: the arm did not get there
+)
 JOINT_MARGIN = 0.02  # rad from a joint's range: the arm is at its limit
 HOLD_STEPS = 10  # control steps holding the last pose before robosuite's success test
 
@@ -109,7 +111,9 @@ class SuiteTask(GymTask):
         self.check_condition(condition)
         if render not in self._sims:
             self._sims[render] = self.make_sim(render)
-        return SuiteGymEnv(self._sims[render], condition, self._layout.n_keypoints, self.perception, "rgb_array" if render else None)
+        return SuiteGymEnv(
+            self._sims[render], condition, self._layout.n_keypoints, self.perception, "rgb_array" if render else None
+        )
 
     def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
         """Scene ``index`` of ``condition`` in the stream ``EVAL_SEED + seed``; the policy and the perception reset
@@ -120,7 +124,11 @@ class SuiteTask(GymTask):
         """robosuite's success; the failure ``"not perceived"`` (the cameras never placed the objects) or ``"time
         limit"``; the steps, decisions and the reads that could not place an object."""
         failure = episode.first_info.get("failure") or (None if episode.success else "time limit")
-        scores = {"steps": episode.steps, "decisions": episode.decisions, "unseen_reads": int(episode.info.get("unseen_reads", 0))}
+        scores = {
+            "steps": episode.steps,
+            "decisions": episode.decisions,
+            "unseen_reads": int(episode.info.get("unseen_reads", 0)),
+        }
         return episode.success, failure, scores
 
     def describe(self) -> dict:
@@ -148,7 +156,9 @@ class SuiteTask(GymTask):
         yaws = {n: yaw_of(r) for n, (_, r) in poses.items()}
         yaws["hand"] = yaws[spec.grasp] - yaw_of(env.ee_pose()[1])
         ref = reference.yaws if reference is not None else yaws
-        keypoints = {name: pose_keypoints(spec, name, seen[name], ref[name], spec.grasp_kind if segment == "pick" else None)}
+        keypoints = {
+            name: pose_keypoints(spec, name, seen[name], ref[name], spec.grasp_kind if segment == "pick" else None)
+        }
         in_hand = None
         if segment == "place":
             order = max(SYMMETRY[spec.hand_kind], 1)
@@ -157,7 +167,9 @@ class SuiteTask(GymTask):
         return SegmentStart(poses, keypoints, yaws, gripper_keypoints(env), in_hand, path_cost(env))
 
     # ------------------------------------------------------------------------------------------ acting
-    def run_segment(self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2) -> SegmentRun:
+    def run_segment(
+        self, env: SuiteEnv, trajectory: Trajectory, frames: list | None = None, frame_every: int = 2
+    ) -> SegmentRun:
         """Command every step of ``trajectory`` and say whether the arm got there. The keypoints recorded at every
         step (what a policy trained on the episode observes) are the simulator's whatever :attr:`perception` is: a
         camera capture per control step would cost about a second each."""
@@ -182,7 +194,9 @@ class SuiteTask(GymTask):
             failure = "joint limit"
         elif np.linalg.norm(tip[-1] - trajectory.positions[-1]) > TRACKING_LIMIT:
             failure = "unreachable"
-        targets = np.concatenate([trajectory.positions, matrix_to_rot6d(trajectory.rotations), np.array(actions)[:, 6:]], axis=1)
+        targets = np.concatenate(
+            [trajectory.positions, matrix_to_rot6d(trajectory.rotations), np.array(actions)[:, 6:]], axis=1
+        )
         return SegmentRun(tip, np.array(states), np.array(keypoints), np.array(actions), targets, failure)
 
     def segment_failure(self, env: SuiteEnv, segment: str) -> str | None:

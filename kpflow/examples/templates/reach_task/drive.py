@@ -23,7 +23,10 @@ def main() -> None:
     task = ReachTask()
     env = task.make_env(args.condition)
     with client:
-        wins = sum(rollout(env, client, task.max_steps, 2_000_000 + i, {"seed": 2_000_000 + i}).success for i in range(args.episodes))
+        wins = sum(
+            rollout(env, client, task.max_steps, 2_000_000 + i, {"seed": 2_000_000 + i}).success
+            for i in range(args.episodes)
+        )
     print(f"{wins}/{args.episodes} episodes reached the target through {args.uri}")
     if not wins:
         raise SystemExit("no episode reached the target: is the server serving a reach policy?")

@@ -48,16 +48,22 @@ class ConditionalTransformer1D(nn.Module):
         if n_times not in (1, 2):
             raise ValueError(f"n_times must be 1 (a time) or 2 (an interval); got {n_times!r}")
         if action_dim < 1 or cond_dim < 0 or horizon < 1 or n_layers < 1:
-            raise ValueError(f"need action_dim, horizon, n_layers >= 1 and cond_dim >= 0; got {action_dim}, {horizon}, {n_layers}, {cond_dim}")
+            raise ValueError(
+                f"need action_dim, horizon, n_layers >= 1 and cond_dim >= 0; got {action_dim}, {horizon}, {n_layers}, {cond_dim}"
+            )
         if n_heads < 1 or d_model % n_heads:
             raise ValueError(f"n_heads={n_heads} must divide d_model={d_model}")
         self.action_dim, self.cond_dim, self.horizon, self.n_times = action_dim, cond_dim, horizon, n_times
         self.time_emb = SinusoidalEmbedding(time_dim, time_scale)
-        self.cond_token = nn.Sequential(nn.Linear(n_times * time_dim + cond_dim, 4 * d_model), nn.Mish(), nn.Linear(4 * d_model, d_model))
+        self.cond_token = nn.Sequential(
+            nn.Linear(n_times * time_dim + cond_dim, 4 * d_model), nn.Mish(), nn.Linear(4 * d_model, d_model)
+        )
         self.embed = nn.Linear(action_dim, d_model)
         self.position = nn.Parameter(torch.zeros(1, horizon + 1, d_model))
         nn.init.normal_(self.position, std=0.02)
-        layer = nn.TransformerEncoderLayer(d_model, n_heads, 4 * d_model, dropout, activation="gelu", batch_first=True, norm_first=True)
+        layer = nn.TransformerEncoderLayer(
+            d_model, n_heads, 4 * d_model, dropout, activation="gelu", batch_first=True, norm_first=True
+        )
         self.encoder = nn.TransformerEncoder(layer, n_layers, norm=nn.LayerNorm(d_model), enable_nested_tensor=False)
         self.head = nn.Linear(d_model, action_dim)
 

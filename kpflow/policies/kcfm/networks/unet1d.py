@@ -40,7 +40,9 @@ class SinusoidalEmbedding(nn.Module):
         return torch.cat([s.sin(), s.cos()], dim=-1)
 
 
-def time_and_condition(x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None, cond_dim: int, n_times: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+def time_and_condition(
+    x: torch.Tensor, t: torch.Tensor | float, c: torch.Tensor | None, cond_dim: int, n_times: int = 1
+) -> tuple[torch.Tensor, torch.Tensor]:
     """A denoiser's time ``[B]`` (``[B, 2]`` when ``n_times = 2``; a scalar or one pair broadcast) and condition
     ``[B, cond_dim]`` (None: an empty one) for the chunks ``x [B, H, A]``; other shapes raise ``ValueError``."""
     b = len(x)
@@ -149,14 +151,26 @@ class ConditionalUnet1D(nn.Module):
         for i, (c_in, c_out) in enumerate(zip(widths[:-1], widths[1:])):
             last = i == len(down_dims) - 1
             self.down.append(
-                nn.ModuleList([block(c_in, c_out), block(c_out, c_out), nn.Conv1d(c_out, c_out, 3, 2, 1) if not last else nn.Identity()])
+                nn.ModuleList(
+                    [
+                        block(c_in, c_out),
+                        block(c_out, c_out),
+                        nn.Conv1d(c_out, c_out, 3, 2, 1) if not last else nn.Identity(),
+                    ]
+                )
             )
         self.mid = nn.ModuleList([block(down_dims[-1], down_dims[-1]), block(down_dims[-1], down_dims[-1])])
         self.up = nn.ModuleList()
         for c_low, c_high in reversed(list(zip(down_dims[:-1], down_dims[1:]))):
             # input: the level below (c_high channels) concatenated with the skip of the same resolution (c_high)
-            self.up.append(nn.ModuleList([block(2 * c_high, c_low), block(c_low, c_low), nn.ConvTranspose1d(c_low, c_low, 4, 2, 1)]))
-        self.final = nn.Sequential(Conv1dBlock(down_dims[0], down_dims[0], kernel_size, n_groups), nn.Conv1d(down_dims[0], action_dim, 1))
+            self.up.append(
+                nn.ModuleList(
+                    [block(2 * c_high, c_low), block(c_low, c_low), nn.ConvTranspose1d(c_low, c_low, 4, 2, 1)]
+                )
+            )
+        self.final = nn.Sequential(
+            Conv1dBlock(down_dims[0], down_dims[0], kernel_size, n_groups), nn.Conv1d(down_dims[0], action_dim, 1)
+        )
         # FiLM of every residual block, in forward order: one Linear(Mish(e)) whose output is split per block.
         self.film_sizes = [2 * m.c_out for m in self.modules() if isinstance(m, ConditionalResidualBlock1D)]
         self.film = nn.Sequential(nn.Mish(), nn.Linear(time_dim + cond_dim, sum(self.film_sizes)))

@@ -25,4 +25,15 @@ def build_objective(name: str, **options) -> Objective:
         raise ValueError(f"bad options {options} for objective {name!r}: {e}") from None
 
 
-__all__ = ["DDPM", "ICFM", "OBJECTIVES", "OTCFM", "SOLVERS", "MeanFlow", "Objective", "Reflow", "TrainingTarget", "build_objective"]
+__all__ = [
+    "DDPM",
+    "ICFM",
+    "OBJECTIVES",
+    "OTCFM",
+    "SOLVERS",
+    "MeanFlow",
+    "Objective",
+    "Reflow",
+    "TrainingTarget",
+    "build_objective",
+]

@@ -49,7 +49,13 @@ class Objective(Protocol):
     n_times: int
     time_scale: float
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net: Network | None = None) -> TrainingTarget:
+    def training_target(
+        self,
+        x1: torch.Tensor,
+        cond: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        net: Network | None = None,
+    ) -> TrainingTarget:
         """Corrupt normalised data chunks ``x1 [B, H, A]`` (conditions ``cond [B, C]``, which a coupling may use)
         with noise drawn from ``generator``; ``net`` is the network being trained, for targets that depend on it."""
 

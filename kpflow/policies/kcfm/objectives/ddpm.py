@@ -42,7 +42,12 @@ class DDPM:
         if isinstance(train_steps, bool) or not isinstance(train_steps, int) or train_steps < 2:
             raise ValueError(f"train_steps must be an integer >= 2; got {train_steps!r}")
         self.train_steps = train_steps
-        common = dict(num_train_timesteps=train_steps, beta_schedule="squaredcos_cap_v2", clip_sample=clip_sample, prediction_type="epsilon")
+        common = dict(
+            num_train_timesteps=train_steps,
+            beta_schedule="squaredcos_cap_v2",
+            clip_sample=clip_sample,
+            prediction_type="epsilon",
+        )
         self.noise_scheduler = DDPMScheduler(**common)
         self.sampler = DDIMScheduler(**common, set_alpha_to_one=True, timestep_spacing="trailing")
 
@@ -51,7 +56,9 @@ class DDPM:
         """``alpha_bar_k`` for ``k = 0..T-1`` (float32)."""
         return self.noise_scheduler.alphas_cumprod
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None) -> TrainingTarget:
+    def training_target(
+        self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None
+    ) -> TrainingTarget:
         eps = randn_like(x1, generator)
         device = generator.device if generator is not None else x1.device
         k = torch.randint(0, self.train_steps, (len(x1),), generator=generator, device=device).to(x1.device)

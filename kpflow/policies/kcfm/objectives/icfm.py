@@ -25,11 +25,15 @@ class ICFM:
     n_times = 1
     time_scale = 1000.0
 
-    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def pair(
+        self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The coupling of noise and data rows: independent, so every row keeps its own."""
         return x0, identity_index(x1)
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None) -> TrainingTarget:
+    def training_target(
+        self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None
+    ) -> TrainingTarget:
         x0, index = self.pair(randn_like(x1, generator), x1, generator, cond)
         t = rand(len(x1), x1, generator)
         x_t, u_t = straight_path(x0, x1[index], t)

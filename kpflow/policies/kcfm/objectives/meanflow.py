@@ -57,7 +57,13 @@ class MeanFlow:
         s, t = torch.minimum(a, b), torch.maximum(a, b)
         return torch.stack([torch.where(flow, t, s), t], -1)
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net: Network | None = None) -> TrainingTarget:
+    def training_target(
+        self,
+        x1: torch.Tensor,
+        cond: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        net: Network | None = None,
+    ) -> TrainingTarget:
         if net is None:
             raise ValueError("MeanFlow's target depends on the network being trained: pass net(x, t, c)")
         x0 = randn_like(x1, generator)

@@ -42,7 +42,9 @@ class OTCFM(ICFM):
             raise ValueError(f"condition_weight must be >= 0; got {condition_weight!r}")
         self.condition_weight = float(condition_weight)
 
-    def pair(self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def pair(
+        self, x0: torch.Tensor, x1: torch.Tensor, generator: torch.Generator | None, cond: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``B`` pairs ``(i, j) ~ pi`` with replacement: returns ``(x0[i], j)``."""
         a, b = x0.detach().flatten(1).float(), x1.detach().flatten(1).float()
         if cond is not None and self.condition_weight > 0:

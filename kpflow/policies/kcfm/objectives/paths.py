@@ -16,6 +16,8 @@ import torch
 def straight_path(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(x_t, u_t)`` of the module docstring for rows ``x0, x1 [B, ...]`` at times ``t [B]``."""
     if t.shape != (len(x0),) or x0.shape != x1.shape:
-        raise ValueError(f"straight_path needs x0 and x1 of one shape and t [B]; got {tuple(x0.shape)}, {tuple(x1.shape)}, {tuple(t.shape)}")
+        raise ValueError(
+            f"straight_path needs x0 and x1 of one shape and t [B]; got {tuple(x0.shape)}, {tuple(x1.shape)}, {tuple(t.shape)}"
+        )
     s = t.reshape(-1, *([1] * (x0.dim() - 1)))
     return s * x1 + (1 - s) * x0, x1 - x0

@@ -44,7 +44,14 @@ class Reflow(ICFM):
         initialise: start the student from the teacher's weights (the networks must match).
     """
 
-    def __init__(self, teacher: str, teacher_steps: int = 10, teacher_solver: str = "midpoint", t_grid: int | None = None, initialise: bool = True) -> None:
+    def __init__(
+        self,
+        teacher: str,
+        teacher_steps: int = 10,
+        teacher_solver: str = "midpoint",
+        t_grid: int | None = None,
+        initialise: bool = True,
+    ) -> None:
         super().__init__()
         if not isinstance(teacher, str) or not teacher:
             raise ValueError(f"teacher must be the path of a trained K-CFM checkpoint; got {teacher!r}")
@@ -65,9 +72,13 @@ class Reflow(ICFM):
         u = rand(n, like, generator)
         return u if self.t_grid is None else torch.floor(u * self.t_grid) / self.t_grid
 
-    def training_target(self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None) -> TrainingTarget:
+    def training_target(
+        self, x1: torch.Tensor, cond: torch.Tensor | None = None, generator: torch.Generator | None = None, net=None
+    ) -> TrainingTarget:
         if self._teacher is None:
-            raise ValueError(f"reflow trains on its teacher's samples: attach the teacher first ({self.teacher}; KCFM.attach_teacher)")
+            raise ValueError(
+                f"reflow trains on its teacher's samples: attach the teacher first ({self.teacher}; KCFM.attach_teacher)"
+            )
         x0 = randn_like(x1, generator)
         with torch.no_grad():
             x1_hat = self._teacher(x0, cond)

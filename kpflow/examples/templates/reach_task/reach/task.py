@@ -49,9 +49,9 @@ class ReachEnv(gym.Env):
         side = 96
         image = np.full((side, side, 3), 255, np.uint8)
         (x0, y0), (x1, y1) = (((self.target + s * HALF_SIDE) * side).astype(int) for s in (-1, 1))
-        image[max(y0, 0):y1, max(x0, 0):x1] = (90, 160, 90)
+        image[max(y0, 0) : y1, max(x0, 0) : x1] = (90, 160, 90)
         ax, ay = np.clip((self.agent * side).astype(int), 2, side - 3)
-        image[ay - 2:ay + 3, ax - 2:ax + 3] = (40, 60, 200)
+        image[ay - 2 : ay + 3, ax - 2 : ax + 3] = (40, 60, 200)
         return image
 
 
@@ -79,7 +79,13 @@ class ReachTask(GymTask):
 
     @property
     def policy_layout(self) -> PolicyLayout:
-        return PolicyLayout(5, 2, 2, groups={"target": (0, 1, 2, 3), "agent": (4,)}, roles={"objects": ("target",), "goals": (), "robot": ("agent",)})
+        return PolicyLayout(
+            5,
+            2,
+            2,
+            groups={"target": (0, 1, 2, 3), "agent": (4,)},
+            roles={"objects": ("target",), "goals": (), "robot": ("agent",)},
+        )
 
     def make_env(self, condition: str = "default", render: bool = False) -> ReachEnv:
         self.check_condition(condition)
