@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from kpflow.geometry.angles import yaw_of
-from kpflow.tasks.suite.keypoints import SYMMETRY, object_keypoints
+from kpflow.tasks.suite.keypoints import object_keypoints
+from kpflow.tasks.suite.objects import SYMMETRY
 from kpflow.tasks.suite.specs import task_spec
 from kpflow.utils.formats import read_npz
 from kpflow.utils.io import atomic_path
@@ -76,7 +77,7 @@ def reference(task_name: str, segment: str) -> tuple[str, str]:
 
 def record(task_name: str, n_scenes: int, seed: int) -> list[Recording]:
     """``n_scenes`` successful scripted demonstrations of ``task_name`` (module docstring)."""
-    from kpflow.tasks.suite.keypoints import cube_half
+    from kpflow.tasks.suite.objects.cube import cube_half
     from kpflow.tasks.suite.task import SuiteTask
 
     task = SuiteTask(task_name)

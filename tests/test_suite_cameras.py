@@ -9,8 +9,10 @@ import pytest
 from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.suite.cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
 from kpflow.tasks.suite.env import SuiteEnv
-from kpflow.tasks.suite.keypoints import cube_half, scene_keypoints
-from kpflow.tasks.suite.perception import NUT_TOP, CameraKeypoints, object_points, pose_from_box
+from kpflow.tasks.suite.keypoints import scene_keypoints
+from kpflow.tasks.suite.objects.cube import cube_half
+from kpflow.tasks.suite.objects.nut import NUT_TOP
+from kpflow.tasks.suite.perception import CameraKeypoints, object_points, pose_from_box
 from kpflow.tasks.suite.scene import sample_scene
 from kpflow.tasks.suite.specs import task_spec
 from kpflow.vision.boxes import fit_footprint_box

@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.generation.robomimic_export import export_robomimic
 from kpflow.maps import GPMap, ILWRMap
-from kpflow.tasks.suite.keypoints import object_keypoints, reduced_yaw
+from kpflow.tasks.suite.keypoints import object_keypoints
+from kpflow.tasks.suite.objects import reduced_yaw
 from kpflow.tasks.suite.scene import Scene
 from kpflow.tasks.suite.specs import TASKS, task_spec
 from kpflow.tasks.suite.task import SuiteTask

@@ -3,7 +3,7 @@ start, from the objects' geometry.
 
 * ``pick`` (every task): over the grasp point, straight down, close the jaws, lift. The jaws close across the
   object: across a cube's faces (the face pair nearest the arm's home yaw), across the can at the home yaw, across
-  the square nut's handle (``NUT_GRASP`` along its x axis; of the two ways round, the one nearer the home yaw).
+  the square nut's handle (``NUT_GRASP`` along its x axis, :mod:`.objects.nut`; of the two ways round, the one nearer the home yaw).
 * ``place`` (stack, can, square): carry the held object over its goal at a safe height, lower it, open, retreat
   upwards. Its goal comes from where the object is in the hand now: cube A's centre on top of cube B; the can over
   its quarter of the target bin; the nut's ring centred over the peg, its square aligned with the peg's by the
@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from kpflow.geometry.angles import yaw_of, yaw_rotation
+from kpflow.geometry.angles import yaw_rotation
 from kpflow.tasks.arm.motion import segments_to_trajectory
 from kpflow.trajectory import Trajectory
 
-from .arm_limits import MAX_PLACE_TURN, path_cost
-from .keypoints import CAN_HALF_HEIGHT, NUT_GRASP, cube_half, reduced_yaw
+from .objects import object_kind
 from .specs import TaskSpec
 
 APPROACH = 0.10  # m above the grasp point before going down
@@ -36,10 +35,6 @@ CARRY_CLEARANCE = {
     "bin": 0.14,
     "peg": 0.20,
 }  # m of the held object's centre above its goal while carried
-#: where the can goes in its quarter of the target bin (from the bin's centre): the quarter's corner nearest the robot,
-#: kept one can's radius and 1 cm from its walls; the quarter is at the Panda's reach, and 1.5 cm further out (the
-#: first choice, (0.05, 0.065)) the elbow often ended a place at its stop
-CAN_COMPARTMENT = (0.035, 0.045, 0.0)
 RELEASE_HEIGHT = {"cubeB": 0.004, "bin": 0.09, "peg": 0.03}  # m above the goal (see plan_place) at which the jaws open
 
 
@@ -52,18 +47,10 @@ def jaws_down(yaw: float) -> np.ndarray:
 
 
 def grasp_pose(env, spec: TaskSpec, home_yaw: float) -> tuple[np.ndarray, float]:
-    """Where the jaws close on ``spec.grasp`` now: the grip site's position and the jaws' yaw."""
-    kind = spec.kinds[spec.grasp]
+    """Where the jaws close on ``spec.grasp`` now: the grip site's position and the jaws' yaw (its kind's
+    :meth:`~.objects.base.ObjectKind.grasp`)."""
     pos, rot = env.object_pose(spec.grasp)
-    yaw = yaw_of(rot)
-    if kind == "cube":
-        return pos, reduced_yaw(yaw, 4, home_yaw)
-    if kind == "can":
-        return pos + [0.0, 0.0, 0.2 * CAN_HALF_HEIGHT], home_yaw
-    if kind == "nut":
-        handle = pos + rot @ np.array([NUT_GRASP, 0.0, 0.0])
-        return handle + [0.0, 0.0, 0.004], reduced_yaw(yaw + np.pi / 2, 2, home_yaw)
-    raise ValueError(f"no grasp for a {kind!r}")
+    return object_kind(spec.kinds[spec.grasp]).grasp(env, pos, rot, home_yaw)
 
 
 def plan_pick(env, spec: TaskSpec, home_yaw: float) -> Trajectory:
@@ -82,27 +69,10 @@ def plan_pick(env, spec: TaskSpec, home_yaw: float) -> Trajectory:
 
 
 def place_goal(env, spec: TaskSpec) -> tuple[np.ndarray, float]:
-    """The held object's goal: the position of its body and the yaw change that gets it there (module docstring)."""
-    pos, rot = env.object_pose(spec.grasp)
-    goal_pos, goal_rot = env.object_pose(spec.target)
-    kind = spec.kinds[spec.target]
-    if kind == "cube":
-        return goal_pos + [0.0, 0.0, cube_half(env, spec.grasp) + cube_half(env, spec.target)], 0.0
-    if kind == "bin":
-        return goal_pos + goal_rot @ np.array(CAN_COMPARTMENT), 0.0
-    if kind == "peg":
-        goal = np.array([goal_pos[0], goal_pos[1], env.env.table_offset[2] + 0.01])
-        smallest = reduced_yaw(yaw_of(goal_rot), 4, yaw_of(rot)) - yaw_of(rot)
-        grip, grip_rot = env.ee_pose()
-        cost = path_cost(env)
-        turns = smallest + np.pi / 2 * np.arange(-2, 3)
-        costs = [cost((goal + yaw_rotation(t) @ (grip - pos))[None], (yaw_rotation(t) @ grip_rot)[None]) for t in turns]
-        if not np.isfinite(min(costs)):
-            raise ValueError(
-                f"no turn aligns the nut with the peg within {MAX_PLACE_TURN:.2f} rad and the last joint's range"
-            )
-        return goal, float(turns[int(np.argmin(costs))])
-    raise ValueError(f"no placement on a {kind!r}")
+    """The held object's goal: the position of its body and the yaw change that gets it there (module docstring; the
+    target's kind's :meth:`~.objects.base.ObjectKind.place_goal`)."""
+    held, goal = env.object_pose(spec.grasp), env.object_pose(spec.target)
+    return object_kind(spec.kinds[spec.target]).place_goal(env, spec, held, goal)
 
 
 def plan_place(env, spec: TaskSpec) -> Trajectory:

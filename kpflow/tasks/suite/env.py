@@ -150,7 +150,8 @@ class SuiteEnv:
 
     def home_half_height(self, name: str) -> float:
         """Half the height of object ``name`` as built: how far its centre stands above the table."""
-        from .keypoints import CAN_HALF_HEIGHT, cube_half
+        from .objects.can import CAN_HALF_HEIGHT
+        from .objects.cube import cube_half
 
         return cube_half(self, name, home=True) if self.spec.kinds[name] == "cube" else CAN_HALF_HEIGHT
 

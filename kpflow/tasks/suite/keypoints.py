@@ -3,17 +3,9 @@
 A keypoint set names what a grasp or a placement depends on, and keeps the object's symmetries: a cube's eight
 corners look the same after a quarter turn, so they are ordered by the cube's axis nearest a reference yaw (the
 source scene's), not by its body frame; the transport then turns the gripper by at most 45 degrees, where an
-object-frame transform turns it by the cube's full yaw. Per kind (``[N, 3]``, world frame, m):
-
-* ``cube`` (lift, stack): the 8 corners of the box; symmetric under quarter turns about the vertical.
-* ``can``: the centres of its top and bottom and 4 points on the rim in fixed world directions: a cylinder has no
-  yaw to see, so none is transported.
-* ``nut`` (square): the ring's centre, its 4 outer corners and the handle's two ends: the handle fixes the yaw.
-* ``nut_handle``: the 4 corners of the handle's top face and its centre, what the jaws close on; symmetric under
-  half turns about the handle, like the jaws themselves, so a grasp never turns the wrist by more than 90 degrees.
-* ``nut_ring``: the ring alone (centre and corners; symmetric under quarter turns), what the peg holds.
-* ``peg``: its bottom and top centres and the 4 top corners; symmetric under quarter turns.
-* ``bin``: the 4 corners of its rim; symmetric under half turns.
+object-frame transform turns it by the cube's full yaw. Each kind's keypoints (``[N, 3]``, world frame, m) are
+declared in its own file of :mod:`.objects`: ``cube`` (the 8 corners), ``can`` (top, bottom and 4 rim points),
+``nut``, ``nut_handle`` and ``nut_ring`` (the square nut), ``peg``, ``bin``.
 
 The end effector's keypoint is the grip site's position (:func:`gripper_keypoints`).
 """
@@ -25,81 +17,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kpflow.geometry.angles import yaw_of, yaw_rotation
+from kpflow.geometry.angles import yaw_of
 from kpflow.policies.base import PolicyLayout
 from kpflow.policies.phases import Grip, Phase, Phases
 from kpflow.policies.symmetry import Symmetry, turn_permutation
 
+from .objects import SYMMETRY, object_kind, reduced_yaw
+from .objects.cube import cube_half
 from .specs import TaskSpec
-
-# geometry (m), read from robosuite 1.5's models
-CAN_RADIUS, CAN_HALF_HEIGHT = 0.025, 0.0407
-NUT_RING_HALF = 0.0543  # centre to the ring's outer edge
-NUT_HANDLE = (0.029, 0.079)  # the handle's extent along the nut's x axis
-NUT_GRASP = 0.054  # where the jaws close on the handle (its centre), along the nut's x axis
-NUT_HANDLE_HALF = (0.025, 0.0159, 0.01)  # half extents of the handle bar (the last: its top above its centre)
-PEG_HALF, PEG_HEIGHT = 0.016, 0.1  # half side, and half length (its body origin is at its middle)
-BIN_HALF = (0.195, 0.245)
-SYMMETRY = {
-    "cube": 4,
-    "can": 0,
-    "nut": 1,
-    "nut_handle": 2,
-    "nut_ring": 4,
-    "peg": 4,
-    "bin": 2,
-}  # turns that leave it unchanged (0: any)
-
-
-def reduced_yaw(yaw: float, order: int, reference: float) -> float:
-    """``yaw`` plus the multiple of ``2 pi / order`` that brings it nearest ``reference`` (``order`` 1: as it is)."""
-    period = 2 * np.pi / order
-    return float(reference + (yaw - reference + period / 2) % period - period / 2)
-
-
-def _square(centre, yaw: float, half_x: float, half_y: float, height: float = 0.0) -> list[np.ndarray]:
-    """The 4 corners ``(+,+), (-,+), (-,-), (+,-)`` of a horizontal rectangle turned by ``yaw``, ``height`` above
-    ``centre``."""
-    r = yaw_rotation(yaw)
-    return [
-        np.asarray(centre) + r @ np.array([sx * half_x, sy * half_y, height])
-        for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))
-    ]
-
-
-def _box(centre, yaw, half) -> np.ndarray:
-    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-    return np.asarray(centre) + (signs * np.asarray(half)) @ yaw_rotation(yaw).T
 
 
 def object_keypoints(
     kind: str, pos: np.ndarray, rot: np.ndarray, reference_yaw: float = 0.0, half: float | None = None
 ) -> np.ndarray:
-    """The keypoints ``[N, 3]`` of an object of ``kind`` at body pose ``(pos, rot)`` (module docstring), symmetric
-    ones ordered by the turn nearest ``reference_yaw``; ``half`` is a cube's half side."""
-    order = SYMMETRY.get(kind)
-    if order is None:
-        raise ValueError(f"unknown keypoint kind {kind!r}; choose one of {sorted(SYMMETRY)}")
+    """The keypoints ``[N, 3]`` of an object of ``kind`` at body pose ``(pos, rot)`` (module docstring; each kind's
+    file of :mod:`.objects`), symmetric ones ordered by the turn nearest ``reference_yaw``; ``half`` is a cube's half
+    side."""
+    which = object_kind(kind)
+    order = which.symmetry
     yaw = reduced_yaw(yaw_of(rot), order, reference_yaw) if order else reference_yaw
-    pos = np.asarray(pos, float)
-    if kind == "cube":
-        return _box(pos, yaw, (half, half, half))
-    if kind == "can":
-        ring = [
-            pos + yaw_rotation(reference_yaw) @ (CAN_RADIUS * np.array([np.cos(a), np.sin(a), 0.0]))
-            for a in np.arange(4) * np.pi / 2
-        ]
-        return np.stack([pos + [0, 0, CAN_HALF_HEIGHT], pos - [0, 0, CAN_HALF_HEIGHT], *ring])
-    if kind == "nut_handle":
-        centre = pos + yaw_rotation(yaw_of(rot)) @ np.array([NUT_GRASP, 0.0, 0.0])
-        return np.stack([centre, *_square(centre, yaw, *NUT_HANDLE_HALF)])
-    if kind in ("nut", "nut_ring"):
-        handle = [pos + yaw_rotation(yaw) @ np.array([x, 0.0, 0.0]) for x in NUT_HANDLE] if kind == "nut" else []
-        return np.stack([pos, *_square(pos, yaw, NUT_RING_HALF, NUT_RING_HALF), *handle])
-    if kind == "peg":
-        top = pos + [0, 0, PEG_HEIGHT]
-        return np.stack([pos - [0, 0, PEG_HEIGHT], top, *_square(top, yaw, PEG_HALF, PEG_HALF)])
-    return np.stack(_square(pos, yaw, *BIN_HALF))
+    return which.keypoints(np.asarray(pos, float), rot, yaw, reference_yaw, half)
 
 
 @dataclass(frozen=True)
@@ -146,15 +83,6 @@ def scene_keypoints(env, spec: TaskSpec, name: str, reference_yaw: float = 0.0, 
     """Keypoints of object or fixture ``name`` in ``env`` now, from the simulator (``kind`` as in
     :func:`pose_keypoints`)."""
     return pose_keypoints(spec, name, object_pose(env, spec, name), reference_yaw, kind)
-
-
-def cube_half(env, name: str, home: bool = False) -> float:
-    """Half side (m) of cube ``name`` now (as the scene scaled it), from its collision geom; ``home``: as built."""
-    model = env.sim.model
-    body = env.object_body[name]
-    geoms = [g for g in np.flatnonzero(model.geom_bodyid == body) if model.geom_contype[g]]
-    sizes = env.geom_home[0] if home else model.geom_size
-    return float(sizes[geoms[0]][0])
 
 
 def in_hand_keypoints(env, spec: TaskSpec, reference_yaw: float, pose: ObjectPose | None = None) -> np.ndarray:

@@ -39,19 +39,14 @@ from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
 
 from .cameras import DEFAULT_CAMERAS, SuiteCameras, object_geoms
 from .keypoints import (
-    CAN_HALF_HEIGHT,
-    PEG_HEIGHT,
-    SYMMETRY,
     ObjectPose,
     object_keypoints,
     policy_keypoints,
     policy_objects,
     pose_keypoints,
 )
+from .objects import SYMMETRY, object_kind
 from .specs import TaskSpec
-
-NUT_TOP = 0.01  # the nut's top above its body origin (m; robosuite 1.5's SquareNut is 2 cm thick)
-BIN_RIM = 0.1  # the bin's rim above its body origin
 
 
 def object_points(frames: Sequence[CameraFrame], masks: Sequence[np.ndarray], erode: int = 2, smooth: int = 5,
@@ -86,29 +81,9 @@ def pose_from_box(
     kind: str, box: FootprintBox, support: float | None = None
 ) -> tuple[np.ndarray, np.ndarray, float | None]:
     """``(pos [3], rot [3, 3], half)`` of an object of ``kind`` whose :class:`FootprintBox` is ``box`` (module
-    docstring), standing on a surface at height ``support`` (None: unknown); ``half``: a cube's half side, else
-    None."""
-    if kind not in SYMMETRY:
-        raise ValueError(f"unknown keypoint kind {kind!r}; choose one of {sorted(SYMMETRY)}")
-    centre = np.asarray(box.centre, float)
-    if kind == "cube":
-        half = float(np.mean(box.half)) if support is None or box.top <= support else (box.top - support) / 2
-        return np.r_[centre, box.top - half], yaw_rotation(box.yaw), half
-    if kind == "can":
-        return np.r_[centre, box.top - CAN_HALF_HEIGHT], np.eye(3), None
-    if kind in ("nut", "nut_handle", "nut_ring"):
-        axis = box.axis
-        s = (box.voxels[:, :2] - centre) @ axis  # along the handle
-        across = (box.voxels[:, :2] - centre) @ np.array([-axis[1], axis[0]])
-        ends = (s > 0.5 * box.half[0], s < -0.5 * box.half[0])
-        spread = [np.ptp(across[e]) if e.sum() > 1 else 0.0 for e in ends]
-        sign = 1.0 if spread[0] > spread[1] else -1.0  # +axis points to the ring's end
-        ring = centre + sign * (box.half[0] - box.half[1]) * axis  # the ring is square: its half side is the short one
-        yaw = float(np.arctan2(-sign * axis[1], -sign * axis[0]))  # the nut's x axis points from the ring to the handle
-        return np.r_[ring, box.top - NUT_TOP], yaw_rotation(yaw), None
-    if kind == "peg":
-        return np.r_[centre, box.top - PEG_HEIGHT], yaw_rotation(box.yaw), None
-    return np.r_[centre, box.top - BIN_RIM], yaw_rotation(box.yaw - np.pi / 2), None  # its longer sides run along its y
+    docstring; each kind's file of :mod:`.objects`), standing on a surface at height ``support`` (None: unknown);
+    ``half``: a cube's half side, else None."""
+    return object_kind(kind).pose_from_box(box, support)
 
 
 def perceived_object_keypoints(kind: str, points: np.ndarray, reference_yaw: float = 0.0, support: float | None = None,

@@ -25,7 +25,6 @@ from .demonstrator import plan_segment
 from .env import CLOSED, OPEN, SuiteEnv
 from .gym_env import ACTION_DIM, SuiteGymEnv
 from .keypoints import (
-    SYMMETRY,
     SimulatorPoses,
     gripper_keypoints,
     in_hand_keypoints,
@@ -33,6 +32,7 @@ from .keypoints import (
     policy_layout,
     pose_keypoints,
 )
+from .objects import SYMMETRY
 from .perception import CameraKeypoints
 from .scene import Scene, sample_scene
 from .specs import task_spec
