@@ -81,14 +81,14 @@ def test_multirun_sweep_writes_one_run_per_map(tmp_path):
 @pytest.mark.slow
 def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     cmd = [
-        sys.executable, "evaluate.py", "policy=nearest", "split=all", "n_configs=2", "workers=2", "logger=csv",
+        sys.executable, "evaluate.py", "policy=nearest", "condition=all", "n_configs=2", "workers=2", "logger=csv",
         "data.n_episodes=2", f"data.path={tmp_path / 'demos.zarr'}", "experiment.trial.max_steps=60", f"hydra.run.dir={tmp_path / 'run'}",
     ]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     run = tmp_path / "run"
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["split"] == "all"
+    assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["condition"] == "all" and cfg["split"] is None
     results = json.loads((run / "results.json").read_text())
     assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(
         results["trials"]

@@ -45,7 +45,7 @@ KEYS = {
     "stuck_steps": Key(int, lo=1),
     "takeover_steps": Key(int, lo=1),
     "eval_configs": Key(int, lo=0),
-    "eval_max_steps": Key(int, lo=1),
+    "eval_max_steps": Key(int, lo=1, nullable=True),
     "workers": Key(int, lo=1),
     "data.n_episodes": Key(int, lo=1, nullable=True),
 }

@@ -19,6 +19,17 @@ ENV_IDS: dict[str, tuple[dict, int]] = {
 }
 
 
+def registered_steps(split: str) -> int:
+    """The ``max_episode_steps`` registered for Push-T's ``split`` (its id's of :data:`ENV_IDS`): the one place an
+    episode's step limit is written (300 on ``standard``, Diffusion Policy's; 1200 on Table 1's splits)."""
+    for kwargs, max_episode_steps in ENV_IDS.values():
+        if kwargs["split"] == split:
+            return max_episode_steps
+    raise ValueError(
+        f"no Push-T id registers split {split!r}; the splits are {[k['split'] for k, _ in ENV_IDS.values()]}"
+    )
+
+
 def register_envs() -> None:
     """Register every id of :data:`ENV_IDS` that is not registered yet."""
     for env_id, (kwargs, max_episode_steps) in ENV_IDS.items():

@@ -20,12 +20,15 @@ from kpflow.tasks.rollout import Episode
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv
 from .geometry import N_KEYPOINTS, N_T_KEYPOINTS
+from .registration import registered_steps
 from .rollout import coverage_summary
 from .scene import SPLITS, STANDARD_FIRST_SEED, Config, split_config, standard_config
 
 THRESHOLDS = (0.85, 0.95)  # coverage: Table 1's success, and Diffusion Policy's
 FIRST_CONFIG = 10_000  # the first evaluation configuration of each split
-STANDARD_EPISODES, STANDARD_MAX_STEPS = 500, 300  # Diffusion Policy's Push-T test protocol (LeRobot's 500 episodes)
+STANDARD_EPISODES = (
+    500  # Diffusion Policy's Push-T test protocol (LeRobot's 500 episodes; 300 steps each: registration.py)
+)
 
 
 def protocol_counts(
@@ -45,7 +48,9 @@ class PushTTask(GymTask):
     name = "pusht"
     conditions = ENV_SPLITS
     default_conditions = SPLITS
-    max_steps = 1200  # on the splits; ``standard``: 300, whatever is asked
+    max_steps = registered_steps(
+        "in_distribution"
+    )  # on the splits (the registered ids'); ``standard``: its own, whatever is asked
     tracked = ("coverage",)
     #: what its learned policies observe and return: 12 block, 12 goal and the agent's keypoints (px); agent targets
     policy_layout = PolicyLayout(
@@ -76,8 +81,11 @@ class PushTTask(GymTask):
         return EvaluationScene({"options": {"config": config}}, index, config.as_dict())
 
     def steps_limit(self, condition: str, max_steps: int | None = None) -> int:
-        """300 on ``standard`` (Diffusion Policy's protocol), else ``max_steps`` (None: 1200)."""
-        return STANDARD_MAX_STEPS if condition == "standard" else super().steps_limit(condition, max_steps)
+        """The registered limit on ``standard`` (Diffusion Policy's protocol: 300), else ``max_steps`` (None: the
+        split's registered limit, 1200; :func:`~.registration.registered_steps`)."""
+        if condition == "standard" or max_steps is None:
+            return registered_steps(condition)
+        return int(max_steps)
 
     def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
         """Success, and the coverage scores: whether 0.85 was reached, the first step reaching each threshold (None:
