@@ -88,7 +88,11 @@ def test_evaluate_pusht_writes_table_plot_videos_and_config(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     run = tmp_path / "run"
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["condition"] == "all" and cfg["split"] is None
+    assert (
+        cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest"
+        and cfg["condition"] == "all"
+        and cfg["split"] is None
+    )
     results = json.loads((run / "results.json").read_text())
     assert [s["condition"] for s in results["summary"]] == ["in_distribution", "robot_ood", "object_ood"] and len(
         results["trials"]
