@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpflow.policies.base import PolicyLayout
+from kpflow.core.policy import PolicyLayout
 from kpflow.policies.factory import check_checkpoint_fits
 from kpflow.tasks.pusht.task import PushTTask
 from tests.helpers import run_command, train_learned_map

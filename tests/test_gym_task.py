@@ -1,19 +1,19 @@
 """A Gymnasium task of the user's own (the template reach_task, the own-task tutorial's): the closed loop, expert
-collection into a store, and the closed-loop trial, on the task contract alone (kpflow.tasks.base.GymTask)."""
+collection into a store, and the closed-loop trial, on the task contract alone (kpflow.core.task.GymTask)."""
 
 import sys
 
 import numpy as np
 import pytest
 
+from kpflow.core.rollout import StopEpisode, rollout
+from kpflow.core.task import scene_seed
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.success import SuccessReport
 from kpflow.eval.trials import run_trials
 from kpflow.examples import TEMPLATES
-from kpflow.tasks.base import scene_seed
 from kpflow.tasks.collection import collect_gym_episodes
-from kpflow.tasks.rollout import StopEpisode, rollout
 
 sys.path.insert(0, str(TEMPLATES / "reach_task"))  # as a project folder copied by kpflow-example
 from reach import ReachTask  # noqa: E402

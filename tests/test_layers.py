@@ -13,22 +13,15 @@ LAYERS = [
     {"geometry"},  # the one rigid fit, rotations, planar angles: below every map
     {"maps"},
     {"transport", "trajectory"},
+    {"core"},  # the contracts: Policy, PolicyLayout, ClosedLoop, phases, symmetries, Task, the closed-loop rollout
     {"vision"},
     {
         "data"
     },  # generic: episodes on disk, chunks, source indices; what one task collects or imports lives in its folder
-    {
-        "tasks",
-        "policies.base",
-    },  # the policy contract (base.py, phases.py, symmetry.py) sits beside the task contract: tasks declare their layout with it
+    {"tasks"},
     {"policies"},
     {"eval", "serving", "generation"},  # generation: segment transport and whole datasets, beside evaluation
-    {
-        "cli",
-        "conf",
-        "examples",
-        "__init__",
-    },  # the commands (kpflow/cli/), the installed examples and the package's front door
+    {"cli", "conf", "examples", "__init__"},  # the commands (kpflow/cli/), the installed examples and the front door
 ]
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}
 
@@ -58,8 +51,6 @@ def imports(path: Path) -> set[str]:
 
 def layer(module: str) -> str:
     parts = module.split(".")
-    if parts[1:3] in (["policies", "base"], ["policies", "phases"], ["policies", "symmetry"]):
-        return "policies.base"
     return parts[1] if len(parts) > 1 else "__init__"
 
 

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 import torch
 
+from kpflow.core.phases import Grip, Phase, Phases
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.symmetry import Symmetry, phase_correspondences, turn_permutation
 from kpflow.data.source_index import SourceIndex
 from kpflow.geometry.angles import wrap_angle, yaw_of
 from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from kpflow.maps import ILWRMap
-from kpflow.policies.base import PolicyLayout
 from kpflow.policies.kcfm.model import KCFM
-from kpflow.policies.phases import Grip, Phase, Phases
-from kpflow.policies.symmetry import Symmetry, phase_correspondences, turn_permutation
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy, source_phases
 from kpflow.tasks.suite.arm_limits import SuiteArmLimits
 from tests.helpers import cube_corners as _cube

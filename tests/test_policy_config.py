@@ -11,9 +11,9 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
 import kpflow
+from kpflow.core.policy import PolicyLayout
 from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.suite import SuiteReport
-from kpflow.policies.base import PolicyLayout
 from kpflow.policies.config import DEFAULTS, PolicyConfig, TransportConfig, map_factory
 from kpflow.policies.factory import PolicyBuilder
 from kpflow.policies.subgoal import SubgoalPolicy

@@ -155,7 +155,7 @@ def test_collect_cli_names_an_unknown_task(tmp_path):
     done = run_command("kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}")
     assert (
         done.returncode != 0
-        and "collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not PackingTask"
+        and "collects Push-T or a Gymnasium task with an expert (kpflow.core.task.GymTask), not PackingTask"
         in done.stderr
     )  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
+from kpflow.core.policy import Policy
 from kpflow.data.chunks import ChunkDataset
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap
-from kpflow.policies.base import Policy
 from kpflow.policies.chunk_transport import TransportPolicy
 from kpflow.policies.nearest import NearestNeighbourPolicy
 from kpflow.tasks.pusht import PushTEnv, split_config

@@ -11,12 +11,12 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from kpflow.core.task import Demonstration
 from kpflow.eval.demo_transport_trial import DemoTransportTrial
 from kpflow.eval.reports.stacking import StackingReport, grasp_errors
 from kpflow.eval.stats import wilson_interval
 from kpflow.maps import GPMap
 from kpflow.tasks.arm.motion import pointing_down
-from kpflow.tasks.base import Demonstration
 from kpflow.tasks.stacking.demonstrator import execute, nearest_half_turn
 from kpflow.tasks.stacking.keypoints import BACKGROUND, Matcher, labels_at, lift, true_targets
 from kpflow.tasks.stacking.objects import CHEESE, LETTUCE, SIZES

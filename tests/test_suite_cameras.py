@@ -206,7 +206,7 @@ def test_a_policy_reads_the_cameras_only_where_it_decides(env):
     """The released Lift K-CFM in closed loop on camera keypoints: the cameras are read at the steps whose
     observations a decision takes (the last n_obs = 2 before each chunk), not at every control step, and the episode
     is the same for the same seed."""
-    from kpflow.tasks.rollout import rollout
+    from kpflow.core.rollout import rollout
     from kpflow.tasks.suite.gym_env import SuiteGymEnv
     from kpflow.tasks.suite.task import SuiteTask
 

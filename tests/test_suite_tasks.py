@@ -239,9 +239,9 @@ def test_failure_reasons(worlds):
 def test_the_source_distance_is_mimicgens_pose_measure_and_the_keypoints_see_symmetry():
     from functools import partial
 
+    from kpflow.core.task import SegmentStart
     from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.base import SegmentStart
 
     def start(pos, yaw):
         rot = Rotation.from_euler("z", yaw).as_matrix()
@@ -399,9 +399,9 @@ def test_generation_refuses_an_earlier_runs_folder_unless_resumed_with_its_setti
 def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(generated, tmp_path, objective):
     import lightning
 
+    from kpflow.core.rollout import rollout
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.kcfm.model import KCFM
-    from kpflow.tasks.rollout import rollout
 
     out, _ = generated
     data = ChunkDataModule(out / "d0" / "gp" / "episodes.zarr", horizon=16, obs_key="keypoints", action_key="ee_target",
@@ -448,9 +448,9 @@ def _rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarr
 def test_the_in_hand_correction_moves_the_held_object_along_the_source_path():
     from functools import partial
 
+    from kpflow.core.task import Segment, SegmentStart
     from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.base import Segment, SegmentStart
 
     rng = np.random.default_rng(0)
     held = rng.normal(size=(5, 3)) * 0.05  # the held object's keypoints in the source's hand frame
@@ -546,9 +546,9 @@ def test_the_path_cost_sees_a_turn_the_long_way_round(worlds):
 def test_a_place_in_another_order_starts_as_the_source_and_ends_turned_with_the_centre_on_the_source_path():
     from functools import partial
 
+    from kpflow.core.task import Segment, SegmentStart
     from kpflow.generation.segment_transport import SegmentTransport
     from kpflow.maps import AffineMap
-    from kpflow.tasks.base import Segment, SegmentStart
 
     ring = np.concatenate([np.zeros((1, 3)), [[0.05, 0.05, 0], [-0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0]]])
     held = ring + [0.0, 0.0, 0.03]  # the ring's centre 3 cm along the hand's axis
@@ -580,13 +580,13 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     from hydra.utils import instantiate
 
     from kpflow.cli.release import release, release_source_index
+    from kpflow.core.rollout import rollout
     from kpflow.data.chunks import ChunkDataModule
     from kpflow.policies.chunk_transport import TransportPolicy
     from kpflow.policies.kcfm.model import KCFM
     from kpflow.policies.kcfm.policy import KCFMPolicy
     from kpflow.policies.nearest import NearestNeighbourPolicy
     from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
-    from kpflow.tasks.rollout import rollout
 
     out, _ = generated
     store = out / "d0" / "gp" / "episodes.zarr"

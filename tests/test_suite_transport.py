@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+from kpflow.core.policy import PolicyLayout
 from kpflow.data.source_index import SourceIndex
 from kpflow.geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from kpflow.maps import AffineMap, ILWRMap
-from kpflow.policies.base import PolicyLayout
 from kpflow.policies.chunk_transport import TransportPolicy, transport_chunk
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.kcfm.policy import KCFMPolicy

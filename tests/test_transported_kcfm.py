@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
+from kpflow.core.policy import Policy
 from kpflow.data.chunks import ChunkDataModule
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.source_index import SourceIndex
 from kpflow.maps import AffineMap, ILWRMap
-from kpflow.policies.base import Policy
 from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.kcfm.sampling import MAX_STEPS

@@ -1,5 +1,5 @@
 """Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``, or for a Gymnasium task of your own
-(:class:`~kpflow.tasks.base.GymTask` with an expert) ``kpflow-collect --config-dir conf task=<task> n_episodes=50``.
+(:class:`~kpflow.core.task.GymTask` with an expert) ``kpflow-collect --config-dir conf task=<task> n_episodes=50``.
 Push-T also collects a policy's own successful episodes (self-generated demonstrations):
 ``kpflow-collect policy=transport data=pusht_human data.max_episodes=90 split=standard first_index=10000``.
 
@@ -15,7 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from kpflow.tasks.base import GymTask
+from kpflow.core.task import GymTask
 from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.pusht.collection import collect_pusht
 from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
@@ -78,7 +78,7 @@ def collect_task(cfg: DictConfig) -> dict:
     if not isinstance(task, GymTask):
         remove_unused_run_folder(Path(cfg.output_dir))
         raise ValueError(
-            f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.tasks.base.GymTask), not {type(task).__name__}"
+            f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.core.task.GymTask), not {type(task).__name__}"
         )
     out = start_run(cfg, KEYS)
     summary = collect_gym_episodes(

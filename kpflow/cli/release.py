@@ -33,7 +33,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from kpflow.policies.base import PolicyLayout
+from kpflow.core.policy import PolicyLayout
 from kpflow.policies.config import CHECKPOINT_KEY as CONFIG_KEY
 from kpflow.policies.config import DEFAULTS, KINDS, PolicyConfig, TransportConfig
 from kpflow.policies.settings import CHECKPOINT_KEY as SETTINGS_KEY

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+from kpflow.core.task import ORACLE, ArmTask, TrialResult
 from kpflow.policies.demo_transport import DemoTransportPolicy, check_uncertainty_options
-from kpflow.tasks.base import ORACLE, ArmTask, TrialResult
 
 
 def keypoint_sources(task: ArmTask, backbones: dict | None, oracle: bool) -> dict[str, Any]:

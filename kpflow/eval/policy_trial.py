@@ -1,11 +1,11 @@
 """A policy's trial on a Gymnasium task: one closed-loop episode in a seeded evaluation scene.
 
-``kpflow-evaluate`` runs it for Push-T (``experiment=pusht``) and for any :class:`~kpflow.tasks.base.GymTask` of
+``kpflow-evaluate`` runs it for Push-T (``experiment=pusht``) and for any :class:`~kpflow.core.task.GymTask` of
 your own (``experiment=gym_policy task=<task>``). The task says everything task-specific
-(:class:`~kpflow.tasks.base.GymTask`): which scene an index of a condition is and how the env is reset to it
-(:meth:`~kpflow.tasks.base.GymTask.evaluation_scene`: by default the held-out seed stream, Push-T's configurations),
+(:class:`~kpflow.core.task.GymTask`): which scene an index of a condition is and how the env is reset to it
+(:meth:`~kpflow.core.task.GymTask.evaluation_scene`: by default the held-out seed stream, Push-T's configurations),
 how many steps an episode may take and how it is scored; the episode is the one closed loop,
-:func:`~kpflow.tasks.rollout.rollout`. Every episode gets a fresh env from the task, and the decisions are timed (``latency_ms``, the median). The scene recorded is the task's record with what the env
+:func:`~kpflow.core.rollout.rollout`. Every episode gets a fresh env from the task, and the decisions are timed (``latency_ms``, the median). The scene recorded is the task's record with what the env
 says of it at reset (``info["scene"]``, where it says anything).
 """
 
@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-from kpflow.policies.base import Policy
+from kpflow.core.policy import Policy
+from kpflow.core.rollout import rollout
+from kpflow.core.task import GymTask, TrialResult
 from kpflow.policies.settings import effective_settings
-from kpflow.tasks.base import GymTask, TrialResult
-from kpflow.tasks.rollout import rollout
 
 
 class TimedPolicy:
@@ -45,7 +45,7 @@ class PolicyTrial:
     def __init__(self, task: GymTask, policy: Policy, report, name: str = "policy", max_steps: int | None = None):
         if not isinstance(task, GymTask):
             raise ValueError(
-                f"a policy trial runs Gymnasium tasks (kpflow.tasks.base.GymTask), not {type(task).__name__}"
+                f"a policy trial runs Gymnasium tasks (kpflow.core.task.GymTask), not {type(task).__name__}"
             )
         if max_steps is not None and max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
@@ -69,7 +69,7 @@ class PolicyTrial:
     def run(
         self, condition: str, index: int, variant: dict[str, str], seed: int, frames: list | None = None
     ) -> TrialResult:
-        """Episode ``index`` of ``condition``; ``scores``: the task's (:meth:`~kpflow.tasks.base.GymTask.score`) and
+        """Episode ``index`` of ``condition``; ``scores``: the task's (:meth:`~kpflow.core.task.GymTask.score`) and
         the median decision latency."""
         scene = self.task.evaluation_scene(condition, index, seed)
         env = self.task.make_env(condition, render=frames is not None)
@@ -86,7 +86,7 @@ class PolicyTrial:
 
     def describe(self) -> dict:
         """The policy's name, the settings it acts with (:func:`~kpflow.policies.settings.effective_settings`),
-        each condition's step limit and the task's own description (:meth:`~kpflow.tasks.base.GymTask.describe`)."""
+        each condition's step limit and the task's own description (:meth:`~kpflow.core.task.GymTask.describe`)."""
         limits = {c: self.task.steps_limit(c, self.max_steps) for c in self.conditions}
         return {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": limits,
                 **self.task.describe()}  # fmt: skip

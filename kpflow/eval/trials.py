@@ -19,8 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Protocol, Sequence
 
+from kpflow.core.task import TrialResult
 from kpflow.eval.parallel import map_jobs
-from kpflow.tasks.base import TrialResult
 from kpflow.utils.io import write_json, write_text
 from kpflow.utils.video import write_video
 

@@ -1,6 +1,6 @@
 """Carrying one recorded segment into the scene now: MimicGen's object-frame transform, or a keypoint map.
 
-A segment (:class:`~kpflow.tasks.base.Segment`) is planned when its start is reached in the new scene, from what
+A segment (:class:`~kpflow.core.task.Segment`) is planned when its start is reached in the new scene, from what
 the task observes there (:meth:`kpflow.tasks.suite.task.SuiteTask.observe`): the reference object's pose and
 keypoints (the object picked, or the goal of a place), the grip site, and the held object's keypoints in the hand.
 
@@ -38,10 +38,10 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
+from kpflow.core.task import Segment, SegmentStart
 from kpflow.geometry.alignment import fit_affine
 from kpflow.maps.base import TransportMap
 from kpflow.tasks.arm.motion import interpolate
-from kpflow.tasks.base import Segment, SegmentStart
 from kpflow.trajectory import Trajectory
 from kpflow.transport import transport_trajectory
 

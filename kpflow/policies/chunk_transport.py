@@ -28,12 +28,13 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from kpflow.core.policy import PolicyLayout
+
 from ..data.source_index import SourceIndex
 from ..geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from ..transport import transport_orientations
-from .base import PolicyLayout
 from .source_choice import SourceChoice
 
 

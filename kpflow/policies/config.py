@@ -238,7 +238,7 @@ class PolicyConfig:
             )
         layout = record.get("layout")
         if layout is not None:
-            from .base import PolicyLayout
+            from kpflow.core.policy import PolicyLayout
 
             PolicyLayout.from_record(layout, where)  # a malformed layout is refused now, naming the file
         try:

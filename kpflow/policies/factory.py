@@ -16,18 +16,19 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Callable
 
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.symmetry import ArmLimits
+
 from ..data.chunks import ChunkDataModule
 from ..data.source_index import SourceIndex
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
 from ..maps.learned import check_map_factory
 from ..utils.releases import resolve_release
-from .base import PolicyLayout
 from .checks import INPUT_MARGIN
 from .chunk_transport import TransportPolicy
 from .nearest import NearestNeighbourPolicy
 from .source_search import SourceSearch
-from .symmetry import ArmLimits
 
 
 def source_index_path(checkpoint: str | Path) -> Path:

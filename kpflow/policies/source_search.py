@@ -15,10 +15,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 
+from kpflow.core.policy import PolicyLayout
+
 from ..data.chunks import ChunkDataModule
 from ..data.episode_store import EpisodeStore
 from ..data.source_index import SourceIndex
-from .base import PolicyLayout
 
 
 @dataclass(frozen=True)

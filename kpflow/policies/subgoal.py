@@ -34,10 +34,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpflow.core.policy import Policy
+
 from ..geometry.alignment import planar_turn
 from ..geometry.angles import planar_rotation
 from ..maps.validation import check_positive
-from .base import Policy
 from .checks import check_actions
 
 

@@ -64,19 +64,20 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from kpflow.core.phases import Phase, Phases
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.symmetry import ArmLimits, Symmetry, phase_correspondences
+
 from ..data.source_index import SourceIndex
 from ..geometry.angles import yaw_rotation
 from ..geometry.rotations import matrix_to_rot6d, rot6d_to_matrix
 from ..maps import ILWRMap
 from ..maps.base import TransportMap
-from .base import PolicyLayout
 from .checks import INPUT_MARGIN, check_actions
 from .chunk_transport import fitted_keypoints, robot_and_rotation, transport_chunk
 from .kcfm.model import KCFM
 from .kcfm.policy import KCFMPolicy
-from .phases import Phase, Phases
 from .source_choice import SourceChoice
-from .symmetry import ArmLimits, Symmetry, phase_correspondences
 
 PULL_BACK = ("robot", "all")
 OLD_PULL_BACK = {"agent": "robot"}  # the old spelling, still read
@@ -192,7 +193,7 @@ class TransportedKCFMPolicy:
     ) -> None:
         if arm is not None and not isinstance(arm, ArmLimits):
             raise ValueError(
-                f"arm must have cost(obs, chunk) (kpflow.policies.symmetry.ArmLimits), got {type(arm).__name__}"
+                f"arm must have cost(obs, chunk) (kpflow.core.symmetry.ArmLimits), got {type(arm).__name__}"
             )
         if not (isinstance(alternatives, int) and alternatives >= 1):
             raise ValueError(f"alternatives must be an integer >= 1, got {alternatives!r}")

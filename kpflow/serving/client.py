@@ -1,4 +1,4 @@
-"""The policy server's client: a :class:`~kpflow.tasks.base.Policy` (``reset(seed)``, ``act(obs)``) whose decisions
+"""The policy server's client: a :class:`~kpflow.core.task.Policy` (``reset(seed)``, ``act(obs)``) whose decisions
 are taken by a remote :class:`~kpflow.serving.server.PolicyServer`.
 
 ``act`` sends only the observation keys the server's metadata names (an episode loop's ``obs`` may hold more), so a

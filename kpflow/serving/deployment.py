@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..policies.base import Policy
+from kpflow.core.policy import Policy
+
 from ..policies.checks import INPUT_MARGIN
 from .batching import DEFAULT_MAX_WAIT_MS, BatchedNetwork, BatchedPolicy, check_batching
 from .protocol import PolicyMetadata

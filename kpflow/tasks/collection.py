@@ -1,6 +1,6 @@
 """Collecting a Gymnasium task's expert episodes into a demonstration store.
 
-:func:`collect_gym_episodes` rolls the task's scripted expert out (:func:`~kpflow.tasks.rollout.rollout`, the one
+:func:`collect_gym_episodes` rolls the task's scripted expert out (:func:`~kpflow.core.rollout.rollout`, the one
 closed loop) on scenes ``seed, seed + 1, ...`` and commits its successful episodes to an
 :class:`~kpflow.data.episode_store.EpisodeStore` as ``keypoints [T, K, D]`` (observed before each step) and
 ``action [T, A]`` (Diffusion Policy's convention).
@@ -13,10 +13,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from kpflow.core.rollout import rollout
+from kpflow.core.task import GymTask
 from kpflow.data.episode_store import EpisodeStore
-
-from .base import GymTask
-from .rollout import rollout
 
 
 def collect_gym_episodes(task: GymTask, store_path: str | Path, n_episodes: int, condition: str | None = None, seed: int = 0,

@@ -11,7 +11,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from kpflow.tasks.base import Demonstration, Execution, TrialResult
+from kpflow.core.task import Demonstration, Execution, TrialResult
 from kpflow.trajectory import Trajectory
 
 

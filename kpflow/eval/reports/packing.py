@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from kpflow.core.task import Demonstration, Execution, TrialResult
 from kpflow.eval import plots
 from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
-from kpflow.tasks.base import Demonstration, Execution, TrialResult
 from kpflow.trajectory import Trajectory
 from kpflow.utils.io import save_figure
 

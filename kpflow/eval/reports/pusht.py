@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from kpflow.core.task import TrialResult
 from kpflow.eval import plots
 from kpflow.eval.reports import first_trials
 from kpflow.eval.stats import wilson_interval
-from kpflow.tasks.base import TrialResult
 from kpflow.utils.io import save_figure
 
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kpflow.core.task import Demonstration, Execution, TrialResult
 from kpflow.eval import plots
 from kpflow.eval.reports import first_map_trials
 from kpflow.eval.stats import success_cells, success_summary
 from kpflow.geometry.angles import yaw_of
-from kpflow.tasks.base import Demonstration, Execution, TrialResult
 from kpflow.tasks.stacking.demonstrator import nearest_half_turn
 from kpflow.tasks.stacking.keypoints import true_targets
 from kpflow.tasks.stacking.objects import BLOCKS, CHEESE, LETTUCE

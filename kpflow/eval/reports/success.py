@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kpflow.core.task import TrialResult
 from kpflow.eval.stats import rate_cell, success_cells, success_summary
-from kpflow.tasks.base import TrialResult
 
 
 def step_limits(trial) -> str:

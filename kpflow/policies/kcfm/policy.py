@@ -1,4 +1,4 @@
-"""A trained :class:`~kpflow.policies.kcfm.KCFM` behind the :class:`~kpflow.tasks.base.Policy` protocol.
+"""A trained :class:`~kpflow.policies.kcfm.KCFM` behind the :class:`~kpflow.core.task.Policy` protocol.
 
 ``act(obs)`` samples one chunk for ``obs["keypoints"]`` (``obs["keypoints_history"] [n_obs, K, 2]`` for a model with an
 observation history, as :func:`~kpflow.tasks.pusht.rollout.run_episode` provides) with ``steps`` network calls of

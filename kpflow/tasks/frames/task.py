@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from kpflow.tasks.base import Task
+from kpflow.core.task import Task
 
 from .frames import scene_keypoints
 from .lasa import lasa_frames, load_lasa
@@ -22,7 +22,7 @@ LASA_MOVES = ("goal moved", "both moved")  # Figure 1's scenes, in order
 
 
 class FramesTask(Task):
-    """The frames task, a :class:`~kpflow.tasks.base.Task` of scenes and keypoints only (no simulator):
+    """The frames task, a :class:`~kpflow.core.task.Task` of scenes and keypoints only (no simulator):
     ``frame_size``: the keypoints' distance from a frame's origin; ``n_points``: samples per demonstration;
     ``lasa_shape``: Figure 1's LASA motion."""
 

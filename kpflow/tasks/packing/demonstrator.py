@@ -8,9 +8,9 @@ narrow objects: a diagonal approach, with the controller lagging, swept the cere
 
 from __future__ import annotations
 
+from kpflow.core.task import Execution
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory
-from kpflow.tasks.base import Execution
 from kpflow.trajectory import Trajectory
 
 from .keypoints import LIFT
@@ -51,7 +51,7 @@ def execute(
     Each step commands the pose; while ``grasp`` is on the cup seals as soon as it is within reach of the object,
     and when it goes off the object is let go. After the last step the arm holds still for ``settle`` steps.
 
-    Returns the :class:`~kpflow.tasks.base.Execution`: ``success`` (the object rests in the container) and
+    Returns the :class:`~kpflow.core.task.Execution`: ``success`` (the object rests in the container) and
     ``failure`` (None or the first reason: ``"not grasped"``, ``"near-singular"`` or ``"unreachable"`` (tracking
     error above ``arm.execution.TRACKING_LIMIT``, with or without the arm's Jacobian getting near-singular),
     ``"collision"`` (the arm touched the container), ``"missed container"``).

@@ -1,4 +1,4 @@
-"""Packing behind the task contract (:class:`~kpflow.tasks.base.ArmTask`): the scripted demonstration in the
+"""Packing behind the task contract (:class:`~kpflow.core.task.ArmTask`): the scripted demonstration in the
 source scene, then in each new scene the 32 keypoints from the camera (start box, object box, lifted box,
 container) that the policy fits its map on."""
 
@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.core.task import ArmTask, Demonstration, Execution
 from kpflow.geometry.angles import yaw_of
-from kpflow.tasks.base import ArmTask, Demonstration, Execution
 from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 

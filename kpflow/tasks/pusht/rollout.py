@@ -1,7 +1,7 @@
-"""A Push-T episode: the one closed loop (:func:`kpflow.tasks.rollout.rollout`) from a configuration, with Push-T's
+"""A Push-T episode: the one closed loop (:func:`kpflow.core.rollout.rollout`) from a configuration, with Push-T's
 coverage read along the way. Evaluation runs it as it is, corrections give it an
-:class:`~kpflow.tasks.rollout.Override` (the expert taking over), and keyboard teleoperation is a policy that may end
-the episode (:class:`~kpflow.tasks.rollout.StopEpisode`)."""
+:class:`~kpflow.core.rollout.Override` (the expert taking over), and keyboard teleoperation is a policy that may end
+the episode (:class:`~kpflow.core.rollout.StopEpisode`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kpflow.tasks.rollout import Episode, Override, rollout
+from kpflow.core.rollout import Episode, Override, rollout
 
 from .env import PushTEnv
 from .scene import Config
@@ -57,7 +57,7 @@ def run_episode(
     ``policy`` has ``reset(seed)`` and ``act(obs)`` returning one target ``[2]`` or a chunk ``[H, 2]``. The episode
     ends on ``env``'s success (its ``success_threshold``); ``first_step`` also records when lower ``thresholds`` were
     first reached. With an ``override`` (the expert's corrections), ``overridden`` marks the steps it took. A policy
-    may end the episode early by raising :class:`~kpflow.tasks.rollout.StopEpisode` (``steps`` then counts the steps
+    may end the episode early by raising :class:`~kpflow.core.rollout.StopEpisode` (``steps`` then counts the steps
     taken).
     """
     if render and env.render_mode != "rgb_array":

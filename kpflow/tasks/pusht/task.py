@@ -1,4 +1,4 @@
-"""Push-T behind the task contract (:class:`~kpflow.tasks.base.GymTask`): the env for a condition, the seeded
+"""Push-T behind the task contract (:class:`~kpflow.core.task.GymTask`): the env for a condition, the seeded
 configuration of a condition and index, the scripted demonstrator, and how an episode is scored.
 
 The conditions are Table 1's splits, whose configurations are the seeded :func:`~.scene.split_config` list
@@ -13,9 +13,9 @@ env's observation (``obs["keypoints"]``, :mod:`.geometry`) and success its ``inf
 
 from __future__ import annotations
 
-from kpflow.policies.base import PolicyLayout
-from kpflow.tasks.base import EvaluationScene, GymTask
-from kpflow.tasks.rollout import Episode
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.rollout import Episode
+from kpflow.core.task import EvaluationScene, GymTask
 
 from .demonstrator import PushTExpert
 from .env import ENV_SPLITS, PushTEnv

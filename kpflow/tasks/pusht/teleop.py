@@ -22,8 +22,8 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from kpflow.core.rollout import StopEpisode
 from kpflow.data.episode_store import EpisodeStore
-from kpflow.tasks.rollout import StopEpisode
 
 from .env import PushTEnv
 from .geometry import coverage
@@ -158,7 +158,7 @@ class KeyboardTeleop:
         Each control tick reads the events once (``event_source``), then either returns a target (while recording:
         not paused, and moving or already started) or redraws the window and waits for the next tick. Enter (after
         at least one step), Backspace and quitting end the episode by raising
-        :class:`~kpflow.tasks.rollout.StopEpisode`.
+        :class:`~kpflow.core.rollout.StopEpisode`.
         """
         if self._target is None:
             self._target = np.asarray(obs["agent_pos"], float).copy()

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpflow.core.task import Execution
 from kpflow.geometry.angles import yaw_of
 from kpflow.tasks.arm.execution import arm_failure, follow
 from kpflow.tasks.arm.motion import PRESS, pointing_down, segments_to_trajectory
-from kpflow.tasks.base import Execution
 from kpflow.trajectory import Trajectory
 
 LIFT = 0.12  # m: the cheese's bottom clears the lettuce's top by this much while carried
@@ -57,7 +57,7 @@ def execute(
 ) -> Execution:
     """Run ``trajectory`` on a :class:`~.env.StackingEnv` (after ``reset_to``) and say how it went.
 
-    Returns the :class:`~kpflow.tasks.base.Execution`: :func:`~kpflow.tasks.arm.execution.follow`'s record with ``success`` (the cheese rests on the lettuce,
+    Returns the :class:`~kpflow.core.task.Execution`: :func:`~kpflow.tasks.arm.execution.follow`'s record with ``success`` (the cheese rests on the lettuce,
     :meth:`~.env.StackingEnv.stacked`) and ``failure``: None, the arm's reason
     (:func:`~kpflow.tasks.arm.execution.arm_failure`; no geoms are watched for collisions here, so never
     ``"collision"``), ``"grasped the lettuce"`` (the wrong block) or ``"missed the lettuce"``.

@@ -1,4 +1,4 @@
-"""Stacking behind the task contract (:class:`~kpflow.tasks.base.ArmTask`): keypoints found in images.
+"""Stacking behind the task contract (:class:`~kpflow.core.task.ArmTask`): keypoints found in images.
 
 The source demonstration is recorded with the top-down RGB-D image taken before it. In a new scene the image is
 matched to the source's (a dense backbone through the configured :class:`~.keypoints.Matcher`, or ``"oracle"``:
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.core.task import ORACLE, ArmTask, Demonstration, Execution
 from kpflow.tasks.arm.keypoints import end_effector_box
-from kpflow.tasks.base import ORACLE, ArmTask, Demonstration, Execution
 from kpflow.trajectory import Keypoints, Trajectory
 from kpflow.vision import DenseBackbone
 

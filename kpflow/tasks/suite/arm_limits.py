@@ -10,7 +10,7 @@ step, from the jaws now, by the shorter way), so a path that turns the long way 
 :func:`path_cost` rates paths from a simulator's state (the scripted demonstrations and the generator, with no
 reach bound: their numbers in results/generation.md are unchanged); :class:`SuiteArmLimits` rates a policy's chunk
 from what it observes (the arm's joints, ``obs["joints"]``, and the jaws' yaw from the finger pads' keypoints), with
-the reach bound :data:`REACH` (an :class:`~kpflow.policies.symmetry.ArmLimits`).
+the reach bound :data:`REACH` (an :class:`~kpflow.core.symmetry.ArmLimits`).
 """
 
 from __future__ import annotations

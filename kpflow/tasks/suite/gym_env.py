@@ -1,4 +1,4 @@
-"""A robosuite benchmark task as a Gymnasium env: what the one closed loop (:func:`kpflow.tasks.rollout.rollout`)
+"""A robosuite benchmark task as a Gymnasium env: what the one closed loop (:func:`kpflow.core.rollout.rollout`)
 runs a policy in.
 
 ``reset(seed=i, options={"stream": s})`` sets up scene ``i`` of the env's variant in scene stream ``s`` (without a

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.core.phases import Grip, Phase, Phases
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.symmetry import Symmetry, turn_permutation
 from kpflow.geometry.angles import yaw_of
-from kpflow.policies.base import PolicyLayout
-from kpflow.policies.phases import Grip, Phase, Phases
-from kpflow.policies.symmetry import Symmetry, turn_permutation
 
 from .objects import SYMMETRY, object_kind, reduced_yaw
 from .objects.cube import cube_half
@@ -112,7 +112,7 @@ PADS_CLOSED_BELOW, PADS_EMPTY_BELOW, GRASP_REACH = 0.07, 0.01, 0.025
 
 
 def task_phases(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> Phases:
-    """The task's phases (:mod:`kpflow.policies.phases`) over the groups of :func:`policy_layout`: ``pick`` while
+    """The task's phases (:mod:`kpflow.core.phases`) over the groups of :func:`policy_layout`: ``pick`` while
     the jaws do not hold the object (the map on the object to pick, the source searched relative to it, its goal
     not compared), then, for a task with a target, ``place`` while they do (the map on the target, the source
     searched relative to it, the held object pulled back with the gripper)."""
@@ -127,7 +127,7 @@ def task_phases(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> Phases:
 
 
 def task_symmetries(spec: TaskSpec, groups: dict[str, tuple[int, ...]]) -> tuple[Symmetry, ...]:
-    """The relabellings of :func:`policy_keypoints` that leave the task as it was (:mod:`kpflow.policies.symmetry`):
+    """The relabellings of :func:`policy_keypoints` that leave the task as it was (:mod:`kpflow.core.symmetry`):
     each turn of an observed object that :data:`SYMMETRY` says looks the same (a cube's and the square peg's
     quarter turns, the bin's half turn; the can's keypoints stand in fixed world directions, the nut's handle fixes
     its yaw), and the parallel jaws' half turn about their approach axis while they hold nothing (the finger pads

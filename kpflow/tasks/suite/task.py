@@ -1,8 +1,8 @@
-"""A robosuite benchmark task behind one class: a :class:`~kpflow.tasks.base.GymTask` (its closed loop runs in
+"""A robosuite benchmark task behind one class: a :class:`~kpflow.core.task.GymTask` (its closed loop runs in
 :class:`~.gym_env.SuiteGymEnv`), scenes, the scripted source demonstration recorded segment by segment, what is
 observed at a segment's start, and running a segment.
 
-A source demonstration is a list of :class:`~kpflow.tasks.base.Segment`: each holds the commanded trajectory and
+A source demonstration is a list of :class:`~kpflow.core.task.Segment`: each holds the commanded trajectory and
 what the scene looked like when it began (every object's pose, the keypoints that the segment depends on, the grip
 site), so a generator (:mod:`kpflow.generation.segment_transport`) can carry it into a new scene once that segment's
 start is reached there.
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kpflow.core.task import EvaluationScene, GymTask, Segment, SegmentStart
 from kpflow.geometry.angles import yaw_of
 from kpflow.geometry.rotations import matrix_to_rot6d
-from kpflow.tasks.base import EvaluationScene, GymTask, Segment, SegmentStart
 from kpflow.trajectory import Trajectory
 from kpflow.vision.keypoint_source import KeypointSource
 
@@ -143,7 +143,7 @@ class SuiteTask(GymTask):
         return self.spec.grasp if segment == "pick" else self.spec.target
 
     def observe(self, env: SuiteEnv, segment: str, reference: SegmentStart | None = None) -> SegmentStart:
-        """What ``segment`` depends on, now (:class:`~kpflow.tasks.base.SegmentStart`): for a pick the grasp
+        """What ``segment`` depends on, now (:class:`~kpflow.core.task.SegmentStart`): for a pick the grasp
         keypoints of the object picked, for a place the goal's keypoints and the held object's in the hand
         (:func:`~.keypoints.in_hand_keypoints`; ``yaws["hand"]`` is its yaw relative to the jaws), and the arm's
         :func:`~.arm_limits.path_cost`. Symmetric keypoints are ordered by the turn nearest the ``reference``

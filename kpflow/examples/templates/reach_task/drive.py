@@ -1,15 +1,15 @@
 """Run reach episodes with the policy a server serves: ``python drive.py [--uri ws://127.0.0.1:8000] [--episodes 5]``.
 
 The robot side of a deployment: the env observes, a :class:`~kpflow.serving.client.PolicyClient` asks the server
-for actions, the same closed loop as in-process evaluation runs them (kpflow.tasks.rollout).
+for actions, the same closed loop as in-process evaluation runs them (kpflow.core.rollout).
 """
 
 import argparse
 
 from reach import ReachTask
 
+from kpflow.core.rollout import rollout
 from kpflow.serving.client import PolicyClient
-from kpflow.tasks.rollout import rollout
 
 
 def main() -> None:

@@ -8,8 +8,8 @@ Conditions: ``default`` (targets in the middle of the square) and ``wide`` (targ
 import gymnasium as gym
 import numpy as np
 
-from kpflow.policies.base import PolicyLayout
-from kpflow.tasks.base import GymTask
+from kpflow.core.policy import PolicyLayout
+from kpflow.core.task import GymTask
 
 SPEED, TOLERANCE, HALF_SIDE = 0.05, 0.03, 0.05
 TARGET_RANGE = {"default": (0.35, 0.65), "wide": (0.1, 0.9)}
@@ -71,7 +71,7 @@ class ReachExpert:
 
 
 class ReachTask(GymTask):
-    """The task contract (kpflow.tasks.base.GymTask) around :class:`ReachEnv` and :class:`ReachExpert`."""
+    """The task contract (kpflow.core.task.GymTask) around :class:`ReachEnv` and :class:`ReachExpert`."""
 
     name = "reach"
     conditions = ("default", "wide")

@@ -3,8 +3,8 @@
 Every task folder under ``kpflow/tasks/`` has the same files: ``env.py`` (the simulator), ``scene.py`` (what a scene
 is and the seeded sampler for a condition and index), ``keypoints.py`` (observing the keypoints), ``demonstrator.py``
 (the scripted demonstration and success with a failure reason) and ``task.py``, which puts them behind one class.
-Closed-loop episodes talk to a :class:`~kpflow.policies.base.Policy` (whose layout a task declares,
-:class:`~kpflow.policies.base.PolicyLayout`); the robosuite tasks (:class:`ArmTask`) transport one
+Closed-loop episodes talk to a :class:`~kpflow.core.policy.Policy` (whose layout a task declares,
+:class:`~kpflow.core.policy.PolicyLayout`); the robosuite tasks (:class:`ArmTask`) transport one
 recorded demonstration per scene, so their data is a :class:`~kpflow.trajectory.Trajectory` of end-effector poses and an
 :class:`Execution` record of how the arm followed it.
 
@@ -23,7 +23,7 @@ import numpy as np
 from kpflow.trajectory import Keypoints, Trajectory
 
 if TYPE_CHECKING:
-    from .rollout import Episode
+    from kpflow.core.rollout import Episode
 
 #: The evaluation stream's offset: scene ``i`` of a condition for run seed ``s`` is keyed ``(EVAL_SEED + s, c, i)``.
 EVAL_SEED = 1_000_000
@@ -190,22 +190,22 @@ class GymTask(Task, abc.ABC):
     * :meth:`make_env` returns a ``gymnasium.Env`` whose ``reset(seed=i)`` draws scene ``i`` of ``condition``, whose
       observations are dicts holding ``keypoints [K, D]`` (:attr:`policy_layout`'s), and whose ``step(action [A])``
       reports ``info["is_success"]`` (Gymnasium's convention) and terminates once the task is done.
-    * :attr:`policy_layout` (:class:`~kpflow.policies.base.PolicyLayout`): the keypoints, their named groups and the
+    * :attr:`policy_layout` (:class:`~kpflow.core.policy.PolicyLayout`): the keypoints, their named groups and the
       actions, which every learned or transporting policy is checked against.
     * :attr:`conditions`: the scene distributions an evaluation can ask for (the first is the training one);
       :attr:`max_steps`: the control steps an episode may take.
-    * :meth:`expert`: a scripted :class:`~kpflow.policies.base.Policy` that solves the task (None when the task has
+    * :meth:`expert`: a scripted :class:`~kpflow.core.policy.Policy` that solves the task (None when the task has
       none: its demonstrations then come from elsewhere, e.g. a LeRobot dataset).
     """
 
     max_steps: int = 200
-    #: the info keys an episode records at every step for :meth:`score` (:attr:`~kpflow.tasks.rollout.Episode.tracked`)
+    #: the info keys an episode records at every step for :meth:`score` (:attr:`~kpflow.core.rollout.Episode.tracked`)
     tracked: tuple[str, ...] = ()
 
     @property
     @abc.abstractmethod
     def policy_layout(self):
-        """The :class:`~kpflow.policies.base.PolicyLayout` of the task's keypoints and actions."""
+        """The :class:`~kpflow.core.policy.PolicyLayout` of the task's keypoints and actions."""
 
     @abc.abstractmethod
     def make_env(self, condition: str, render: bool = False):
@@ -231,7 +231,7 @@ class GymTask(Task, abc.ABC):
         return {}
 
     def score(self, episode: Episode) -> tuple[bool, str | None, dict]:
-        """``(success, failure reason, scores)`` of an evaluation episode (:class:`~kpflow.tasks.rollout.Episode`):
+        """``(success, failure reason, scores)`` of an evaluation episode (:class:`~kpflow.core.rollout.Episode`):
         by default the env's success, ``"time limit"`` otherwise, and the steps and decisions taken."""
         return (
             episode.success,

@@ -2,7 +2,7 @@
 env's end or a step limit.
 
 :func:`rollout` resets the env (``reset(seed=..., options=...)``: a Gymnasium task's seeded scene, Push-T's
-configuration), runs the policy through :class:`~kpflow.policies.base.ClosedLoop` (its observation history and
+configuration), runs the policy through :class:`~kpflow.core.policy.ClosedLoop` (its observation history and
 action queue) and records what a demonstration store holds: the observation's ``record`` fields before each step and
 the action taken (Diffusion Policy's convention). The episode ends on ``info["is_success"]`` (Gymnasium's convention,
 a success), on ``terminated`` or ``truncated``, or after ``max_steps``.
@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from kpflow.policies.base import ClosedLoop, Policy
+from kpflow.core.policy import ClosedLoop, Policy
 
 
 class StopEpisode(Exception):
@@ -93,7 +93,7 @@ def rollout(
     the policy (its sampling noise). ``record``: the observation fields kept before each step (with the actions);
     ``render``: collect ``env.render()`` before the first step and after each; ``track``: the ``info`` values kept
     after each step; ``action_dim``: check the policy's
-    chunks are ``[H, action_dim]`` and finite (:class:`~kpflow.policies.base.ClosedLoop`)."""
+    chunks are ``[H, action_dim]`` and finite (:class:`~kpflow.core.policy.ClosedLoop`)."""
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     obs, info = env.reset(**(reset or {}))

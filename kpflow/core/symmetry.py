@@ -30,7 +30,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..geometry.angles import yaw_rotation
+from kpflow.geometry.angles import yaw_rotation
 
 
 @dataclass(frozen=True)

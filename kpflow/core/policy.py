@@ -27,8 +27,8 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from .phases import Grip, Phase, Phases
-from .symmetry import Symmetry
+from kpflow.core.phases import Grip, Phase, Phases
+from kpflow.core.symmetry import Symmetry
 
 ROLES = ("objects", "goals", "robot")
 

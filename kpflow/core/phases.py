@@ -4,7 +4,7 @@ Where two objects move independently (a cube to pick and the cube to stack it on
 must stretch or fold the space between them. A skill is carried segment by segment instead, each in the frame of
 the object that matters then (MimicGen's source segments, the paper's per-segment keypoints): before the grasp the
 object to pick, after it the target, with the held object carried by the gripper. A task declares its phases
-(:class:`Phases`, in its :class:`~kpflow.policies.base.PolicyLayout`); a transporting policy reads the phase of each
+(:class:`Phases`, in its :class:`~kpflow.core.policy.PolicyLayout`); a transporting policy reads the phase of each
 observation, and of each demonstrated configuration it may choose as a source, with the same rule:
 
 * :class:`Grip` tells from the keypoints alone whether the jaws hold the object: the finger pads closer together
