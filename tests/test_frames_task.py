@@ -7,7 +7,7 @@ import torch
 from kpflow.geometry.rotations import so3_exp, so3_log
 from kpflow.tasks.frames import (
     LASA_SHAPES,
-    Demonstration,
+    DemonstratedMotion,
     Frame,
     demonstrate,
     frame_keypoints,
@@ -119,7 +119,7 @@ def test_demonstration_reaches_between_frames(dim):
     start = random_frame(g, dim, dtype=torch.float64)
     goal = random_frame(g, dim, dtype=torch.float64)
     demo = demonstrate(start, goal, n=200, generator=g, wiggle=0.15)
-    assert isinstance(demo, Demonstration)
+    assert isinstance(demo, DemonstratedMotion)
     assert demo.positions.shape == (200, dim) and demo.velocities.shape == (200, dim)
     assert demo.orientations.shape == (200, dim, dim) and demo.times.shape == (200,)
     torch.testing.assert_close(demo.positions[0], start.position)

@@ -6,7 +6,7 @@
 * :mod:`.scene` -- start/goal configurations with a demonstration each.
 """
 
-from .demonstrator import Demonstration, demonstrate, minimum_jerk
+from .demonstrator import DemonstratedMotion, demonstrate, minimum_jerk
 from .frames import Frame, frame_keypoints, random_frame, scene_keypoints
 from .lasa import LASA_SHAPES, end_heading, lasa_frames, load_lasa
 from .scene import Scene, lookahead_velocity, moved, random_scenes
@@ -16,7 +16,7 @@ __all__ = [
     "frame_keypoints",
     "scene_keypoints",
     "random_frame",
-    "Demonstration",
+    "DemonstratedMotion",
     "demonstrate",
     "minimum_jerk",
     "LASA_SHAPES",

@@ -18,11 +18,11 @@ from kpflow.geometry.rotations import rotation_2d, so3_exp, so3_log
 
 from .frames import Frame
 
-__all__ = ["Demonstration", "demonstrate", "minimum_jerk"]
+__all__ = ["DemonstratedMotion", "demonstrate", "minimum_jerk"]
 
 
 @dataclass
-class Demonstration:
+class DemonstratedMotion:
     """One demonstrated trajectory of T samples in D = 2 or 3 dimensions.
 
     positions [T, D], velocities [T, D] (d positions / d times), orientations [T, D, D]
@@ -56,8 +56,10 @@ class Demonstration:
     def dim(self) -> int:
         return self.positions.shape[1]
 
-    def to(self, dtype: torch.dtype) -> "Demonstration":
-        return Demonstration(*(x.to(dtype) for x in (self.positions, self.velocities, self.orientations, self.times)))
+    def to(self, dtype: torch.dtype) -> "DemonstratedMotion":
+        return DemonstratedMotion(
+            *(x.to(dtype) for x in (self.positions, self.velocities, self.orientations, self.times))
+        )
 
 
 def minimum_jerk(u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,7 +87,7 @@ def demonstrate(
     duration: float = 1.0,
     tangent_scale: float = 1.0,
     n_harmonics: int = 3,
-) -> Demonstration:
+) -> DemonstratedMotion:
     """Reaching demonstration from ``start``'s origin to ``goal``'s origin, ``n`` samples.
 
     With ``p0, p1`` the frame origins, ``x0, x1`` their +x axes, ``L = tangent_scale *
@@ -175,4 +177,4 @@ def demonstrate(
         orientations = R0 @ so3_exp(s[:, None] * omega)
     orientations[0], orientations[-1] = R0, R1
 
-    return Demonstration(pos, velocities, orientations, duration * u).to(out_dtype)
+    return DemonstratedMotion(pos, velocities, orientations, duration * u).to(out_dtype)

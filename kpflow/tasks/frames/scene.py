@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from kpflow.tasks.frames.demonstrator import Demonstration, demonstrate
+from kpflow.tasks.frames.demonstrator import DemonstratedMotion, demonstrate
 from kpflow.tasks.frames.frames import Frame, scene_keypoints
 
 
@@ -15,7 +15,7 @@ from kpflow.tasks.frames.frames import Frame, scene_keypoints
 class Scene:
     start: Frame
     goal: Frame
-    demo: Demonstration
+    demo: DemonstratedMotion
 
     def keypoints(self, size: float) -> torch.Tensor:
         """The ten keypoints of the start and goal frames ``[10, D]``."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .demonstrator import Demonstration, demonstrate
+from .demonstrator import DemonstratedMotion, demonstrate
 from .frames import Frame
 from .scene import moved, random_frames
 
@@ -27,7 +27,7 @@ class TurnedFamily:
     """One geometry's ``configs`` (start, goal frames) and ``demos[c][k]``: demonstrator k in configuration c."""
 
     configs: list[tuple[Frame, Frame]]
-    demos: list[list[Demonstration]]
+    demos: list[list[DemonstratedMotion]]
 
 
 def turned_configs(

@@ -59,9 +59,9 @@ class SegmentRun:
     failure: str | None
 
 
-#: the evaluation scenes' stream offset: scene ``i`` of a variant for run seed ``s`` is keyed ``(EVAL_SEED + s, variant,
+#: the evaluation scenes' stream offset: scene ``i`` of a variant for run seed ``s`` is keyed ``(EVALUATION_STREAM + s, variant,
 #: i)``, which neither the source demonstrations (``SOURCE_SEED``) nor the generated ones (``seed``) use
-EVAL_SEED = 20_000
+EVALUATION_STREAM = 20_000
 
 
 class SuiteTask(GymTask):
@@ -116,9 +116,11 @@ class SuiteTask(GymTask):
         )
 
     def evaluation_scene(self, condition: str, index: int, seed: int) -> EvaluationScene:
-        """Scene ``index`` of ``condition`` in the stream ``EVAL_SEED + seed``; the policy and the perception reset
+        """Scene ``index`` of ``condition`` in the stream ``EVALUATION_STREAM + seed``; the policy and the perception reset
         with ``index``; the scene recorded is the env's (reset's ``info["scene"]``)."""
-        return EvaluationScene({"seed": int(index), "options": {"stream": EVAL_SEED + int(seed)}}, int(index), {})
+        return EvaluationScene(
+            {"seed": int(index), "options": {"stream": EVALUATION_STREAM + int(seed)}}, int(index), {}
+        )
 
     def score(self, episode) -> tuple[bool, str | None, dict]:
         """robosuite's success; the failure ``"not perceived"`` (the cameras never placed the objects) or ``"time
