@@ -238,3 +238,25 @@ def test_the_map_group_and_policy_options_reach_the_transport_and_a_silent_ignor
         "evaluate", [*base, "policy.transport.segments=false", "policy.transport.fit_on=[objects]"], tmp_path
     )
     assert instantiate(cfg.policy).phases is None
+
+
+def test_a_checkpoint_of_no_kpflow_task_is_released_transported_with_its_robot_named(walk_store, tmp_path):
+    """``kpflow-release robot=[-1] data=store ...``: the layout of data of no kpflow task (a LeRobot dataset's, say):
+    the robot's keypoints named, the rest the scene; the release then loads as a transported K-CFM with no task."""
+    from tests.helpers import run_command
+
+    dst = tmp_path / "mine.ckpt"
+    args = [f"src={ROOT / 'release' / 'pusht_table1_kcfm_35_corrected.ckpt'}", f"dst={dst}", "kind=transported_kcfm", "robot=[-1]",
+            "settings.reach=false", "settings.turn_deg=false", "data=store", f"data.path={walk_store}", "data.n_obs=1"]  # fmt: skip
+    done = run_command("kpflow.cli.release", *args)
+    assert done.returncode == 0, done.stderr
+    policy = kpflow.load_policy(dst)
+    assert isinstance(policy, TransportedKCFMPolicy) and policy.phases is None
+    assert PolicyConfig.of_checkpoint(read_checkpoint(dst)).layout["groups"]["robot"] == [24]
+    policy.reset(0)
+    obs = {"keypoints": policy.index.keypoints[3].astype(np.float64) + 2.0}
+    assert np.isfinite(policy.act(obs)).all()
+    refused = run_command(
+        "kpflow.cli.release", *[a for a in args if not a.startswith("robot=")], f"dst={tmp_path / 'no.ckpt'}"
+    )
+    assert refused.returncode != 0 and "robot=[<index>, ...]" in refused.stderr and not (tmp_path / "no.ckpt").exists()

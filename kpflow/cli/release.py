@@ -14,7 +14,9 @@ so that loading it with no overrides reproduces that figure (releasing a release
 config and source path and adds the ones given) and nothing else: no optimiser, scheduler or loop state. It is written atomically, and only after it
 has loaded back through :func:`kpflow.load_policy` (``torch.load(weights_only=True)``).
 
-With ``source_store`` (or ``data=``, a data node of ``kpflow/conf/data/``, its goals read as it says), the
+Without a task (data of no kpflow task, e.g. a LeRobot dataset), ``robot=[<index>, ...]`` names the robot's
+keypoints and the rest are the scene (:func:`robot_layout`). With ``source_store`` (or ``data=``, a data node of
+``kpflow/conf/data/``, its goals read as it says), the
 transported K-CFM's source index is written beside it
 (:func:`~kpflow.policies.factory.source_index_path`): the keypoints of every ``source_every``-th step of the
 store's first ``source_episodes`` episodes, stored with the built-in search's weights and frame (:data:`kpflow.policies.config.DEFAULTS`; the builder searches
@@ -120,26 +122,57 @@ KEYS = {
 }
 
 
+def robot_layout(hparams, robot) -> PolicyLayout:
+    """The keypoint layout of a checkpoint trained on data of no kpflow task: its keypoints, the ``robot`` ones (indices,
+    negative from the end) in group ``robot`` and the rest in ``scene`` (role ``objects``), actions a position first:
+    enough for a transported K-CFM (what it pulls back, what it fits its map on and searches relative to)."""
+    k, d, a = int(hparams["n_keypoints"]), int(hparams["keypoint_dim"]), int(hparams["action_dim"])
+    robot = list(robot)
+    if not robot or any(not isinstance(i, int) or not -k <= i < k for i in robot):
+        raise ValueError(f"robot must name the robot's keypoints by index in -{k}..{k - 1}; got {robot}")
+    ours = tuple(sorted({i % k for i in robot}))
+    rest = tuple(i for i in range(k) if i not in ours)
+    if not rest:
+        raise ValueError(f"robot={robot} names every keypoint: the scene needs some for the map to be fitted on")
+    return PolicyLayout(
+        k, d, a, {"scene": rest, "robot": ours}, {"objects": ("scene",), "goals": (), "robot": ("robot",)}
+    )
+
+
 @config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="release")
 @command
 def main(cfg: DictConfig) -> Path:
     check_config(cfg, KEYS)
     sources = cfg.source_store or cfg.get("data") is not None
-    if sources and cfg.get("task") is None:
+    if cfg.get("task") is not None and cfg.robot is not None:
         raise ValueError(
-            "source_store and data= need task=<name> (kpflow/conf/task/): the keypoint layout the index is searched with"
+            "task= and robot= both give the keypoint layout: give one (robot= is for data of no kpflow task)"
         )
-    layout = instantiate(cfg.task).policy_layout if cfg.get("task") is not None else None
+    if sources and cfg.get("task") is None and cfg.robot is None:
+        raise ValueError(
+            "source_store and data= need the keypoint layout the index is searched with: task=<name> (kpflow/conf/task/) "
+            "or, for data of no kpflow task, robot=[<index>, ...] (the robot's keypoints)"
+        )
+    if cfg.get("task") is not None:
+        layout = instantiate(cfg.task).policy_layout
+    elif cfg.robot is not None:
+        layout = robot_layout(read_checkpoint(cfg.src)["hyper_parameters"], OmegaConf.to_container(cfg.robot))
+    else:
+        layout = None
     settings = OmegaConf.to_container(cfg.settings) if cfg.get("settings") else None
     transport = OmegaConf.to_container(cfg.transport, resolve=True) if cfg.get("transport") else None
+    demos = instantiate(cfg.data) if cfg.get("data") is not None else None  # before anything is written
     dst = release(cfg.src, cfg.dst, cfg.note, cfg.ema_only, settings, cfg.kind, transport, layout)
     print(f"released {dst} ({dst.stat().st_size / 1e6:.2f} MB)")
     if sources:
-        demos = instantiate(cfg.data) if cfg.get("data") is not None else None
-        index = release_source_index(
-            dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key, demos
-        )
+        try:
+            index = release_source_index(
+                dst, layout, cfg.source_store, cfg.source_episodes, cfg.source_every, cfg.source_action_key, demos
+            )
+        except BaseException:
+            dst.unlink()  # a transported release without its index is half a release
+            raise
         print(f"source index {index} ({index.stat().st_size / 1e6:.2f} MB)")
     return dst
 
