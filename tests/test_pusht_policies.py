@@ -250,7 +250,7 @@ def test_stochastic_source_choice_follows_the_rank_weights_and_is_seeded():
     for bad, match in (
         ({"candidates": 0}, "candidates"),
         ({"temperature": 0.0}, "temperature"),
-        ({"max_step_px": -1.0}, "max_step_px"),
+        ({"max_step": -1.0}, "max_step"),
     ):
         with pytest.raises(ValueError, match=match):
             TransportPolicy(index, **bad, layout=PUSHT)
@@ -269,7 +269,7 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     keypoints = rng.uniform(0, 512, (80, 25, 2))
     index = SourceIndex(keypoints, rng.uniform(0, 512, (80, 20, 2)), reference=PUSHT_BLOCK)
     q = keypoints[3] + 0.1
-    policy = TransportPolicy(index, stuck_decisions=3, stuck_px=2.0, stuck_candidates=40, layout=PUSHT)
+    policy = TransportPolicy(index, stuck_decisions=3, stuck_distance=2.0, stuck_candidates=40, layout=PUSHT)
     policy.reset(0)
     nearest = index.query(q)[0]
     # the same scene four times: the first three decisions are not yet a window, the fourth is stuck
@@ -295,7 +295,7 @@ def test_stuck_detection_draws_elsewhere_only_when_the_object_stops_moving():
     assert policy.source.stuck_count == 0
     for bad, match in (
         ({"stuck_decisions": 0}, "stuck_decisions"),
-        ({"stuck_px": -1.0}, "stuck_px"),
+        ({"stuck_distance": -1.0}, "stuck_distance"),
         ({"stuck_candidates": 0}, "stuck_candidates"),
     ):
         with pytest.raises(ValueError, match=match):
@@ -336,7 +336,7 @@ def test_a_map_fitted_on_block_and_agent_carries_the_chunk_with_the_block(demos)
 
 
 def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
-    """``max_step_px`` reads where the robot is from the observed keypoints (the layout's robot; Push-T's agent, the
+    """``max_step`` reads where the robot is from the observed keypoints (the layout's robot; Push-T's agent, the
     last), not from a task's own observation key: with an identical source scene the map is the identity and the
     first target moves at most 5 px per axis from the agent keypoint."""
     from kpflow.policies.chunk_transport import TransportPolicy, clip_steps
@@ -344,7 +344,7 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
     rng = np.random.default_rng(0)
     keypoints = rng.uniform(0, 512, (1, 25, 2))
     chunks = keypoints[:, -1:] + np.cumsum(rng.uniform(-20, 20, (1, 20, 2)), axis=1)
-    policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step_px=5.0, layout=PUSHT)
+    policy = TransportPolicy(SourceIndex(keypoints, chunks), execute=20, max_step=5.0, layout=PUSHT)
     moved = policy.act({"keypoints": keypoints[0].astype(np.float64)})  # no "agent_pos": not needed
     np.testing.assert_allclose(
         moved, clip_steps(keypoints[0, -1].astype(np.float64), chunks[0].astype(np.float64), 5.0), atol=1e-3

@@ -16,7 +16,7 @@ The goal is matched by the search instead: in the block's frame it picks a sourc
 one does, so the chunk's push relative to the block is the one to make.
 
 Choosing the source: :class:`~.source_choice.SourceChoice` (the nearest, or a draw among the nearest, and stuck
-detection). ``max_step_px`` clips each executed step: target ``j`` moves at most that far per axis from target
+detection). ``max_step`` clips each executed step: target ``j`` moves at most that far per axis from target
 ``j - 1`` (from the robot's observed keypoints, their centroid, for the first), as the authors' code clips Push-T's
 actions to +-5 px.
 """
@@ -92,10 +92,10 @@ class TransportPolicy:
 
     Args:
         execute: how many of the chunk's targets :meth:`act` returns.
-        max_step_px: clip every executed step to this many px per axis (None: no clipping).
+        max_step: clip every executed step to this distance per axis (the keypoints' unit: Push-T px; None: no clipping).
         fit_on: indices of the keypoints the map is fitted on (None: all).
         layout: the task's :class:`~.base.PolicyLayout` (the robot's keypoints, whether actions carry a rotation).
-        choice: :class:`SourceChoice`'s options (``candidates``, ``temperature``, ``stuck_decisions``, ``stuck_px``,
+        choice: :class:`SourceChoice`'s options (``candidates``, ``temperature``, ``stuck_decisions``, ``stuck_distance``,
             ``stuck_candidates``).
     """
 
@@ -104,18 +104,18 @@ class TransportPolicy:
         index: SourceIndex,
         make_map: Callable[[], TransportMap] = ILWRMap,
         execute: int = 20,
-        max_step_px: float | None = None,
+        max_step: float | None = None,
         fit_on: Sequence[int] | None = None,
         layout: PolicyLayout | None = None,
         **choice,
     ):
         if not 1 <= execute <= index.chunks.shape[1]:
             raise ValueError(f"execute must be in 1..{index.chunks.shape[1]} (the chunk length), got {execute}")
-        if max_step_px is not None and not (np.isfinite(max_step_px) and max_step_px > 0):
-            raise ValueError(f"max_step_px must be a positive number or None, got {max_step_px!r}")
+        if max_step is not None and not (np.isfinite(max_step) and max_step > 0):
+            raise ValueError(f"max_step must be a positive number or None, got {max_step!r}")
         self.source = SourceChoice(index, **choice)
         self.fit_on = fitted_keypoints(fit_on, index.keypoints.shape[1])
-        self.index, self.make_map, self.execute, self.max_step_px = index, make_map, execute, max_step_px
+        self.index, self.make_map, self.execute, self.max_step = index, make_map, execute, max_step
         self.robot, self.rotation = robot_and_rotation(layout, index.keypoints.shape[1])
         self.last_source: int | None = None
         self.last_map: TransportMap | None = None
@@ -132,7 +132,7 @@ class TransportPolicy:
         phi = self.make_map().fit(torch.from_numpy(source[self.fit_on]), torch.from_numpy(target[self.fit_on]))
         self.last_source, self.last_map = i, phi
         moved = transport_chunk(phi, self.index.chunks[i, : self.execute], source.shape[1], self.rotation)
-        if self.max_step_px is not None:  # the positions, from where the robot's keypoints are now
+        if self.max_step is not None:  # the positions, from where the robot's keypoints are now
             dim = source.shape[1]
-            moved[:, :dim] = clip_steps(target[self.robot].mean(0), moved[:, :dim], self.max_step_px)
+            moved[:, :dim] = clip_steps(target[self.robot].mean(0), moved[:, :dim], self.max_step)
         return moved

@@ -141,10 +141,10 @@ def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, s
 
 def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap] | None = None, horizon: int = 20,
               search: SourceSearch | Mapping | None = None, execute: int = 8, fit_on: str | Sequence[str] | None = None,
-              max_step_px: float | None = None):  # fmt: skip
+              max_step: float | None = None):  # fmt: skip
     """Policy transportation (:class:`~.chunk_transport.TransportPolicy`) over the demonstrations' index, its source
     found as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on``, each executed
-    step clipped to ``max_step_px``. ``make_map`` None: ILWR (``kpflow/conf/map/ilwr.yaml``); ``fit_on`` None: the task's default (``PolicyLayout.transport``, else all). A
+    step clipped to ``max_step``. ``make_map`` None: ILWR (``kpflow/conf/map/ilwr.yaml``); ``fit_on`` None: the task's default (``PolicyLayout.transport``, else all). A
     learned map is read now and checked against the keypoints it is fitted on."""
     layout, search = layout_of(task), SourceSearch.of(search)
     fit_on = layout.transport.get("fit_on", "all") if fit_on is None else fit_on
@@ -155,7 +155,7 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"policy transportation (fit_on={fit_on})")
     return TransportPolicy(
-        search.index(_built(demos), layout, horizon), make_map, execute, max_step_px, fit, layout, **search.choice()
+        search.index(_built(demos), layout, horizon), make_map, execute, max_step, fit, layout, **search.choice()
     )
 
 

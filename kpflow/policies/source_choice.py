@@ -6,7 +6,7 @@ probability ``exp(-i / temperature) / Z``, as the authors' public code does (k =
 
 Stuck detection (``stuck_decisions = n``): a deterministic choice can repeat the same chunk from the same state for
 ever (a block pressed against a wall, an agent parked at a corner of the T). When the object (the index's
-``reference`` keypoints, else all of them) has moved less than ``stuck_px`` over the last ``n`` decisions, the same
+``reference`` keypoints, else all of them) has moved less than ``stuck_distance`` over the last ``n`` decisions, the same
 few sources are being replayed without effect; the source of that decision is then drawn uniformly among the
 ``stuck_candidates`` nearest, which takes the policy to a different demonstrated approach. It counts as stuck again
 only after another ``n`` decisions.
@@ -28,7 +28,7 @@ class SourceChoice:
         candidates: draw the source among this many nearest (1: the nearest).
         temperature: rank temperature of the draw (``exp(-rank / temperature)``).
         stuck_decisions: detect being stuck over this many decisions (None: never).
-        stuck_px: the object moving less than this (max over its keypoints, px) over them counts as stuck.
+        stuck_distance: the object moving less than this (max over its keypoints, in their unit: Push-T px) over them counts as stuck.
         stuck_candidates: draw uniformly among this many nearest when stuck.
     """
 
@@ -38,7 +38,7 @@ class SourceChoice:
         candidates: int = 1,
         temperature: float = 1.2,
         stuck_decisions: int | None = None,
-        stuck_px: float = 2.0,
+        stuck_distance: float = 2.0,
         stuck_candidates: int = 50,
     ):
         Key(int, lo=1).check("candidates", candidates)
@@ -47,12 +47,12 @@ class SourceChoice:
         if stuck_decisions is not None:
             Key(int, lo=1).check("stuck_decisions", stuck_decisions)
         Key(int, lo=1).check("stuck_candidates", stuck_candidates)
-        if not (np.isfinite(stuck_px) and stuck_px >= 0):
-            raise ValueError(f"stuck_px must be a number >= 0, got {stuck_px!r}")
+        if not (np.isfinite(stuck_distance) and stuck_distance >= 0):
+            raise ValueError(f"stuck_distance must be a number >= 0, got {stuck_distance!r}")
         self.index, self.candidates, self.temperature = index, int(candidates), float(temperature)
-        self.stuck_decisions, self.stuck_px, self.stuck_candidates = (
+        self.stuck_decisions, self.stuck_distance, self.stuck_candidates = (
             stuck_decisions,
-            float(stuck_px),
+            float(stuck_distance),
             int(stuck_candidates),
         )
         self.reset()
@@ -65,7 +65,7 @@ class SourceChoice:
         self.stuck_count = 0
 
     def stuck(self, target: np.ndarray) -> bool:
-        """Record the object's keypoints of this decision; True when it has moved less than ``stuck_px`` over the
+        """Record the object's keypoints of this decision; True when it has moved less than ``stuck_distance`` over the
         last ``stuck_decisions`` decisions (the record then starts again)."""
         if self.stuck_decisions is None:
             return False
@@ -74,7 +74,7 @@ class SourceChoice:
         if len(self.object_track) <= self.stuck_decisions:
             return False
         moved = max(float(np.abs(h - obj).max()) for h in self.object_track)
-        if moved >= self.stuck_px:
+        if moved >= self.stuck_distance:
             return False
         self.object_track, self.stuck_count = [obj], self.stuck_count + 1
         return True

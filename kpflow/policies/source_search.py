@@ -7,7 +7,7 @@ role -> weight, e.g. ``{objects: 1, goals: 1, robot: 4}``) relative to ``frame``
 configurations are aligned on, or ``world``: as they are). The source is then chosen among the nearest
 (:class:`~.source_choice.SourceChoice`): the nearest with ``candidates = 1``, else drawn among the ``candidates``
 nearest with rank weights ``exp(-rank / temperature)``; after ``stuck_decisions`` decisions over which the object
-moved less than ``stuck_px``, drawn uniformly among ``stuck_candidates`` nearest.
+moved less than ``stuck_distance``, drawn uniformly among ``stuck_candidates`` nearest.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ class SourceSearch:
     candidates: int = 1
     temperature: float = 1.2
     stuck_decisions: int | None = None
-    stuck_px: float = 2.0
+    stuck_distance: float = 2.0
     stuck_candidates: int = 50
 
     @classmethod
