@@ -260,3 +260,21 @@ def test_a_checkpoint_of_no_kpflow_task_is_released_transported_with_its_robot_n
         "kpflow.cli.release", *[a for a in args if not a.startswith("robot=")], f"dst={tmp_path / 'no.ckpt'}"
     )
     assert refused.returncode != 0 and "robot=[<index>, ...]" in refused.stderr and not (tmp_path / "no.ckpt").exists()
+
+
+def test_a_run_records_the_transport_it_resolved(tmp_path):
+    """evaluate's config.yaml gets the transport as resolved (every option, none null): what the run used."""
+    from omegaconf import OmegaConf
+
+    from kpflow.cli.evaluate import record_used
+
+    cfg = compose_config(
+        "evaluate",
+        ["experiment=suite_policy", "task=lift", "policy=transported_kcfm", "checkpoint=release:suite_lift_kcfm"],
+        tmp_path,
+    )
+    described = PolicyTrial(SuiteTask("lift"), instantiate(cfg.policy), SuiteReport()).describe()
+    assert described["transport"]["segments"] is True and described["transport"]["map"] == "ilwr"
+    record_used(cfg, described)
+    used = OmegaConf.to_container(cfg.policy.transport)
+    assert used == described["transport"] and None not in used.values()

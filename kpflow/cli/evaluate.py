@@ -54,8 +54,8 @@ def read_old_spellings(cfg: DictConfig) -> None:
 
 def record_used(cfg: DictConfig, results: dict) -> None:
     """Write into ``cfg`` what the run used (``results``' ``policy_settings`` and ``max_steps``, as its trial describes
-    them) where the config names the key: ``policy.<setting>`` (a goal shown as observed is ``false``, never ``null``)
-    and ``experiment.trial.max_steps`` when the conditions run share one limit."""
+    them) where the config names the key: ``policy.<setting>`` (a goal shown as observed is ``false``, never ``null``),
+    ``policy.transport`` (a transported K-CFM's options as resolved) and ``experiment.trial.max_steps`` when the conditions run share one limit."""
     policy = cfg.get("policy")
     with open_dict(cfg):
         if policy is not None and "policy_settings" in results:
@@ -71,6 +71,8 @@ def record_used(cfg: DictConfig, results: dict) -> None:
         if isinstance(limits, dict):
             limits = {limits[c] for c in {row["condition"] for row in results.get("summary", [])} if c in limits}
             limits = limits.pop() if len(limits) == 1 else None
+        if policy is not None and "transport" in results and "transport" in policy:
+            policy.transport = OmegaConf.create(results["transport"])  # every option as resolved, none left null
         trial = OmegaConf.select(cfg, "experiment.trial", default=None)
         if limits is not None and trial is not None and "max_steps" in trial:
             cfg.experiment.trial.max_steps = int(limits)

@@ -235,7 +235,12 @@ class PolicyBuilder:
         self.build()  # checks the settings against the model now
 
     def build(self):
-        """A fresh policy as :attr:`config` says."""
+        """A fresh policy as :attr:`config` says (its ``policy_config``: what a run records it used)."""
+        policy = self._assembled()
+        policy.policy_config = self.config
+        return policy
+
+    def _assembled(self):
         if self.config.kind == "kcfm":
             return make_kcfm(
                 self.model,
