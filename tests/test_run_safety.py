@@ -30,7 +30,11 @@ def entry_keys():
 BAD = [
     ("evaluate", "n_configs=abc", r"config key n_configs must be an integer >= 1; got 'abc' \(str\)"),
     ("evaluate", "workers=0", "config key workers must be an integer >= 1; got 0"),
-    ("evaluate", "split=bogus", "config key split must be one of in_distribution, .*standard, all; got 'bogus'"),
+    (
+        "evaluate",
+        "condition=bogus",
+        "config key condition must be one of in_distribution, .*standard, all; got 'bogus'",
+    ),
     ("collect", "n_episodes=abc", "config key n_episodes must be an integer >= 1; got 'abc'"),
     (
         "collect",

@@ -130,7 +130,9 @@ def test_the_readme_snippets_and_a_release_by_name(newcomer):
     assert "tensor(" in run(["python", "quickstart.py"], folder, env).stdout
     (folder / "deploy.py").write_text(python_block(readme, "release:"))
     shown = run(["python", "deploy.py"], folder, {**env, "KPFLOW_RELEASE_DIR": str(ROOT / "release")}).stdout
-    assert "25 keypoints in, 2 -D actions out" in shown
+    assert (
+        "kcfm {'steps': 20, 'reach': 60.0, 'turn_deg': 60.0} 25 keypoints in" in shown
+    )  # the release as its row measured it
     # without $KPFLOW_RELEASE_DIR, an installed kpflow has no clone to look in and the cache is empty: one line says so
     err = run(["kpflow-serve", "checkpoint=release:pusht_standard_fast", "port=0"], folder, env, code=1).stderr
     cache = Path(env["HOME"], ".cache", "kpflow", "release")
