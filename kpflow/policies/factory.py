@@ -232,10 +232,14 @@ class PolicyBuilder:
                 self.index = search.index(_built(demos), self.layout, int(model.hparams.horizon))
             self.search = search
         self.config = PolicyConfig(kind, model.settings.given(**settings), transport, self.layout.record())
-        self.build()  # checks the settings against the model now
+        self._checked = self.build()  # checks the settings against the model now; the first build() hands it out
 
     def build(self):
-        """A fresh policy as :attr:`config` says (its ``policy_config``: what a run records it used)."""
+        """A fresh policy as :attr:`config` says (its ``policy_config``: what a run records it used); the first is
+        the one built to check the config, not built again."""
+        policy, self._checked = getattr(self, "_checked", None), None
+        if policy is not None:
+            return policy
         policy = self._assembled()
         policy.policy_config = self.config
         return policy

@@ -70,6 +70,7 @@ def load_deployment(
     make_policy: Callable[[], Policy] = builder.build
     network = None
     if max_batch > 1:
+        builder.build()  # the policy the builder checked was built on the unbatched network: never served
         network = model.ema_net = BatchedNetwork(model.ema_net, int(max_batch), float(max_wait_ms), trace=True)
         unbatched = make_policy
 
