@@ -205,7 +205,7 @@ def main(argv=None) -> str:
     lines = [
         f"# Exporting the K-CFM network ({Path(args.checkpoint).name}, EMA net, one CPU thread)",
         "",
-        f"`ConditionalUnet1D`, down_dims {tuple(hp.down_dims)}, horizon {horizon}, action_dim {action_dim}, cond_dim {cond_dim}"
+        f"`ConditionalUnet1D`, down_dims {tuple(hp.network['down_dims'])}, horizon {horizon}, action_dim {action_dim}, cond_dim {cond_dim}"
         f" ({hp.n_keypoints} keypoints x {hp.keypoint_dim} coords x n_obs {hp.n_obs}), {n_params:,} parameters."
         f" One network call, median and p90 of {args.reps} interleaved rounds after {args.warmup} warm-up;"
         f" ratio = median / eager median of the same run (< 1: faster). Chunk columns: {' / '.join(map(str, CHUNK_CALLS))}"

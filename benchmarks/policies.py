@@ -61,10 +61,13 @@ VARIANTS = [
     ("I-CFM, U-Net (32, 64) (default)", {}),
     ("DDPM + DDIM, U-Net (32, 64)", {"objective": "ddpm"}),
     ("I-CFM, U-Net (32, 64), 2 observation frames", {"n_obs": 2}),
-    ("I-CFM, U-Net (64, 128)", {"down_dims": [64, 128]}),
-    ("I-CFM, U-Net (64, 128, 256)", {"down_dims": [64, 128, 256]}),
-    ("I-CFM, U-Net (128, 256, 512)", {"down_dims": [128, 256, 512]}),
-    ("I-CFM, U-Net (256, 512, 1024) (Diffusion Policy's)", {"down_dims": [256, 512, 1024]}),
+    ("I-CFM, U-Net (64, 128)", {"network": {"name": "unet", "down_dims": [64, 128]}}),
+    ("I-CFM, U-Net (64, 128, 256)", {"network": {"name": "unet", "down_dims": [64, 128, 256]}}),
+    ("I-CFM, U-Net (128, 256, 512)", {"network": {"name": "unet", "down_dims": [128, 256, 512]}}),
+    (
+        "I-CFM, U-Net (256, 512, 1024) (Diffusion Policy's)",
+        {"network": {"name": "unet", "down_dims": [256, 512, 1024]}},
+    ),
     ("I-CFM, transformer (d 128, 4 layers, 4 heads)", {"network": "transformer"}),
 ]
 
@@ -93,8 +96,14 @@ def few_step_table(queries: list[dict], keypoints: np.ndarray, chunks: np.ndarra
     chunk in the same run."""
     policies = []
     for label, options, solver, calls in FEW_STEP:
-        model = KCFM(N_KEYPOINTS, horizon=16, goal_frame=goal_frame(), down_dims=[64, 128], **options)
-        model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
+        model = KCFM(
+            N_KEYPOINTS,
+            horizon=16,
+            processor={"goal_frame": goal_frame()},
+            network={"name": "unet", "down_dims": [64, 128]},
+            **options,
+        )
+        model.processor.fit(keypoints[:5000], chunks[:5000, 0])
         policies.append(KCFMPolicy(model, steps=calls, execute=8, solver=solver))
     times = [[] for _ in policies]
     for q in queries:  # interleaved, so that a load that comes and goes weighs on every row alike
@@ -176,9 +185,9 @@ def main(argv=None) -> str:
     transport = median_ms(TransportPolicy(index, execute=20, layout=PushTTask.policy_layout).act, queries)
 
     model = KCFM(
-        N_KEYPOINTS, horizon=20, goal_frame=goal_frame()
+        N_KEYPOINTS, horizon=20, processor={"goal_frame": goal_frame()}
     )  # the configuration kpflow/conf/experiment/pusht_kcfm.yaml trains
-    model.set_normalisation(keypoints[:5000], chunks[:5000, 0])
+    model.processor.fit(keypoints[:5000], chunks[:5000, 0])
     k1, k10, k20 = (KCFMPolicy(model, steps=n, execute=8) for n in (1, 10, 20))
     k1.reset(0), k10.reset(0), k20.reset(0)
     kcfm1, kcfm10, kcfm20 = (median_ms(k.act, queries) for k in (k1, k10, k20))
@@ -188,8 +197,8 @@ def main(argv=None) -> str:
 
     variants = []
     for label, kwargs in VARIANTS:
-        variant = KCFM(N_KEYPOINTS, horizon=16, goal_frame=goal_frame(), **kwargs)
-        variant.set_normalisation(keypoints[:5000], chunks[:5000, 0])
+        variant = KCFM(N_KEYPOINTS, horizon=16, processor={"goal_frame": goal_frame()}, **kwargs)
+        variant.processor.fit(keypoints[:5000], chunks[:5000, 0])
         policy = KCFMPolicy(variant, steps=10, execute=8)
         history = [dict(q, keypoints_history=np.stack([q["keypoints"]] * policy.n_obs)) for q in queries]
         ms = median_ms(policy.act, history)
@@ -209,7 +218,7 @@ def main(argv=None) -> str:
         f"| transported K-CFM: search + ILWR fit + pull-back + K-CFM (10 steps) + push forward | {tkcfm:.2f} | K-CFM alone {kcfm10:.2f} ms | {tkcfm / kcfm10:.2f}x | - |",
         "",
         f"The two searches return equally near sources (distances equal to 0.1%) in {100 * agree:.0f}% of {min(50, len(query_kps))} queries. K-CFM: {sum(p.numel() for p in model.net.parameters()):,}"
-        f" parameters, channels {tuple(model.hparams.down_dims)}.",
+        f" parameters, channels {tuple(model.config.network.options.get('down_dims', (32, 64)))}.",
         "",
         "| learned policy, one 16-action chunk, 10 network calls | parameters | ms per chunk | vs default | target |",
         "|---|---|---|---|---|",

@@ -24,7 +24,12 @@ def _run(folder, steps, solver, success, checkpoint="x.ckpt"):
 def test_the_sweep_reads_runs_into_a_table_and_a_figure(tmp_path):
     _run(tmp_path / "runs" / "a_euler1", 1, "euler", 0.5)
     _run(tmp_path / "runs" / "a_euler2", 2, "euler", 0.7)
-    model = KCFM(N_KEYPOINTS, horizon=4, down_dims=(8, 16), time_dim=8, sample_steps=3, solver="heun")
+    model = KCFM(
+        N_KEYPOINTS,
+        horizon=4,
+        network={"name": "unet", "down_dims": (8, 16), "time_dim": 8},
+        sampler={"steps": 3, "solver": "heun"},
+    )
     ckpt = tmp_path / "own.ckpt"
     import torch
 

@@ -47,7 +47,9 @@ def kcfm_run(tmp_path_factory):
     walk_to_block_store(tmp / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
     t = trainer(tmp, 2)
-    t.fit(KCFM(N_KEYPOINTS, horizon=H), datamodule=ChunkDataModule(tmp / "demos.zarr", horizon=H, batch_size=64))
+    model, data = KCFM(N_KEYPOINTS, horizon=H), ChunkDataModule(tmp / "demos.zarr", horizon=H, batch_size=64)
+    model.fit_processor(data.training_chunks())
+    t.fit(model, datamodule=data)
     t.save_checkpoint(tmp / "good.ckpt")
     return tmp
 
@@ -136,12 +138,12 @@ def test_foreign_and_truncated_files_are_clear_errors(kcfm_run, tmp_path):
 
 
 def test_hyper_parameters_that_ask_for_a_huge_network_are_refused_before_allocating(kcfm_run, tmp_path):
-    """A real checkpoint (a few MB) with ``down_dims=[1024, 2048]`` written into its hyper-parameters and its small
+    """A real checkpoint (a few MB) with ``network.down_dims = [1024, 2048]`` written into its hyper-parameters and its small
     weights kept: building it would allocate ~460M parameters (1.9 GB, counted on the meta device). load_checkpoint
     refuses it naming the file and the first mismatching tensors, and a process that tries grows by well under 300 MB
     (its peak resident memory, read after the refusal)."""
     checkpoint = torch.load(kcfm_run / "good.ckpt", weights_only=True)
-    checkpoint["hyper_parameters"]["down_dims"] = [1024, 2048]
+    checkpoint["hyper_parameters"]["network"]["down_dims"] = [1024, 2048]
     big = tmp_path / "big.ckpt"
     torch.save(checkpoint, big)
     with torch.device("meta"):
@@ -171,11 +173,12 @@ def test_hyper_parameters_that_do_not_match_the_weights_name_the_tensors(kcfm_ru
     """Missing and foreign tensors are named too; a checkpoint whose hyper-parameters fit still loads."""
     checkpoint = torch.load(kcfm_run / "good.ckpt", weights_only=True)
     checkpoint["state_dict"]["extra.weight"] = torch.ones(3)
-    del checkpoint["state_dict"]["kp_std"]
+    del checkpoint["state_dict"]["processor.kp_std"]
     odd = tmp_path / "odd.ckpt"
     torch.save(checkpoint, odd)
     with pytest.raises(
-        ValueError, match=rf"{odd}: .*'kp_std' missing from the file; 'extra.weight' in the file is not in the model"
+        ValueError,
+        match=rf"{odd}: .*'processor.kp_std' missing from the file; 'extra.weight' in the file is not in the model",
     ):
         load_checkpoint(KCFM, odd)
     assert load_checkpoint(KCFM, kcfm_run / "good.ckpt").hparams.horizon == H

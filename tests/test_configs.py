@@ -42,6 +42,8 @@ ENTRIES = {
         "train",
     ),
     "model": dict.fromkeys(["kcfm", "neural_field", "learned_map"], "train"),
+    "model/network": dict.fromkeys(["unet", "transformer"], "train"),
+    "model/objective": dict.fromkeys(["icfm", "otcfm", "ddpm", "meanflow", "reflow"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "keypoints": dict.fromkeys(["sim", "camera", "camera_clean"], "generate"),
     "source_search": dict.fromkeys(["default", "pusht"], "evaluate"),
@@ -176,6 +178,15 @@ def test_model_options_build_lightning_modules(name, tmp_path):
     assert isinstance(model, lightning.LightningModule) and sum(p.numel() for p in model.parameters()) > 0
 
 
+@pytest.mark.parametrize("group", ["model/network", "model/objective"])
+def test_each_kcfm_network_and_objective_builds_by_name(group, tmp_path):
+    for name in ENTRIES[group]:
+        teacher = [f"model.objective.teacher={RELEASED}"] if name == "reflow" else []  # read when training starts
+        cfg = compose_config("train", ["experiment=pusht_kcfm", f"{group}={name}", "logger=none", *teacher], tmp_path)
+        model = instantiate(cfg.model, _convert_="all")
+        assert model.hparams[group.split("/")[1]]["name"] == name
+
+
 @pytest.mark.parametrize("name", sorted(ENTRIES["policy"]))
 def test_policy_options_build_policies_that_act(name, store, tmp_path):
     from kpflow.tasks.pusht import PushTEnv, split_config
@@ -274,7 +285,7 @@ def square_kcfm(tmp_path) -> Path:
         keypoint_dim=layout.keypoint_dim,
         action_dim=layout.action_dim,
         horizon=16,
-        down_dims=[16, 32],
+        network={"name": "unet", "down_dims": [16, 32]},
     )
     torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}, tmp_path / "square.ckpt")
     return tmp_path / "square.ckpt"

@@ -14,7 +14,7 @@ from kpflow.tasks.pusht.geometry import N_KEYPOINTS
 from kpflow.utils.checkpoint import load_checkpoint
 
 H = 8
-SMALL = dict(horizon=H, down_dims=(16, 32), time_dim=16, lr=3e-3)
+SMALL = dict(horizon=H, network={"name": "unet", "down_dims": (16, 32), "time_dim": 16}, optim={"lr": 3e-3})
 
 
 def _fit(model: KCFM, store, tmp_path, steps: int, name: str):
@@ -22,6 +22,7 @@ def _fit(model: KCFM, store, tmp_path, steps: int, name: str):
     trainer = lightning.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
                                 enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)  # fmt: skip
     datamodule = ChunkDataModule(store, horizon=H, batch_size=64)
+    model.fit_processor(datamodule.training_chunks())
     trainer.fit(model, datamodule=datamodule)
     path = tmp_path / f"{name}.ckpt"
     trainer.save_checkpoint(path)
@@ -35,7 +36,7 @@ def _error(model: KCFM, batch, steps: int, solver=None) -> float:
 
 
 def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(walk_store, tmp_path):
-    model = KCFM(N_KEYPOINTS, objective="meanflow", sample_steps=1, **SMALL)
+    model = KCFM(N_KEYPOINTS, objective="meanflow", sampler={"steps": 1}, **SMALL)
     path, batch = _fit(model, walk_store, tmp_path, 150, "meanflow")
     fresh = KCFM(**model.hparams)
     fresh.load_state_dict(
@@ -52,13 +53,13 @@ def test_meanflow_trains_from_scratch_saves_reloads_and_acts_in_one_call(walk_st
 def test_reflow_distils_a_teacher_into_one_call_and_reloads_without_it(walk_store, tmp_path):
     teacher = KCFM(N_KEYPOINTS, **SMALL)
     teacher_path, batch = _fit(teacher, walk_store, tmp_path, 200, "teacher")
-    student = KCFM(N_KEYPOINTS, objective="reflow", objective_options={"teacher": str(teacher_path), "teacher_steps": 8, "t_grid": 1},
-                   sample_steps=1, **SMALL)  # fmt: skip
+    student = KCFM(N_KEYPOINTS, objective={"name": "reflow", "teacher": str(teacher_path), "teacher_steps": 8, "t_grid": 1},
+                   sampler={"steps": 1}, **SMALL)  # fmt: skip
     path, _ = _fit(student, walk_store, tmp_path, 100, "student")
     # the student took the teacher's normalisation; its one call lands nearer the teacher's 8-call chunks than the
     # teacher's own single call does
     for name in ("kp_mean", "kp_std", "action_center", "action_scale"):
-        assert torch.equal(getattr(student, name), getattr(teacher, name))
+        assert torch.equal(getattr(student.processor, name), getattr(teacher.processor, name))
     g = lambda: torch.Generator().manual_seed(5)  # noqa: E731
     reference = teacher.eval().sample(batch["obs"], 8, g(), "midpoint")
     gap = lambda chunks: float((chunks - reference).norm(dim=-1)[batch["mask"]].median())  # noqa: E731
@@ -74,13 +75,18 @@ def test_a_teacher_of_another_layout_is_refused(tmp_path):
     teacher = KCFM(N_KEYPOINTS, **{**SMALL, "horizon": 4})
     path = tmp_path / "teacher.ckpt"
     torch.save({"state_dict": teacher.state_dict(), "hyper_parameters": dict(teacher.hparams)}, path)
-    student = KCFM(N_KEYPOINTS, objective="reflow", objective_options={"teacher": str(path)}, **SMALL)
+    student = KCFM(N_KEYPOINTS, objective={"name": "reflow", "teacher": str(path)}, **SMALL)
     with pytest.raises(ValueError, match=r"differs from this K-CFM in \['horizon'\]: horizon 4 against 8"):
         student.attach_teacher()
 
 
 def test_the_checkpoints_sampling_settings_are_the_policys_defaults():
-    model = KCFM(N_KEYPOINTS, horizon=H, down_dims=(16, 32), time_dim=16, sample_steps=3, solver="heun")
+    model = KCFM(
+        N_KEYPOINTS,
+        horizon=H,
+        network={"name": "unet", "down_dims": (16, 32), "time_dim": 16},
+        sampler={"steps": 3, "solver": "heun"},
+    )
     policy = KCFMPolicy(model)
     assert (policy.steps, policy.solver) == (3, "heun")
     assert (
@@ -89,6 +95,6 @@ def test_the_checkpoints_sampling_settings_are_the_policys_defaults():
     ) == (4, "midpoint")
     assert KCFM(N_KEYPOINTS, horizon=H, objective="ddpm").sampler() == (10, "ddim")  # the objective's first solver
     with pytest.raises(ValueError, match=r"solver must be one of \('ddim',\)"):
-        KCFM(N_KEYPOINTS, horizon=H, objective="ddpm", solver="midpoint")
+        KCFM(N_KEYPOINTS, horizon=H, objective="ddpm", sampler={"solver": "midpoint"})
     with pytest.raises(ValueError, match="steps must be an integer in 1..100"):
         KCFMPolicy(model, steps=0)

@@ -20,9 +20,10 @@ from kpflow.tasks.pusht.geometry import goal_frame as pusht_goal_frame
 from tests.helpers import walk_to_block_store
 
 
-def pusht_kcfm(goal_frame: bool = False, **kwargs) -> KCFM:
-    """A K-CFM for Push-T's 25 keypoints, in the goal T's frame or the world's."""
-    return KCFM(N_KEYPOINTS, goal_frame=pusht_goal_frame() if goal_frame else None, **kwargs)
+def pusht_kcfm(goal_frame: bool = False, relative: bool = False, **kwargs) -> KCFM:
+    """A K-CFM for Push-T's 25 keypoints, in the goal T's frame or the world's (actions relative to the agent or not)."""
+    processor = {"goal_frame": pusht_goal_frame() if goal_frame else None, "relative": relative}
+    return KCFM(N_KEYPOINTS, processor=processor, **kwargs)
 
 
 # ------------------------------------------------------------------------------------------------ U-Net
@@ -94,7 +95,7 @@ def test_padded_actions_do_not_change_the_loss(goal_frame):
     torch.manual_seed(0)
     model = pusht_kcfm(goal_frame, horizon=8)
     batch = _chunk_batch()
-    model.set_normalisation(batch["obs"].numpy(), batch["actions"][:, 0].numpy())
+    model.processor.fit(batch["obs"].numpy(), batch["actions"][:, 0].numpy())
     assert not batch["mask"].all()
 
     def loss(b):
@@ -115,19 +116,19 @@ def test_relative_actions_are_offsets_from_the_agent(goal_frame):
     model = pusht_kcfm(goal_frame, horizon=8, relative=True)
     batch = _chunk_batch()
     kp, actions, mask = batch["obs"].double(), batch["actions"].double(), batch["mask"]
-    model.set_normalisation(kp, actions, mask)
-    frame = model.action_frame(kp)
+    model.processor.fit(kp, actions, mask)
+    frame = model.processor.action_frame(kp)
     torch.testing.assert_close(frame[1], kp[:, -1])  # the origin is the agent
-    x = model.normalise_actions(actions, frame)
+    x = model.processor.normalise_actions(actions, frame)
     assert x[mask].abs().max() <= 1.0 + 1e-6 and x[mask].min(0).values.allclose(torch.tensor(-1.0), atol=1e-5)
-    torch.testing.assert_close(model.denormalise_actions(x, frame).double(), actions, atol=1e-3, rtol=0)
+    torch.testing.assert_close(model.processor.denormalise_actions(x, frame).double(), actions, atol=1e-3, rtol=0)
     # the statistics only count real steps: padded garbage does not change them
-    before = model.action_scale.clone()
-    model.set_normalisation(kp, torch.where(mask[..., None], actions, torch.tensor(1e4, dtype=torch.float64)), mask)
-    torch.testing.assert_close(model.action_scale, before)
+    before = model.processor.action_scale.clone()
+    model.processor.fit(kp, torch.where(mask[..., None], actions, torch.tensor(1e4, dtype=torch.float64)), mask)
+    torch.testing.assert_close(model.processor.action_scale, before)
     moved = kp.clone()
     moved[:, -1] += torch.tensor([30.0, -12.0], dtype=torch.float64)  # the agent elsewhere: the same offsets
-    shifted = model.denormalise_actions(x, model.action_frame(moved)).double()
+    shifted = model.processor.denormalise_actions(x, model.processor.action_frame(moved)).double()
     torch.testing.assert_close(shifted - moved[:, None, -1], actions - kp[:, None, -1], atol=1e-3, rtol=0)
     with pytest.raises(ValueError, match="2-D actions"):
         pusht_kcfm(action_dim=3, relative=True)
@@ -141,7 +142,7 @@ def test_goal_pose_is_exact():
     model = pusht_kcfm(True)
     poses = [(256.0, 256.0, math.pi / 4), (-40.0, 700.0, -2.9), (10.0, 20.0, 0.0)]
     kp = torch.tensor(np.stack([observation_keypoints((300.0, 100.0, 1.0), pose, (5.0, 6.0)) for pose in poses]))
-    rot, origin = model.goal_pose(kp)
+    rot, origin = model.processor.goal_pose(kp)
     torch.testing.assert_close(origin, torch.tensor(poses, dtype=torch.float64)[:, :2], atol=1e-9, rtol=0)
     np.testing.assert_allclose(
         torch.atan2(rot[:, 1, 0], rot[:, 0, 0]).numpy(), [p[2] for p in poses], atol=1e-12, rtol=0
@@ -160,14 +161,16 @@ def test_the_goal_frame_names_the_goal_keypoints_and_their_template():
         (dict(good, template=[[1.0, 2.0]] * 12), "is one point"),
     ):
         with pytest.raises(ValueError, match=message):
-            KCFM(N_KEYPOINTS, goal_frame=bad)
+            KCFM(N_KEYPOINTS, processor={"goal_frame": bad})
     with pytest.raises(ValueError, match="planar"):
-        KCFM(N_KEYPOINTS, keypoint_dim=3, goal_frame=good)
+        KCFM(N_KEYPOINTS, keypoint_dim=3, processor={"goal_frame": good})
     with pytest.raises(ValueError, match="2-D actions"):
-        KCFM(N_KEYPOINTS, action_dim=3, goal_frame=good)
+        KCFM(N_KEYPOINTS, action_dim=3, processor={"goal_frame": good})
     # any planar layout: the goal's keypoints anywhere among them, its template in its own frame
-    model = KCFM(4, horizon=4, goal_frame={"keypoints": [3, 1], "template": [[0.0, 0.0], [2.0, 0.0]]})
-    rot, origin = model.goal_pose(torch.tensor([[[9.0, 9.0], [5.0, 7.0], [0.0, 0.0], [5.0, 5.0]]], dtype=torch.float64))
+    model = KCFM(4, horizon=4, processor={"goal_frame": {"keypoints": [3, 1], "template": [[0.0, 0.0], [2.0, 0.0]]}})
+    rot, origin = model.processor.goal_pose(
+        torch.tensor([[[9.0, 9.0], [5.0, 7.0], [0.0, 0.0], [5.0, 5.0]]], dtype=torch.float64)
+    )
     torch.testing.assert_close(origin, torch.tensor([[5.0, 5.0]], dtype=torch.float64))  # the goal turned a quarter
     torch.testing.assert_close(rot, torch.tensor([[[0.0, -1.0], [1.0, 0.0]]], dtype=torch.float64))
 
@@ -187,7 +190,7 @@ def test_goal_frame_policy_is_equivariant(goal_frame):
     torch.manual_seed(0)
     model = pusht_kcfm(goal_frame, horizon=20).eval()
     train_kp = _scene_keypoints(64, seed=1)
-    model.set_normalisation(train_kp, train_kp[:, -1] + 20.0)  # realistic scales
+    model.processor.fit(train_kp, train_kp[:, -1] + 20.0)  # realistic scales
     kp = _scene_keypoints(4, seed=2)
     phi, shift = 2.1, np.array([-130.0, 415.0])
     rot = np.array([[math.cos(phi), -math.sin(phi)], [math.sin(phi), math.cos(phi)]])
@@ -213,15 +216,15 @@ def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
     chunks = np.concatenate(
         [train_kp[:, None, -3] + rng.normal(0, 0.05, (64, 8, d)), rng.normal(0, 1, (64, 8, a - d))], -1
     )
-    model = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a, origin=-3).eval()
-    model.set_normalisation(train_kp, chunks)
+    model = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a, processor={"origin": -3}).eval()
+    model.processor.fit(train_kp, chunks)
     kp, shift = train_kp[:4], np.array([20.0, -15.0, 7.0])  # moved far outside the training box
     pred = model.sample(kp, steps=5, generator=torch.Generator().manual_seed(3)).double().numpy()
     moved = model.sample(kp + shift, steps=5, generator=torch.Generator().manual_seed(3)).double().numpy()
     np.testing.assert_allclose(moved[..., :d], pred[..., :d] + shift, atol=1e-5)
     np.testing.assert_allclose(moved[..., d:], pred[..., d:], atol=1e-6)
     world = KCFM(k, horizon=8, keypoint_dim=d, action_dim=a).eval()
-    world.set_normalisation(train_kp, chunks)
+    world.processor.fit(train_kp, chunks)
     model.check_in_range(kp + shift)
     with pytest.raises(ValueError, match="far outside the range"):
         world.check_in_range(kp + shift)  # the world-frame model refuses what the origin-relative one accepts
@@ -240,7 +243,7 @@ def test_an_origin_keypoint_makes_a_3d_policy_translation_invariant():
         ({"origin": 0, "relative": True}, "without goal_frame"),
     ):
         with pytest.raises(ValueError, match=message):
-            KCFM(k, keypoint_dim=2, action_dim=2, **kwargs)
+            KCFM(k, keypoint_dim=2, action_dim=2, processor=kwargs)
 
 
 # ------------------------------------------------------------------------------------------- input checks
@@ -299,9 +302,10 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
     path = tmp_path / "demos.zarr"
     walk_to_block_store(path)
     lightning.seed_everything(0, verbose=False)
-    model = pusht_kcfm(horizon=H, lr=3e-3)
+    model = pusht_kcfm(horizon=H, optim={"lr": 3e-3})
     datamodule = ChunkDataModule(path, horizon=H, batch_size=64)
     trainer = _trainer(tmp_path, max_steps=300)
+    model.fit_processor(datamodule.training_chunks())
     trainer.fit(model, datamodule=datamodule)
     assert trainer.global_step == 300
     assert {"train/loss", "val/loss"} <= set(trainer.callback_metrics)
@@ -312,8 +316,8 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
         [np.arange(s.start, s.stop) for s in map(EpisodeStore(path).episode_slice, datamodule.train_episodes)]
     )
     lo, hi = train_set.actions[rows].min(0), train_set.actions[rows].max(0)
-    torch.testing.assert_close(model.action_center, torch.tensor((lo + hi) / 2))
-    torch.testing.assert_close(model.action_scale, torch.tensor((hi - lo) / 2))
+    torch.testing.assert_close(model.processor.action_center, torch.tensor((lo + hi) / 2))
+    torch.testing.assert_close(model.processor.action_scale, torch.tensor((hi - lo) / 2))
 
     items = [train_set[i] for i in range(len(train_set))]
     batch = {k: torch.stack([it[k] for it in items]) for k in ("obs", "actions", "mask")}
@@ -354,11 +358,11 @@ def test_train_sample_checkpoint_reload_and_resume(tmp_path):
         assert torch.equal(p, loaded.ema_net.state_dict()[name])  # the EMA weights travel in the checkpoint
 
     # resume: global_step continues; the checkpoint's normalisation and EMA are kept and the EMA keeps moving
-    resumed = pusht_kcfm(horizon=H, lr=3e-3)
+    resumed = pusht_kcfm(horizon=H, optim={"lr": 3e-3})
     trainer2 = _trainer(tmp_path, max_steps=310)
     trainer2.fit(resumed, datamodule=ChunkDataModule(path, horizon=H, batch_size=64), ckpt_path=ckpt)
     assert trainer2.global_step == 310
-    torch.testing.assert_close(resumed.action_center, loaded.action_center)
-    torch.testing.assert_close(resumed.kp_std, loaded.kp_std)
+    torch.testing.assert_close(resumed.processor.action_center, loaded.processor.action_center)
+    torch.testing.assert_close(resumed.processor.kp_std, loaded.processor.kp_std)
     moved = [not torch.equal(p, q) for p, q in zip(resumed.ema_net.parameters(), loaded.ema_net.parameters())]
     assert any(moved)

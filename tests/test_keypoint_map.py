@@ -138,7 +138,7 @@ def test_a_kcfm_trains_through_the_documented_map_with_kpflow_train(dataset, tmp
     (tmp_path / "conf" / "data").mkdir(parents=True)
     (tmp_path / "conf" / "data" / "mine.yaml").write_text(documented_data_config())
     cmd = [sys.executable, "-m", "kpflow.cli.train", "--config-dir", "conf", "experiment=kcfm", "data=mine", "logger=none",
-           "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "data.batch_size=32", "model.down_dims=[8,16]",
+           "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "data.batch_size=32", "model.network.down_dims=[8,16]",
            "hydra.run.dir=run"]  # fmt: skip
     done = subprocess.run(
         cmd, cwd=tmp_path, env=child_env(OMP_NUM_THREADS="1"), capture_output=True, text=True, timeout=600
@@ -151,7 +151,7 @@ def test_a_kcfm_trains_through_the_documented_map_with_kpflow_train(dataset, tmp
     data.setup()
     rows = np.concatenate([np.arange(e * STEPS, (e + 1) * STEPS) for e in data.train_episodes])
     np.testing.assert_allclose(
-        checkpoint["state_dict"]["kp_mean"].numpy().reshape(5, 2), keypoints[rows].mean(0), atol=1e-5
+        checkpoint["state_dict"]["processor.kp_mean"].numpy().reshape(5, 2), keypoints[rows].mean(0), atol=1e-5
     )
     assert "keypoint_map" in (tmp_path / "run" / "config.yaml").read_text()  # the run records the map
     policy = kpflow.load_policy(tmp_path / "run" / "checkpoints" / "last.ckpt")

@@ -24,9 +24,10 @@ def checkpoint_and_data(tmp_path):
             store.add_episode({"keypoints": keypoints, "action": np.repeat(target[None], 12, axis=0)})
     data = ChunkDataModule(tmp_path / "demos.zarr", horizon=8, n_obs=2, batch_size=32, val_fraction=0.2)
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(**data.model_dims(), horizon=8, n_obs=2, down_dims=[16, 32])
+    model = KCFM(**data.model_dims(), horizon=8, n_obs=2, network={"name": "unet", "down_dims": [16, 32]})
     trainer = lightning.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                                 enable_model_summary=False, default_root_dir=tmp_path)  # fmt: skip
+    model.fit_processor(data.training_chunks())
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "kcfm.ckpt")
     return tmp_path / "kcfm.ckpt", ChunkDataModule(tmp_path / "demos.zarr", horizon=8, n_obs=2, val_fraction=0.2)

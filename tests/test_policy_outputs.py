@@ -118,7 +118,7 @@ def test_extreme_observations_are_refused_before_the_network_runs(tiny):
     assert not calls
     assert policies[0].act(scene()).shape == (4, 2) and len(calls) == 2  # an ordinary scene runs the network (2 steps)
     released = bare_kcfm(STANDARD, steps=2)
-    assert released.model.hparams.goal_frame == goal_frame()
+    assert released.model.config.processor.goal_frame == goal_frame()
     with pytest.raises(ValueError, match=f"{FAR}: keypoint 0 at"):
         released.act(HUGE)  # in its goal's frame this scene is ordinary: the world check refuses it
     # every coordinate within the widened box in the world, but the agent 7920 px from the goal in the goal's frame

@@ -25,14 +25,16 @@ from tests.helpers import bare_kcfm, walk_to_block_store
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """A K-CFM trained for 5 steps on a few walk-to-block episodes (its own sample_steps: 10, Euler)."""
+    """A K-CFM trained for 5 steps on a few walk-to-block episodes (its own sampler: 10 Euler steps)."""
     tmp = tmp_path_factory.mktemp("settings")
     walk_to_block_store(tmp / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16)
+    model = KCFM(N_KEYPOINTS, horizon=8, network={"name": "unet", "down_dims": [16, 32], "time_dim": 16})
     trainer = lightning.Trainer(max_steps=5, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=tmp,
                                 enable_progress_bar=False, enable_model_summary=False)  # fmt: skip
-    trainer.fit(model, datamodule=ChunkDataModule(tmp / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0))
+    data = ChunkDataModule(tmp / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0)
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp / "full.ckpt")
     return tmp / "full.ckpt"
 
@@ -88,7 +90,7 @@ def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
     assert (loaded.policy.steps, loaded.policy.solver, loaded.policy.execute) == (3, "midpoint", 4)
     served = load_deployment(dst, task)
     assert served.metadata.policy == "kcfm/reach=50/turn_deg=40" and served.metadata.action_shape == [4, 2]
-    plain = bare_kcfm(trained)  # no record: the model's own sample_steps and 8 actions
+    plain = bare_kcfm(trained)  # no record: the model's own sampler.steps and 8 actions
     assert (plain.steps, plain.solver, plain.execute) == (10, "euler", 8)
 
     again = release(dst, tmp_path / "again.ckpt", settings={"steps": 6})  # a re-release adds to the record
@@ -97,7 +99,9 @@ def test_a_release_carries_its_settings_into_every_builder(trained, tmp_path):
     assert record["release"]["source"] == str(trained)  # where the weights came from, not the file re-released
 
     obs = {
-        "keypoints": np.asarray(torch.load(dst, weights_only=True)["state_dict"]["kp_mean"].reshape(-1, 2), np.float64)
+        "keypoints": np.asarray(
+            torch.load(dst, weights_only=True)["state_dict"]["processor.kp_mean"].reshape(-1, 2), np.float64
+        )
     }
     a, b = kcfm(str(dst), task), kcfm(str(again), task, steps=3)
     a.reset(1), b.reset(1)

@@ -37,16 +37,18 @@ VARIANTS = [
 @pytest.mark.parametrize(("objective", "network", "n_obs"), VARIANTS)
 def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
     lightning.seed_everything(0, verbose=False)
-    small = dict(down_dims=[16, 32], d_model=32, n_layers=2, n_heads=2, time_dim=16)
+    small = {
+        "unet": dict(down_dims=[16, 32], time_dim=16),
+        "transformer": dict(d_model=32, n_layers=2, n_heads=2, time_dim=16),
+    }
     model = KCFM(
         N_KEYPOINTS,
         horizon=H,
         n_obs=n_obs,
         objective=objective,
-        network=network,
-        lr=3e-3,
-        goal_frame=goal_frame(),
-        **small,
+        network={"name": network, **small[network]},
+        optim={"lr": 3e-3},
+        processor={"goal_frame": goal_frame()},
     )
     datamodule = ChunkDataModule(store_path, horizon=H, batch_size=64, n_obs=n_obs, val_fraction=0.0)
     trainer = lightning.Trainer(
@@ -58,6 +60,7 @@ def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
         enable_progress_bar=False,
         enable_model_summary=False,
     )
+    model.fit_processor(datamodule.training_chunks())
     trainer.fit(model, datamodule=datamodule)
     items = [datamodule.train_set[i] for i in range(0, len(datamodule.train_set), 3)]
     batch = {k: torch.stack([it[k] for it in items]) for k in ("history", "actions", "mask")}
@@ -72,7 +75,7 @@ def test_train_save_reload_act(tmp_path, store_path, objective, network, n_obs):
     ckpt = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt)
     hparams = read_checkpoint(ckpt)["hyper_parameters"]  # weights_only: plain names and numbers
-    assert (hparams["objective"], hparams["network"], hparams["n_obs"]) == (objective, network, n_obs)
+    assert (hparams["objective"]["name"], hparams["network"]["name"], hparams["n_obs"]) == (objective, network, n_obs)
     loaded = load_checkpoint(KCFM, ckpt)
     history = batch["history"][:3]
     a = loaded.sample(history, steps=4, generator=torch.Generator().manual_seed(7))
@@ -105,7 +108,7 @@ def test_history_length_must_match_the_data():
         )
     with pytest.raises(ValueError, match="keypoints must have shape"):
         model.sample(np.zeros((25, 2)))  # one frame where two are needed
-    with pytest.raises(ValueError, match="network must be one of"):
+    with pytest.raises(ValueError, match="unknown network 'mlp'"):
         KCFM(N_KEYPOINTS, network="mlp")
     with pytest.raises(ValueError, match="unknown objective"):
         KCFM(N_KEYPOINTS, objective="score")
@@ -122,12 +125,12 @@ def test_training_experiments_compose_into_a_matching_model(experiment):
         cfg = compose("train", overrides=[f"experiment={experiment}", "logger=none"])
     model = instantiate(cfg.model, _convert_="all")
     assert model.hparams.horizon == cfg.data.horizon and model.hparams.n_obs == cfg.data.n_obs
-    assert isinstance(model.hparams.down_dims, list)  # plain hparams: the checkpoint loads with weights_only
+    assert isinstance(model.hparams.network["down_dims"], list)  # plain hparams: the checkpoint loads with weights_only
     # the task's experiment gives the layout and the goal frame (kpflow/conf/model/kcfm.yaml has neither)
-    assert model.hparams.n_keypoints == N_KEYPOINTS and model.hparams.goal_frame == goal_frame()
+    assert model.hparams.n_keypoints == N_KEYPOINTS and model.hparams.processor["goal_frame"] == goal_frame()
     if experiment == "pusht_kcfm_gpu":
         assert (
             cfg.trainer.accelerator == "gpu"
-            and model.hparams.down_dims == [256, 512, 1024]
+            and model.hparams.network["down_dims"] == [256, 512, 1024]
             and model.hparams.n_obs == 2
         )

@@ -27,7 +27,7 @@ SUITE_RELEASED = sorted((ROOT / "release").glob("suite_*_kcfm.ckpt"))
 def test_release_keeps_weights_and_config_only(tmp_path, monkeypatch):
     walk_to_block_store(tmp_path / "demos.zarr")
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16)
+    model = KCFM(N_KEYPOINTS, horizon=8, network={"name": "unet", "down_dims": [16, 32], "time_dim": 16})
     trainer = lightning.Trainer(
         max_steps=5,
         accelerator="cpu",
@@ -37,7 +37,9 @@ def test_release_keeps_weights_and_config_only(tmp_path, monkeypatch):
         enable_progress_bar=False,
         enable_model_summary=False,
     )
-    trainer.fit(model, datamodule=ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0))
+    data = ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=32, val_fraction=0.0)
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "full.ckpt")
     monkeypatch.setattr(
         sys,

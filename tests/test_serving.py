@@ -67,10 +67,12 @@ def tiny_run(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=20, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(
+    model, data = (
         KCFM(N_KEYPOINTS, horizon=H),
-        datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
+        ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
     )
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(root / "kcfm.ckpt")
     index = SourceIndex.from_store(
         EpisodeStore(root / "demos.zarr"), horizon=H, weights=pusht_weights(agent=4.0), reference=PUSHT_BLOCK

@@ -51,7 +51,7 @@ class RowWise(torch.nn.Module):
 
 def unet() -> torch.nn.Module:
     torch.manual_seed(0)
-    return ConditionalUnet1D(A, C, down_dims=(16, 32), time_dim=16).eval().requires_grad_(False)
+    return ConditionalUnet1D(A, C, (16, 32), time_dim=16).eval().requires_grad_(False)
 
 
 def calls(n: int, seed: int) -> list[tuple]:
@@ -168,7 +168,7 @@ def test_a_lone_request_does_not_wait_and_computes_the_same_bits():
 
 
 def test_calls_that_record_gradients_go_straight_to_the_network():
-    net = ConditionalUnet1D(A, C, down_dims=(16, 32), time_dim=16)  # trainable
+    net = ConditionalUnet1D(A, C, (16, 32), time_dim=16)  # trainable
     counted = Counting(net)
     batched = BatchedNetwork(counted, max_wait_ms=2000)
     x, t, c = calls(1, seed=4)[0]
@@ -199,7 +199,7 @@ def test_bad_arguments_are_refused(kwargs, match, tmp_path):
 
 
 def test_a_wrapped_network_saves_and_loads_under_its_own_names():
-    model = KCFM(25, horizon=H, down_dims=(16, 32), time_dim=16)
+    model = KCFM(25, horizon=H, network={"name": "unet", "down_dims": (16, 32), "time_dim": 16})
     before = model.state_dict()
     model.ema_net = BatchedNetwork(model.ema_net)
     after = model.state_dict()
@@ -215,9 +215,9 @@ def test_a_wrapped_network_saves_and_loads_under_its_own_names():
 def tiny_checkpoint(tmp_path_factory):
     """A tiny K-CFM for Push-T's 25 keypoints (untrained weights, statistics of random data, actions of order 1)."""
     torch.manual_seed(0)
-    model = KCFM(25, horizon=H, down_dims=(16, 32), time_dim=16)
+    model = KCFM(25, horizon=H, network={"name": "unet", "down_dims": (16, 32), "time_dim": 16})
     rng = np.random.default_rng(0)
-    model.set_normalisation(rng.uniform(100, 400, (64, 25, 2)), rng.uniform(-1, 1, (64, H, 2)))
+    model.processor.fit(rng.uniform(100, 400, (64, 25, 2)), rng.uniform(-1, 1, (64, H, 2)))
     path = tmp_path_factory.mktemp("batched") / "tiny.ckpt"
     torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}, path)
     return path

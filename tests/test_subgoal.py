@@ -83,7 +83,13 @@ def test_turn_then_reach_on_every_frame():
 def _model(n_obs: int) -> KCFM:
     torch.manual_seed(0)
     rng = np.random.default_rng(1)
-    model = KCFM(N_KEYPOINTS, horizon=8, n_obs=n_obs, goal_frame=goal_frame(), down_dims=[16, 32]).eval()
+    model = KCFM(
+        N_KEYPOINTS,
+        horizon=8,
+        n_obs=n_obs,
+        processor={"goal_frame": goal_frame()},
+        network={"name": "unet", "down_dims": [16, 32]},
+    ).eval()
     train = np.stack(
         [
             observation_keypoints(
@@ -92,7 +98,7 @@ def _model(n_obs: int) -> KCFM:
             for _ in range(32)
         ]
     )
-    model.set_normalisation(train, train[:, -1:] + rng.normal(0.0, 20.0, (32, 8, 2)))
+    model.processor.fit(train, train[:, -1:] + rng.normal(0.0, 20.0, (32, 8, 2)))
     return model
 
 

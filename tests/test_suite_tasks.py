@@ -406,10 +406,11 @@ def test_a_policy_trained_on_generated_demos_drives_the_arm_in_closed_loop(gener
     out, _ = generated
     data = ChunkDataModule(out / "d0" / "gp" / "episodes.zarr", horizon=16, obs_key="keypoints", action_key="ee_target",
                            val_fraction=0.0, batch_size=64, n_obs=2)  # fmt: skip
-    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32),
+    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, network={"name": "unet", "down_dims": (16, 32)},
                  objective=objective)  # fmt: skip
     trainer = lightning.Trainer(max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                                 enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
+    model.fit_processor(data.training_chunks())
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
     policy = bare_kcfm(tmp_path / "last.ckpt", steps=2, execute=8)
@@ -593,9 +594,17 @@ def test_the_builder_makes_every_suite_policy_from_config_and_a_transported_epis
     data = ChunkDataModule(
         store, horizon=16, obs_key="keypoints", action_key="ee_target", val_fraction=0.0, batch_size=64, n_obs=2
     )
-    model = KCFM(horizon=16, n_obs=2, n_keypoints=11, keypoint_dim=3, action_dim=10, down_dims=(16, 32))
+    model = KCFM(
+        horizon=16,
+        n_obs=2,
+        n_keypoints=11,
+        keypoint_dim=3,
+        action_dim=10,
+        network={"name": "unet", "down_dims": (16, 32)},
+    )
     trainer = lightning.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                                 enable_model_summary=False, limit_val_batches=0, default_root_dir=tmp_path)  # fmt: skip
+    model.fit_processor(data.training_chunks())
     trainer.fit(model, datamodule=data)
     trainer.save_checkpoint(tmp_path / "last.ckpt")
     released = release(tmp_path / "last.ckpt", tmp_path / "suite_lift_kcfm.ckpt", ema_only=True)

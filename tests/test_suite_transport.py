@@ -61,8 +61,15 @@ def index() -> SourceIndex:
 def model(index) -> KCFM:
     """A 3-D K-CFM with two observation frames, random weights and the data's normalisation."""
     torch.manual_seed(0)
-    model = KCFM(horizon=H, n_obs=2, n_keypoints=K, keypoint_dim=3, action_dim=10, down_dims=(16, 32)).eval()
-    model.set_normalisation(index.keypoints, index.chunks[:, 0])
+    model = KCFM(
+        horizon=H,
+        n_obs=2,
+        n_keypoints=K,
+        keypoint_dim=3,
+        action_dim=10,
+        network={"name": "unet", "down_dims": (16, 32)},
+    ).eval()
+    model.processor.fit(index.keypoints, index.chunks[:, 0])
     return model
 
 

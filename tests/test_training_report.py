@@ -19,7 +19,9 @@ def _fit(tmp_path, epochs: int, ckpt_path=None):
                                 enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
                                 num_sanity_val_steps=1)  # fmt: skip
     lightning.seed_everything(0, verbose=False)
-    trainer.fit(KCFM(N_KEYPOINTS, horizon=8, down_dims=[16, 32], time_dim=16), datamodule=data, ckpt_path=ckpt_path)
+    model = KCFM(N_KEYPOINTS, horizon=8, network={"name": "unet", "down_dims": [16, 32], "time_dim": 16})
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data, ckpt_path=ckpt_path)
     return trainer
 
 

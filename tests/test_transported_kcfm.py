@@ -55,7 +55,7 @@ def untrained(index):
     """A world-frame K-CFM with random weights and the data's normalisation: not equivariant by itself."""
     torch.manual_seed(0)
     model = KCFM(N_KEYPOINTS, horizon=H).eval()
-    model.set_normalisation(index.keypoints, index.chunks[:, 0])
+    model.processor.fit(index.keypoints, index.chunks[:, 0])
     return model
 
 
@@ -64,7 +64,7 @@ def trained(store_path, tmp_path_factory):
     """A tiny world-frame K-CFM trained for 250 steps on all episodes, and its checkpoint."""
     root = tmp_path_factory.mktemp("kcfm_run")
     lightning.seed_everything(0, verbose=False)
-    model = KCFM(N_KEYPOINTS, horizon=H, lr=3e-3)
+    model = KCFM(N_KEYPOINTS, horizon=H, optim={"lr": 3e-3})
     trainer = lightning.Trainer(
         max_steps=250,
         accelerator="cpu",
@@ -75,7 +75,9 @@ def trained(store_path, tmp_path_factory):
         enable_model_summary=False,
         limit_val_batches=0,
     )
-    trainer.fit(model, datamodule=ChunkDataModule(store_path, horizon=H, batch_size=64, val_fraction=0.0))
+    data = ChunkDataModule(store_path, horizon=H, batch_size=64, val_fraction=0.0)
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data)
     ckpt = root / "kcfm.ckpt"
     trainer.save_checkpoint(ckpt)
     return model.eval(), ckpt

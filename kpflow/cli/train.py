@@ -97,6 +97,8 @@ def main(cfg: DictConfig) -> dict:
     )  # plain lists and dicts as hparams: checkpoints load with weights_only
     if cfg.resume:
         check_resumable(model, last)
+    elif fit_processor := getattr(model, "fit_processor", None):  # a policy's statistics, from the data it trains on
+        fit_processor(datamodule.training_chunks())
     callbacks = {name: instantiate(node) for name, node in cfg.callbacks.items()}
     checkpoints = callbacks["model_checkpoint"]
     trainer = instantiate(

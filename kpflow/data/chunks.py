@@ -3,6 +3,7 @@ the observation and the next ``H`` actions, split by episode into train and vali
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -14,6 +15,20 @@ from torch.utils.data import DataLoader, Dataset
 from kpflow.data.episode_store import EpisodeStore
 from kpflow.data.hindsight import HindsightGoals, fragment_episodes
 from kpflow.data.lerobot_dataset import KeypointMap, is_lerobot, naming_help, open_lerobot
+
+
+@dataclass(frozen=True)
+class TrainingChunks:
+    """What a policy's processor is fitted to (:meth:`ChunkDataModule.training_chunks`): one row per step of the
+    training episodes, the world ``keypoints [N, K, D]`` observed, the next ``horizon`` actions ``chunks [N, H, A]``
+    (the episode's last repeated past its end) and ``mask [N, H]`` (true on real steps); ``n_obs``: the frames of
+    history the data module hands the model with each."""
+
+    keypoints: np.ndarray
+    chunks: np.ndarray
+    mask: np.ndarray
+    horizon: int
+    n_obs: int
 
 
 class ChunkDataset(Dataset):
@@ -249,6 +264,13 @@ class ChunkDataModule(lightning.LightningDataModule):
                 " keypoints: kpflow.data.lerobot_dataset)"
             )
         return dict(zip(self.MODEL_DIMS, (int(obs.shape[1]), int(obs.shape[2]), int(actions.shape[1]))))
+
+    def training_chunks(self) -> TrainingChunks:
+        """The training episodes' rows (:class:`TrainingChunks`), what a model's processor is fitted to before
+        training (``model.fit_processor(datamodule.training_chunks())``; sets the data up)."""
+        self.setup()
+        keypoints, chunks, mask = self.train_set.arrays()
+        return TrainingChunks(keypoints, chunks, mask, self.train_set.horizon, self.train_set.n_obs)
 
     def _loader(self, dataset: ChunkDataset | None, shuffle: bool) -> DataLoader:
         if dataset is None:

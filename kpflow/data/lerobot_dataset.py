@@ -102,7 +102,7 @@ class KeypointMap:
     """Which named columns of a LeRobot dataset's ``observation.state`` are keypoints, and which are the robot's.
 
     ``columns`` holds each keypoint's columns (its x, y[, z]: ``D`` of them, the same ``D``, 2 or 3, for every
-    keypoint) in kpflow's order, the robot's ``robot`` keypoints last (kpflow's layout: ``model.origin=-1`` is the
+    keypoint) in kpflow's order, the robot's ``robot`` keypoints last (kpflow's layout: ``model.processor.origin=-1`` is the
     robot); ``names`` names each keypoint. Other columns of the state are not read. From a config
     (:meth:`from_config`, ``data.keypoint_map``)::
 

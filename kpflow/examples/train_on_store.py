@@ -46,7 +46,8 @@ def main() -> None:
 
     lightning.seed_everything(0, verbose=False)
     data = ChunkDataModule(store, horizon=16, n_obs=2, batch_size=64, val_fraction=0.1)
-    model = KCFM(**data.model_dims(), horizon=16, n_obs=2, down_dims=[32, 64])  # n_keypoints, keypoint_dim, action_dim
+    model = KCFM(**data.model_dims(), horizon=16, n_obs=2, network={"name": "unet", "down_dims": [32, 64]})
+    model.fit_processor(data.training_chunks())  # the frames' statistics, from the training episodes
     trainer = lightning.Trainer(max_epochs=args.epochs, accelerator="auto", logger=False, enable_checkpointing=False,
                                 enable_progress_bar=False, enable_model_summary=False, default_root_dir=out)  # fmt: skip
     trainer.fit(model, datamodule=data)

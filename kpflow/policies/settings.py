@@ -8,7 +8,7 @@ pattern: one config record per policy) and is written into the checkpoint as a p
 <kpflow.policies.kcfm.KCFM.on_load_checkpoint>` reads it back.
 
 Which value a policy uses, first found wins: the one given (a config key, a ``make_*`` argument), the checkpoint's
-record, the model's own (``sample_steps``, ``solver``) or the built-in default (8 actions, the goal as observed).
+record, the model's own (``sampler.steps``, ``sampler.solver``) or the built-in default (8 actions, the goal as observed).
 ``reach=False`` / ``turn_deg=False`` ask for the goal as observed even where the checkpoint records a limit.
 :func:`effective_settings` reads back from a built policy what it uses, for the run's ``config.yaml``.
 """

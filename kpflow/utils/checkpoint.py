@@ -8,7 +8,8 @@ fits that: weights and buffers, plain hyper-parameters, optimiser, scheduler, lo
 needs more is refused with an error naming it, and so are weights that hold NaN or inf.
 
 - :func:`load_checkpoint` builds a LightningModule from its hyper-parameters and loads its weights (what
-  ``load_from_checkpoint`` does, without its ``weights_only=False``). The hyper-parameters are first checked against
+  ``load_from_checkpoint`` does, without its ``weights_only=False``); a class with ``migrate_hparams`` (and
+  ``complete_state_dict``) first brings an older file's hyper-parameters (and weight names) to its current layout. The hyper-parameters are first checked against
   the weights' shapes on PyTorch's meta device (no memory), so a tiny file whose hyper-parameters ask for a huge
   network is refused before anything is allocated.
 - :class:`SafeCheckpointIO` is the Trainer plugin that makes ``trainer.fit(ckpt_path=...)`` read the same way.
@@ -119,7 +120,9 @@ def load_checkpoint(cls: type[M], path: str | Path, map_location: Any = "cpu") -
     :func:`shape_mismatches`).
     """
     checkpoint = read_checkpoint(path, map_location)
+    migrate = getattr(cls, "migrate_hparams", None)  # an older file's hyper-parameters in the class's current layout
     hparams = checkpoint.get("hyper_parameters", {})
+    hparams = migrate(hparams) if migrate else hparams
     check_hyper_parameters(hparams, str(path))  # before even the skeleton: its size follows them
     complete = getattr(
         cls, "complete_state_dict", None

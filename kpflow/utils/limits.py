@@ -17,11 +17,14 @@ below what exhausts a machine.
 | ``n_keypoints`` | 4096 | keypoints per frame |
 | ``keypoint_dim`` | 3 | coordinates per keypoint |
 | ``action_dim`` | 1024 | values per action |
-| ``sample_steps`` | 100 | network calls per chunk |
-| ``objective_options.train_steps`` | 10000 | a diffusion's steps (its schedule's tables; Diffusion Policy: 100) |
-| ``down_dims`` (each), ``d_model``, ``hidden``, ``context``, ``time_dim`` | 4096 | a layer's width |
-| ``n_layers``, ``n_heads``, ``encoder_depth``, ``coupling_depth`` | 256 | layers, heads |
-| ``kernel_size`` | 63 | a convolution's width |
+| ``sampler.steps`` | 100 | a K-CFM's network calls per chunk |
+| ``objective.train_steps`` | 10000 | a diffusion's steps (its schedule's tables; Diffusion Policy: 100) |
+| ``network.down_dims`` (each), ``network.d_model``, ``network.time_dim``, ``hidden``, ``context`` | 4096 | a layer's width |
+| ``network.n_layers``, ``network.n_heads``, ``n_layers``, ``encoder_depth``, ``coupling_depth`` | 256 | layers, heads |
+| ``network.kernel_size`` | 63 | a convolution's width |
+
+A K-CFM's keys are those of its config's groups (:class:`~kpflow.policies.kcfm.config.KCFMConfig`; an older file's
+flat ones are moved there first); the others are the learned map's (:class:`~kpflow.maps.map_module.MapModule`).
 """
 
 from __future__ import annotations
@@ -35,18 +38,19 @@ LIMITS: dict[str, int] = {
     "n_keypoints": 4096,
     "keypoint_dim": 3,
     "action_dim": 1024,
-    "sample_steps": 100,
-    "objective_options.train_steps": 10_000,
-    "down_dims": 4096,
-    "d_model": 4096,
+    "sampler.steps": 100,
+    "objective.train_steps": 10_000,
+    "network.down_dims": 4096,
+    "network.d_model": 4096,
+    "network.time_dim": 4096,
+    "network.n_layers": 256,
+    "network.n_heads": 256,
+    "network.kernel_size": 63,
     "hidden": 4096,
     "context": 4096,
-    "time_dim": 4096,
     "n_layers": 256,
-    "n_heads": 256,
     "encoder_depth": 256,
     "coupling_depth": 256,
-    "kernel_size": 63,
 }
 
 

@@ -56,7 +56,7 @@ class KCFMPolicy:
     Args:
         model: a trained K-CFM (put in eval mode).
         steps: network calls per chunk (solver steps of a flow, DDIM steps of a diffusion; ``1..MAX_STEPS``); None:
-            the checkpoint's setting, else the model's ``sample_steps``.
+            the checkpoint's setting, else the model's ``sampler.steps``.
         execute: how many of the chunk's ``horizon`` actions :meth:`act` returns (None: the checkpoint's setting,
             :mod:`~kpflow.policies.settings`, else 8).
         input_margin: how far outside the training keypoints' box an observed coordinate may lie, in extents of the

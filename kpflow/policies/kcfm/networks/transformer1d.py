@@ -78,3 +78,12 @@ class ConditionalTransformer1D(nn.Module):
         cond = self.cond_token(torch.cat([*times, c], dim=-1))[:, None]
         tokens = torch.cat([cond, self.embed(x)], dim=1) + self.position[:, : h + 1]
         return self.head(self.encoder(tokens)[:, 1:])
+
+
+def build(
+    dims, d_model: int = 128, n_layers: int = 4, n_heads: int = 4, time_dim: int = 64, dropout: float = 0.0
+) -> ConditionalTransformer1D:
+    """The transformer for a K-CFM's :class:`~kpflow.policies.kcfm.networks.NetworkDims` (one learned position per
+    step of its chunk); the options of :class:`ConditionalTransformer1D`."""
+    return ConditionalTransformer1D(dims.action_dim, dims.cond_dim, dims.horizon, d_model, n_layers, n_heads, time_dim,
+                                    dropout, n_times=dims.n_times, time_scale=dims.time_scale)  # fmt: skip

@@ -202,3 +202,12 @@ class ConditionalUnet1D(nn.Module):
             z = torch.cat([z, skips.pop()], dim=1)
             z = up(res1(res0(z, next(films)), next(films)))
         return self.final(z)[..., :h].transpose(1, 2)
+
+
+def build(
+    dims, down_dims: Sequence[int] = (32, 64), kernel_size: int = 5, n_groups: int = 8, time_dim: int = 64
+) -> ConditionalUnet1D:
+    """The U-Net for a K-CFM's :class:`~kpflow.policies.kcfm.networks.NetworkDims` (any chunk length: ``H`` is halved
+    ``len(down_dims) - 1`` times and padded as needed); the options of :class:`ConditionalUnet1D`."""
+    return ConditionalUnet1D(dims.action_dim, dims.cond_dim, tuple(down_dims), kernel_size, n_groups, time_dim,
+                             n_times=dims.n_times, time_scale=dims.time_scale)  # fmt: skip
