@@ -137,3 +137,29 @@ def test_the_config_groups_compose_from_the_command_line():
         and fast.model.sampler.steps == 2
         and fast.model.network.down_dims == [64, 128]
     )
+
+
+def test_a_trained_checkpoint_records_the_tasks_layout(tmp_path):
+    """kpflow-train task=... (train.record_layout): every checkpoint the run writes carries the layout, and a model of
+    another size than the task's is refused before training."""
+    from kpflow.cli.train import record_layout
+    from kpflow.policies.config import PolicyConfig
+    from kpflow.tasks.pusht.task import PushTTask
+    from kpflow.utils.checkpoint import read_checkpoint
+
+    walk_to_block_store(tmp_path / "demos.zarr")
+    data = ChunkDataModule(tmp_path / "demos.zarr", horizon=8, batch_size=64, val_fraction=0.0)
+    model = KCFM(N_KEYPOINTS, horizon=8, network=SMALL)
+    layout = PushTTask.policy_layout
+    record_layout(model, layout)
+    model.fit_processor(data.training_chunks())
+    trainer = lightning.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                                enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)  # fmt: skip
+    trainer.fit(model, datamodule=data)
+    trainer.save_checkpoint(tmp_path / "last.ckpt")
+    saved = PolicyConfig.of_checkpoint(read_checkpoint(tmp_path / "last.ckpt"))
+    assert saved.kind == "kcfm" and saved.layout == layout.record()
+    with pytest.raises(
+        ValueError, match="the model is sized for 25 keypoints in 3-D .* the task's layout has 25 keypoints in 2-D"
+    ):
+        record_layout(KCFM(N_KEYPOINTS, keypoint_dim=3, action_dim=2, network=SMALL), layout)

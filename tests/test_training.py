@@ -97,6 +97,11 @@ def test_kcfm_trains_resumes_loads_and_evaluates_from_the_cli(tmp_path):
     train = ["experiment=pusht_kcfm", "data.n_episodes=2", "data.workers=1", demos,
              "data.batch_size=64", "logger=csv", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
     last = train_then_resume(train, tmp_path / "run")
+    from kpflow.policies.config import PolicyConfig
+    from kpflow.tasks.pusht.task import PushTTask
+    from kpflow.utils.checkpoint import read_checkpoint
+
+    assert PolicyConfig.of_checkpoint(read_checkpoint(last)).layout == PushTTask.policy_layout.record()  # task=pusht
 
     policy = kpflow.load_policy(last, steps=4, execute=8)
     obs, _ = PushTEnv().reset(options={"config": split_config("in_distribution", 0)})

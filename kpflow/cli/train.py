@@ -19,6 +19,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, open_dict
 
+from kpflow.policies.config import PolicyConfig
 from kpflow.utils.checkpoint import SafeCheckpointIO, read_checkpoint
 from kpflow.utils.config_checks import SEED, TRAINER_KEYS, Key
 from kpflow.utils.errors import command, config_dir_checked
@@ -50,6 +51,22 @@ def fill_from_data(model: DictConfig, datamodule) -> None:
     with open_dict(model):
         for key in wanted:
             model[key] = dims[key]
+
+
+def record_layout(model, layout) -> None:
+    """Have ``model`` (a policy: it has a ``policy_config``) record the task's keypoint ``layout`` in every checkpoint
+    it writes, so that loading one needs no task to know its keypoints; ``ValueError`` when the model's keypoints and
+    actions are not the layout's."""
+    if not hasattr(model, "policy_config"):
+        return
+    have = (int(model.hparams.n_keypoints), int(model.hparams.keypoint_dim), int(model.hparams.action_dim))
+    if have != layout.shape:
+        raise ValueError(
+            f"the model is sized for {have[0]} keypoints in {have[1]}-D and {have[2]}-D actions, but the task's layout has "
+            f"{layout.n_keypoints} keypoints in {layout.keypoint_dim}-D and {layout.action_dim}-D actions: set model.n_keypoints "
+            f"(and keypoint_dim, action_dim) to the task's, or leave task= out"
+        )
+    model.policy_config = PolicyConfig(layout=layout.record())
 
 
 def check_resumable(model, last: Path) -> None:
@@ -95,6 +112,8 @@ def main(cfg: DictConfig) -> dict:
     model = instantiate(
         cfg.model, _convert_="all"
     )  # plain lists and dicts as hparams: checkpoints load with weights_only
+    if cfg.get("task") is not None:
+        record_layout(model, instantiate(cfg.task).policy_layout)
     if cfg.resume:
         check_resumable(model, last)
     elif fit_processor := getattr(model, "fit_processor", None):  # a policy's statistics, from the data it trains on

@@ -305,6 +305,16 @@ class KCFM(lightning.LightningModule):
                              f"(horizon {self.config.horizon}); kpflow-release settings.execute=N with N <= {self.config.horizon}")  # fmt: skip
         self.settings = settings
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Write the policy's config (:attr:`policy_config`: its kind and the task's keypoint layout, set by
+        ``kpflow-train task=...`` or read from the checkpoint it was loaded from) into every checkpoint it saves."""
+        from kpflow.policies.config import CHECKPOINT_KEY as CONFIG_KEY
+
+        if self.policy_config is not None:
+            checkpoint[CONFIG_KEY] = self.policy_config.record()
+            if self.policy_config.settings.record():
+                checkpoint[CHECKPOINT_KEY] = self.policy_config.settings.record()
+
     def sampler(self, steps: int | None = None, solver: str | None = None) -> tuple[int, str]:
         """``(steps, solver)`` as :meth:`sample` uses them: the given ones, else the released settings' (:attr:`settings`),
         else the model's ``sampler`` (its solver None: the objective's first)."""
