@@ -6,8 +6,8 @@ The wheel is built offline from a copy of the package's files (``pip wheel --no-
 (checked: ``kpflow.__file__`` lies in the venv); its dependencies are the test environment's, reached through a
 ``.pth`` line, so nothing is downloaded. HOME is a fresh folder, so the user cache of released checkpoints is empty.
 Run, in order: the README's quickstart snippet, ``kpflow-train --help``, ``kpflow-example``, the README's deploy
-snippet with a released checkpoint by name (``release:NAME``, from ``$KPFLOW_RELEASE_DIR``) and the error when it is
-found nowhere, then the own-task tutorial's commands as written (``kpflow-example reach_task my_project``, collect,
+snippet with a released checkpoint by name (``release:NAME``, from the wheel's own kpflow/release/) and the error for
+a name it does not release, then the own-task tutorial's commands as written (``kpflow-example reach_task my_project``, collect,
 train, evaluate alone and transported, release, serve, drive), shortened to 5 evaluation scenes per condition and
 run on a free port, and README steps 4-5 (``kpflow-serve`` and ``kpflow-connect``) on the policy it trained. About
 2 minutes on 2 cores."""
@@ -129,18 +129,18 @@ def test_the_readme_snippets_and_a_release_by_name(newcomer):
     (folder / "quickstart.py").write_text(python_block(readme, "ILWRMap().fit"))
     assert "tensor(" in run(["python", "quickstart.py"], folder, env).stdout
     (folder / "deploy.py").write_text(python_block(readme, "release:"))
-    shown = run(["python", "deploy.py"], folder, {**env, "KPFLOW_RELEASE_DIR": str(ROOT / "release")}).stdout
+    shown = run(["python", "deploy.py"], folder, env).stdout  # the wheel carries the releases: no clone, no download
     assert (
         "kcfm {'steps': 20, 'reach': 60.0, 'turn_deg': 60.0} 25 keypoints in" in shown
     )  # the release as its row measured it
-    # without $KPFLOW_RELEASE_DIR, an installed kpflow has no clone to look in and the cache is empty: one line says so
-    err = run(["kpflow-serve", "checkpoint=release:pusht_standard_fast", "port=0"], folder, env, code=1).stderr
+    # a name this version does not release: one line says where it looked and what is released
+    err = run(["kpflow-serve", "checkpoint=release:pusht_standard_faster", "port=0"], folder, env, code=1).stderr
     cache = Path(env["HOME"], ".cache", "kpflow", "release")
     assert err.startswith(
-        "error: no released file pusht_standard_fast.ckpt: looked in $KPFLOW_RELEASE_DIR (not set); a clone's release/ "
-        f"(kpflow is not running from a clone); {cache} (the user cache, missing). Download it from"
+        "error: no released file pusht_standard_faster.ckpt: looked in $KPFLOW_RELEASE_DIR (not set); "
     ), err
-    assert "Traceback" not in err and f"into {cache}/, or set KPFLOW_RELEASE_DIR" in err
+    assert f"(the package's releases); {cache} (the user cache, missing); released there: " in err
+    assert "pusht_standard_fast," in err and "Traceback" not in err and "<owner>" not in err
 
 
 def test_the_own_task_tutorial_runs_from_a_copied_template(newcomer):

@@ -28,7 +28,7 @@ def data_dir() -> Path:
             )
         return path
     clone = clone_dir()
-    return clone.parent / "data" if clone is not None else cache_dir().parent / "data"
+    return clone / "data" if clone is not None else cache_dir().parent / "data"
 
 
 def register_resolver() -> None:

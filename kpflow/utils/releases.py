@@ -1,15 +1,16 @@
 """Released files by name: ``release:NAME`` wherever a checkpoint is named, ``${release:NAME}`` in any config value.
 
-kpflow's released checkpoints (and the stores and source indices beside them) live in the repository's ``release/``
-folder, not in the wheel. :func:`release_path` finds one by name, looking in order in
+kpflow's released checkpoints (and the stores and source indices beside them) ship inside the package, in
+``kpflow/release/`` (package data: an installed wheel has them; a clone's ``release/`` is a link to that folder).
+:func:`release_path` finds one by name, looking in order in
 
-1. ``$KPFLOW_RELEASE_DIR``, when set;
-2. the clone's ``release/``, when kpflow runs from a clone (``pyproject.toml`` beside the ``kpflow`` package);
+1. ``$KPFLOW_RELEASE_DIR``, when set (e.g. files of another version, or one's own releases);
+2. the package's ``kpflow/release/``;
 3. the user's cache, ``~/.cache/kpflow/release`` (``$XDG_CACHE_HOME/kpflow/release`` when that is set).
 
 A name without a suffix is a checkpoint (``pusht_standard_fast`` is ``pusht_standard_fast.ckpt``); any other file
 is named whole (``pusht_table1_35_corrected.zarr``). Where it is in none of them, the error says where it looked and
-how to get it. Nothing is downloaded.
+which releases this version has. Nothing is downloaded.
 
 :func:`resolve_release` is what every checkpoint reader calls (:func:`kpflow.utils.checkpoint.read_checkpoint`,
 hence ``kpflow.load_policy("release:pusht_standard_fast")``, ``policy.checkpoint=release:...``, ``kpflow-release
@@ -27,8 +28,8 @@ from pathlib import Path
 PREFIX = "release:"
 #: the folder looked in first
 ENV = "KPFLOW_RELEASE_DIR"
-#: where a released file can be downloaded from (the assets of the GitHub release of kpflow's version)
-URL = "https://github.com/<owner>/kpflow/releases/download/v{version}/{file}"
+#: the package's own releases (package data, kpflow/release/)
+PACKAGE_DIR = Path(__file__).resolve().parents[1] / "release"
 
 
 def cache_dir() -> Path:
@@ -37,19 +38,24 @@ def cache_dir() -> Path:
 
 
 def clone_dir() -> Path | None:
-    """The clone's ``release/`` folder when kpflow runs from a clone (an editable install or the checkout on
-    ``sys.path``), else None (an installed wheel)."""
+    """The clone's root when kpflow runs from a clone (an editable install or the checkout on ``sys.path``), else
+    None (an installed wheel)."""
     root = Path(__file__).resolve().parents[2]
     project = root / "pyproject.toml"
-    return root / "release" if project.is_file() and 'name = "kpflow"' in project.read_text() else None
+    return root if project.is_file() and 'name = "kpflow"' in project.read_text() else None
+
+
+def package_dir() -> Path:
+    """The package's released files, ``kpflow/release/`` (in a clone, ``release/`` links to it)."""
+    return PACKAGE_DIR
 
 
 def search_dirs() -> list[tuple[Path | None, str]]:
     """Where :func:`release_path` looks, in order: (folder or None where there is none, what it is)."""
-    env, clone = os.environ.get(ENV), clone_dir()
+    env = os.environ.get(ENV)
     return [
         (Path(env).expanduser() if env else None, f"${ENV}" + ("" if env else " (not set)")),
-        (clone, "the clone's release/" if clone else "a clone's release/ (kpflow is not running from a clone)"),
+        (package_dir(), "the package's releases"),
         (cache_dir(), "the user cache"),
     ]
 
@@ -91,9 +97,9 @@ def release_path(name: str) -> Path:
             }
     there = f"; released there: {', '.join(sorted(held))}" if held else ""
     raise FileNotFoundError(
-        f"no released file {file}: looked in {'; '.join(looked)}{there}. Download it from kpflow's GitHub release "
-        f"({URL.format(version=version('kpflow'), file=file)}) into {cache_dir()}/, or set {ENV} to a folder holding it "
-        f"(a clone's release/)"
+        f"no released file {file}: looked in {'; '.join(looked)}{there}. kpflow {version('kpflow')} ships its releases "
+        f"in the package (kpflow/release/); a file of another version or your own goes into {cache_dir()}/ or a "
+        f"folder named by {ENV}"
     )
 
 
