@@ -148,6 +148,8 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["episodes"] == 2 and len(EpisodeStore(tmp_path / "episodes.zarr")) == 2
     assert (tmp_path / "episode_000.mp4").stat().st_size > 0
+    log = (tmp_path / "collect.log").read_text()  # the run's log says what it did (it was empty: issue 66)
+    assert "collecting 2 Push-T episodes" in log and f"collected 2 episodes (2/{summary['attempts']} attempts" in log
 
 
 @pytest.mark.slow

@@ -106,6 +106,31 @@ def test_a_refused_config_leaves_no_run_folder(tmp_path, cmd):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("cmd, message", [
+    (("kpflow.cli.train", "experiment=kcfm", "data.path=/nonexistent", "logger=none"), "no episode store at /nonexistent"),
+    (("kpflow.cli.evaluate", "policy=kcfm", "checkpoint=/nonexistent.ckpt", "logger=none"), "no checkpoint at /nonexistent.ckpt"),
+], ids=["train", "evaluate"])  # fmt: skip
+def test_a_run_that_fails_before_its_first_result_leaves_no_folder(tmp_path, cmd, message):
+    """Issue 66: a run that passed its checks but failed building its data or policy left its folder (evaluate: with
+    a config.yaml of a run that never ran), and Hydra's ``outputs/<task>/`` above it, behind."""
+    out = tmp_path / "run"
+    done = run_command(*cmd, f"hydra.run.dir={out}")
+    assert done.returncode != 0 and message in done.stderr, done.stderr[-2000:]
+    assert not out.exists()
+
+
+def test_the_folders_made_for_a_removed_run_go_with_it(tmp_path, monkeypatch):
+    from kpflow.utils.run import remove_unused_run_folder
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "outputs" / "kept").mkdir(parents=True)
+    run = tmp_path / "outputs" / "kcfm" / "2026-12-07_10-00-00"
+    run.mkdir(parents=True)
+    (run / "train.log").write_text("")  # Hydra's job log: bookkeeping
+    remove_unused_run_folder(run)
+    assert not (tmp_path / "outputs" / "kcfm").exists() and (tmp_path / "outputs" / "kept").is_dir()
+
+
 @pytest.mark.slow
 def test_run_folder_belongs_to_one_run_and_a_failed_resume_keeps_its_config(tmp_path):
     out = tmp_path / "run"

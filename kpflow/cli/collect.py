@@ -8,6 +8,7 @@ Rolls the task's scripted expert out on seeded configurations and commits each s
 (``episodes.zarr``), beside the resolved config and (Push-T) a few episode videos.
 """
 
+import logging
 from pathlib import Path
 
 import hydra
@@ -24,6 +25,7 @@ from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import write_json
 from kpflow.utils.run import remove_unused_run_folder, start_run
 
+log = logging.getLogger(__name__)  # the console and the run's collect.log (Hydra's job logging)
 KEYS = {
     "n_episodes": Key(int, lo=1),
     "seed": SEED,
@@ -49,6 +51,7 @@ def main(cfg: DictConfig) -> dict:
         source = f"policy:{HydraConfig.get().runtime.choices.get('policy')}"
         policy = instantiate(cfg.policy)  # before the run folder: a bad policy leaves nothing behind
     out = start_run(cfg, KEYS)
+    log.info("collecting %d Push-T episodes (%s, split %s) into %s", cfg.n_episodes, source or "expert", cfg.split, out)
     summary = collect_pusht(
         out / "episodes.zarr",
         n_episodes=cfg.n_episodes,
@@ -64,12 +67,7 @@ def main(cfg: DictConfig) -> dict:
         source=source or "expert",
         first_index=cfg.first_index,
     )
-    write_json(out / "summary.json", summary)
-    print(
-        f"collected {summary['episodes']} episodes ({summary['successes']}/{summary['attempts']} attempts succeeded,"
-        f" {summary['steps']} steps) into {summary['store']}"
-    )
-    return summary
+    return finished(out, summary)
 
 
 def collect_task(cfg: DictConfig) -> dict:
@@ -81,12 +79,19 @@ def collect_task(cfg: DictConfig) -> dict:
             f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.core.task.GymTask), not {type(task).__name__}"
         )
     out = start_run(cfg, KEYS)
+    log.info("collecting %d episodes of %s's expert into %s", cfg.n_episodes, type(task).__name__, out)
     summary = collect_gym_episodes(
         task, out / "episodes.zarr", cfg.n_episodes, cfg.condition, cfg.seed, cfg.keep_failures
     )
+    return finished(out, summary)
+
+
+def finished(out: Path, summary: dict) -> dict:
+    """Write the run's ``summary.json`` and say what was collected, on the console and in the run's collect.log."""
     write_json(out / "summary.json", summary)
-    print(f"collected {summary['episodes']} episodes ({summary['successes']}/{summary['attempts']} attempts succeeded,"
-          f" {summary['steps']} steps) into {summary['store']}")  # fmt: skip
+    log.info("collected %d episodes (%d/%d attempts succeeded, %d steps) into %s", summary["episodes"],
+             summary["successes"], summary["attempts"], summary["steps"], summary["store"])  # fmt: skip
+    log.info("summary: %s  config: %s", out / "summary.json", out / "config.yaml")
     return summary
 
 

@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
-from kpflow.utils.run import log_metrics, make_loggers, start_run, write_config
+from kpflow.utils.run import abandon_run, log_metrics, make_loggers, start_run, write_config
 
 log = logging.getLogger(__name__)  # the console and the run's evaluate.log (Hydra's job logging)
 KEYS = {
@@ -84,16 +84,21 @@ def record_used(cfg: DictConfig, results: dict) -> None:
 def main(cfg: DictConfig) -> dict:
     read_old_spellings(cfg)
     out = start_run(cfg, keys_of(cfg))
-    loggers = make_loggers(cfg)
-    run = instantiate(cfg.experiment)
+    try:
+        loggers = make_loggers(cfg)
+        run = instantiate(cfg.experiment)  # the policy built and checked (a checkpoint of another task is refused here)
+    except BaseException:
+        abandon_run(out)  # nothing ran: no run folder is left behind
+        raise
     results = run(output_dir=out, seed=cfg.seed)
     record_used(cfg, results)
     write_config(cfg)  # again, with the values used
     log_metrics(loggers, results["metrics"])
     log.info("what this run computed (results.md holds the same):\n%s", results["table"])
-    log.info("results: %s  plots: %s", out / "results.md", [str(out / f) for f in results.get("figures", [])])
+    figures = [str(out / f) for f in results.get("figures", [])]
+    log.info("results: %s%s", out / "results.md", f"  plots: {', '.join(figures)}" if figures else "")
     if results.get("videos"):
-        log.info("videos: %s", results["videos"])
+        log.info("videos: %s", ", ".join(map(str, results["videos"])))
     return results
 
 

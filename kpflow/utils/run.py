@@ -113,6 +113,7 @@ def end_run() -> None:
     here = Path.cwd().resolve()
     if out not in (here, *here.parents) and out.is_dir() and not run_folder_contents(out):
         shutil.rmtree(out, ignore_errors=True)
+        remove_empty_parents(out)
 
 
 def write_config(cfg: DictConfig) -> Path:
@@ -131,7 +132,8 @@ def run_folder_contents(out: Path) -> list[str]:
 
 def remove_unused_run_folder(out: Path) -> None:
     """Remove ``out`` if it holds nothing but bookkeeping (a run that failed before writing anything) and no live
-    run holds it (a run that has claimed it but not written yet keeps it)."""
+    run holds it (a run that has claimed it but not written yet keeps it), then the folders above it left empty
+    (:func:`remove_empty_parents`)."""
     if not out.is_dir() or run_folder_contents(out):
         return
     try:
@@ -139,10 +141,31 @@ def remove_unused_run_folder(out: Path) -> None:
     except LockHeld:
         return
     try:
-        if not run_folder_contents(out):
-            shutil.rmtree(out, ignore_errors=True)
+        if run_folder_contents(out):
+            return
+        shutil.rmtree(out, ignore_errors=True)
     finally:
         lock.release()
+    remove_empty_parents(out)
+
+
+def remove_empty_parents(out: Path) -> None:
+    """Remove the folders above a removed run folder ``out`` that it leaves empty, up to the working folder (Hydra's
+    ``outputs/<task>/``, made for that run alone)."""
+    here = Path.cwd().resolve()
+    for parent in out.resolve().parents:
+        if parent == here or not parent.is_relative_to(here):
+            return
+        try:
+            parent.rmdir()  # only an empty one
+        except OSError:
+            return
+
+
+def abandon_run(out: Path) -> None:
+    """A run that failed before its first result: the ``config.yaml`` it wrote goes, so that the run folder, holding
+    nothing else, is removed when the run lets go of it (:func:`end_run`)."""
+    (out / "config.yaml").unlink(missing_ok=True)
 
 
 def wandb_disabled() -> bool:
