@@ -22,6 +22,14 @@ def test_every_experiment_is_listed_by_exactly_one_command_with_its_first_senten
         text = usage(command)
         assert text.startswith(f"kpflow-{command}: ") and f"kpflow-{command} [overrides] --cfg job" in text
     assert "checkpoint=???" in usage("serve") and "seed=0" in usage("train") and "experiment=NAME" in usage("evaluate")
+    # issue 66: the help names what exists where kpflow is installed, not a path of the repository
+    train_help = usage("train")
+    assert train_help.startswith(f"kpflow-train: key=value overrides of {CONF / 'train.yaml'} (Hydra)")
+    assert (
+        "docs/reference/cli.md" not in train_help
+        and "  model       kcfm: kcfm, learned_map, neural_field" in train_help
+    )
+    assert "  experiment  pusht_kcfm: frames_field, frames_map, kcfm, pusht_kcfm," in train_help  # train's own only
     with pytest.raises(ValueError, match="no command 'nope'; the commands are train, evaluate"):
         usage("nope")
 

@@ -18,6 +18,7 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 COMMANDS = ("train", "evaluate", "collect", "correct", "generate", "serve", "release", "teleop", "verify", "merge")
 _KEY = re.compile(r"^([a-z_][a-z0-9_]*):\s*(.*?)\s+#\s*(.*)$")
 _REQUIRED = re.compile(r"^([a-z_][a-z0-9_]*):\s*\?\?\?")
+_DEFAULT = re.compile(r"^  - ([a-z_][a-z0-9_/]*):\s*([a-z0-9_]+|null)\b")
 HELP_FLAGS = ("-h", "--help")
 
 
@@ -42,6 +43,20 @@ def _keys(path: Path) -> list[tuple[str, str, str]]:
         elif m := _KEY.match(line):
             key, default, comment = m.groups()
             out.append((f"{key}.*", "", comment) if not default else (key, default, comment))
+    return out
+
+
+def _groups(path: Path) -> list[tuple[str, str, list[str]]]:
+    """The config groups a command's defaults list chooses: ``(group, its default, the options installed)``."""
+    out, inside = [], False
+    for line in path.read_text().splitlines():
+        if line.startswith("defaults:"):
+            inside = True
+        elif inside and not line.startswith("  "):
+            break
+        elif inside and (m := _DEFAULT.match(line)) and (CONF / m.group(1)).is_dir():
+            options = sorted(f.stem for f in (CONF / m.group(1)).glob("*.yaml"))
+            out.append((m.group(1), m.group(2), options))
     return out
 
 
@@ -74,7 +89,7 @@ def usage(command: str) -> str:
     if command not in COMMANDS:
         raise ValueError(f"no command {command!r}; the commands are {', '.join(COMMANDS)}")
     path = CONF / f"{command}.yaml"
-    lines = [f"kpflow-{command}: key=value overrides of kpflow/conf/{command}.yaml (Hydra)", ""]
+    lines = [f"kpflow-{command}: key=value overrides of {path} (Hydra)", ""]
     lines += [f"  {line}" for line in _comments(path)]
     if found := experiments(command):
         lines += ["", "experiments (experiment=NAME):"]
@@ -85,9 +100,14 @@ def usage(command: str) -> str:
         shown = [(f"{k}={v}" if v else k, comment) for k, v, comment in keys]
         width = max(len(key) for key, _ in shown)
         lines += [f"  {key:<{width}}  {comment}" for key, comment in shown]
+    groups = [(g, d, [n for n, _ in found] if g == "experiment" and found else o) for g, d, o in _groups(path)]
+    if groups:
+        lines += ["", "config groups (group=OPTION; default, then the options):"]
+        width = max(len(group) for group, _, _ in groups)
+        lines += [f"  {group:<{width}}  {default}: {', '.join(options)}" for group, default, options in groups]
     lines += [
         "",
-        f"the whole composed config: kpflow-{command} [overrides] --cfg job; config groups: docs/reference/cli.md",
+        f"the whole composed config: kpflow-{command} [overrides] --cfg job (--hydra-help: Hydra's own flags)",
     ]
     return "\n".join(lines)
 
