@@ -163,3 +163,18 @@ def test_a_trained_checkpoint_records_the_tasks_layout(tmp_path):
         ValueError, match="the model is sized for 25 keypoints in 3-D .* the task's layout has 25 keypoints in 2-D"
     ):
         record_layout(KCFM(N_KEYPOINTS, keypoint_dim=3, action_dim=2, network=SMALL), layout)
+
+
+def test_an_action_dimension_that_never_changes_comes_out_as_its_constant():
+    """Issue 66: a gripper column constant in the data came out as the network's residual noise around it."""
+    rng = np.random.default_rng(0)
+    keypoints = rng.normal(0.0, 1.0, (64, 4, 3))
+    chunks = np.concatenate([rng.normal(0.0, 0.1, (64, 8, 3)), np.full((64, 8, 1), 0.04)], -1)
+    model = KCFM(4, horizon=8, keypoint_dim=3, action_dim=4, network=SMALL)  # untrained: its outputs are noise
+    model.processor.fit(keypoints, chunks)
+    assert model.processor.action_scale[3] == 0 and model.processor.action_scale[:3].min() > 0
+    sampled = model.sample(keypoints[:5], steps=2, generator=torch.Generator().manual_seed(0))
+    assert torch.all(sampled[..., 3] == torch.tensor(0.04, dtype=torch.float32))
+    assert sampled[..., :3].std() > 0  # the others as sampled
+    x = model.processor.normalise_actions(torch.as_tensor(chunks[:2]))
+    assert torch.isfinite(x).all() and x[..., 3].abs().max() < 1e-6  # (the centre is stored in float32)

@@ -11,7 +11,9 @@ standardised conditions and actions in [-1, 1].
   :class:`~kpflow.data.chunks.TrainingChunks` the data module hands over): keypoints standardised per coordinate,
   ``(k - mu) / sigma`` (a coordinate with ``sigma < 1e-3`` only centred); actions mapped to [-1, 1] per dimension by
   their min/max over every real step of the chunks, ``(a - (hi + lo) / 2) / ((hi - lo) / 2)`` (as in Diffusion
-  Policy). The statistics are buffers, so a checkpoint carries them.
+  Policy). A dimension that never changes in the data (a gripper always open) gets scale 0: the network sees 0 there
+  and the policy returns the constant exactly, never the network's residual noise around it. The statistics are
+  buffers, so a checkpoint carries them.
 - The range check: the box of the training keypoints, per dimension the least ``mu - 3 sigma`` and the largest
   ``mu + 3 sigma``; an observation farther outside it than ``input_margin`` times its extent is refused by name.
 """
@@ -27,7 +29,7 @@ from kpflow.geometry.alignment import fit_affine
 from .frames import check_frames, from_frame, to_frame
 
 _MIN_STD = 1e-3  # a keypoint coordinate with a smaller spread (e.g. a fixed goal) is centred but not scaled
-_MIN_HALF_RANGE = 1e-6  # an action dimension with a smaller range is centred but not scaled
+_MIN_HALF_RANGE = 1e-6  # an action dimension with a smaller half range is a constant: scale 0, returned as its centre
 _BOX_STDS = 3.0  # the box of one keypoint coordinate: its training mean +- this many standard deviations
 #: the processor's buffers (the model's state dict holds them as ``processor.<name>``)
 STATISTICS = ("kp_mean", "kp_std", "action_center", "action_scale", "stats_set")
@@ -109,7 +111,7 @@ class KeypointProcessor(nn.Module):
             self.kp_mean.copy_(flat.mean(0))
             self.kp_std.copy_(torch.where(std < _MIN_STD, torch.ones_like(std), std))
             self.action_center.copy_((hi + lo) / 2)
-            self.action_scale.copy_(torch.where(half < _MIN_HALF_RANGE, torch.ones_like(half), half))
+            self.action_scale.copy_(torch.where(half < _MIN_HALF_RANGE, torch.zeros_like(half), half))
             self.stats_set.fill_(True)
 
     # -------------------------------------------------------------------------------------------- frames
@@ -165,14 +167,17 @@ class KeypointProcessor(nn.Module):
         return ((stats_frame.reshape(b, n, -1) - self.kp_mean.double()) / self.kp_std.double()).reshape(b, -1).float()
 
     def normalise_actions(self, actions: torch.Tensor, frame: Frame | None = None) -> torch.Tensor:
-        """World actions ``[B, H, A]`` to the network's space: into the action ``frame`` (if given), then to [-1, 1]."""
+        """World actions ``[B, H, A]`` to the network's space: into the action ``frame`` (if given), then to [-1, 1]
+        (a constant dimension, scale 0, to 0)."""
         a = actions.to(torch.float64)
         if frame is not None:
             a = to_frame(a, *frame)
-        return ((a - self.action_center.double()) / self.action_scale.double()).float()
+        scale = self.action_scale.double()
+        return ((a - self.action_center.double()) / torch.where(scale == 0, 1.0, scale)).float()
 
     def denormalise_actions(self, x: torch.Tensor, frame: Frame | None = None) -> torch.Tensor:
-        """The inverse of :meth:`normalise_actions`: network-space chunks ``[B, H, A]`` to world actions (float32)."""
+        """The inverse of :meth:`normalise_actions`: network-space chunks ``[B, H, A]`` to world actions (float32); a
+        constant dimension comes out as its constant."""
         a = x.to(torch.float64) * self.action_scale.double() + self.action_center.double()
         if frame is not None:
             a = from_frame(a, *frame)
