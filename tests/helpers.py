@@ -199,3 +199,17 @@ def bare_kcfm(path, *args, **kwargs):
     from kpflow.policies.kcfm.policy import KCFMPolicy
 
     return KCFMPolicy(load_kcfm(path), *args, **kwargs)
+
+
+def random_kcfm_3d(index, n_keypoints: int, horizon: int, n_obs: int):
+    """A small 3-D K-CFM (10-D actions) with random weights (seed 0) and ``index``'s normalisation, in eval mode."""
+    import torch
+
+    from kpflow.policies.kcfm.model import KCFM
+
+    torch.manual_seed(0)
+    model = KCFM(
+        n_keypoints, horizon, n_obs, action_dim=10, keypoint_dim=3, network={"name": "unet", "down_dims": (16, 32)}
+    )
+    model.processor.fit(index.keypoints, index.chunks[:, 0])
+    return model.eval()

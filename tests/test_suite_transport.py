@@ -21,6 +21,7 @@ from kpflow.policies.kcfm.model import KCFM
 from kpflow.policies.kcfm.policy import KCFMPolicy
 from kpflow.policies.transported_kcfm import TransportedKCFMPolicy
 from tests.helpers import cube_corners as _cube
+from tests.helpers import random_kcfm_3d
 from tests.helpers import yaw_matrix as _yaw
 
 H, K = 8, 19
@@ -60,17 +61,7 @@ def index() -> SourceIndex:
 @pytest.fixture(scope="module")
 def model(index) -> KCFM:
     """A 3-D K-CFM with two observation frames, random weights and the data's normalisation."""
-    torch.manual_seed(0)
-    model = KCFM(
-        horizon=H,
-        n_obs=2,
-        n_keypoints=K,
-        keypoint_dim=3,
-        action_dim=10,
-        network={"name": "unet", "down_dims": (16, 32)},
-    ).eval()
-    model.processor.fit(index.keypoints, index.chunks[:, 0])
-    return model
+    return random_kcfm_3d(index, K, H, n_obs=2)
 
 
 def _moved(keypoints: np.ndarray, rot: np.ndarray, shift) -> np.ndarray:
