@@ -44,3 +44,23 @@ def test_the_sweep_reads_runs_into_a_table_and_a_figure(tmp_path):
     assert (tmp_path / "out" / "sweep.png").stat().st_size > 10_000
     with pytest.raises(SystemExit, match="matching finished run folders"):
         main([f"c={tmp_path}/none_*", "--out", str(tmp_path / "out")])
+
+
+def test_the_sweep_figure_keeps_its_legend_off_the_lines(tmp_path, monkeypatch):
+    """The legend sits right of the score panel, outside both axes, so it covers no curve or interval."""
+    import matplotlib.pyplot
+
+    from kpflow.eval import calls_sweep
+
+    figures = []
+    monkeypatch.setattr(calls_sweep, "close", figures.append)
+    for calls, success in ((1, 0.4), (2, 0.6), (4, 0.8)):
+        _run(tmp_path / "runs" / f"a_euler{calls}", calls, "euler", success)
+    rows = [r for f in sorted((tmp_path / "runs").iterdir()) for r in read_run("a", f)]
+    calls_sweep.figure(rows, tmp_path / "sweep.png")
+    (fig,) = figures
+    fig.canvas.draw()
+    success_ax, score_ax = fig.axes
+    legend = score_ax.get_legend()
+    assert success_ax.get_legend() is None and legend.get_window_extent().x0 > score_ax.get_window_extent().x1
+    matplotlib.pyplot.close(fig)

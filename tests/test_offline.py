@@ -4,6 +4,7 @@ recorded actions, and the repeat-the-previous-action baseline exact where it mus
 import json
 
 import lightning
+import matplotlib.pyplot
 import numpy as np
 import pytest
 
@@ -51,3 +52,30 @@ def test_every_must_be_positive(checkpoint_and_data, tmp_path):
     checkpoint, data = checkpoint_and_data
     with pytest.raises(ValueError, match="every must be >= 1"):
         evaluate_offline(tmp_path, 0, str(checkpoint), data, every=0)
+
+
+def test_the_figure_names_the_dimensions_and_ends_the_chunks_at_the_episode_end(tmp_path, monkeypatch):
+    """Titles from the layout (x, y, z and the gripper of a 10-D arm action, the 6-D rotation left out) and no
+    predicted chunk drawn past the episode's last step."""
+    from kpflow.eval import plots
+    from kpflow.eval.offline import action_names, shown_dims
+
+    layout = {"n_keypoints": 4, "keypoint_dim": 3, "action_dim": 10, "rotation": True}
+    names = action_names(10, layout)
+    assert names[:3] == ["x position", "y position", "z position"] and names[-1] == "gripper"
+    assert shown_dims(names) == [0, 1, 2, 9]
+    assert action_names(2, layout=None) == ["action dim 0", "action dim 1"]
+    assert action_names(2, {"keypoint_dim": 2}, columns=["dx", "dy"]) == ["dx", "dy"]  # the dataset's own names
+    figures = []
+    monkeypatch.setattr(plots, "close", figures.append)
+    recorded = np.zeros((30, 10))
+    path = plots.offline_figure(tmp_path / "offline.png", recorded, [0, 20, 28], [np.ones((8, 10))] * 3, 5,
+                                names=names, dims=shown_dims(names))  # fmt: skip
+    assert path.is_file()
+    (fig,) = figures
+    assert [ax.get_title() for ax in fig.axes] == ["x position", "y position", "z position", "gripper"]
+    for ax in fig.axes:
+        recorded_line, *chunks = ax.get_lines()
+        assert len(recorded_line.get_xdata()) == 30 and len(chunks) == 3
+        assert max(line.get_xdata()[-1] for line in chunks) == 29  # the episode's last step, not 28 + 7
+    matplotlib.pyplot.close(fig)

@@ -79,3 +79,28 @@ def test_demo_transport_trial_needs_a_keypoint_source_and_a_map():
         DemoTransportTrial(task, PackingReport(), {})
     with pytest.raises(ValueError, match="reserved"):
         DemoTransportTrial(task, PackingReport(), {"gp": GPMap}, backbones={"oracle": object()})
+
+
+def test_the_success_figure_keeps_its_legends_off_the_bars(tmp_path, monkeypatch):
+    """success.png's legends sit under the axes (they cover no bar) and its tick labels are readable."""
+    from types import SimpleNamespace
+
+    import matplotlib.pyplot
+
+    from kpflow.core.task import TrialResult
+    from kpflow.eval import plots
+
+    figures = []
+    monkeypatch.setattr(plots, "close", figures.append)
+    scores = lambda c: {"success_085": c >= 0.85, "steps_085": 90, "steps_095": 120, "final_coverage": c,  # noqa: E731
+                        "max_coverage": c, "latency_ms": 1.0}  # fmt: skip
+    trials = [TrialResult(split, i, {}, {}, c >= 0.95, None, scores(c))
+              for split in ("in_distribution", "robot_ood") for i, c in enumerate((0.2, 0.9, 0.97, 1.0))]  # fmt: skip
+    assert PushTReport().figures(tmp_path, SimpleNamespace(policy_name="p"), trials, []) == ["success.png"]
+    (fig,) = figures
+    fig.canvas.draw()
+    for ax in fig.axes:
+        legend = ax.get_legend().get_window_extent()
+        assert legend.y1 < ax.get_window_extent().y0  # below the axes
+        assert min(label.get_fontsize() for label in ax.get_xticklabels() + ax.get_yticklabels()) >= 9
+    matplotlib.pyplot.close(fig)

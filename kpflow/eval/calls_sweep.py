@@ -114,9 +114,13 @@ def figure(rows: list[SweepRow], path: str | Path) -> Path:
         for ax, what in zip(row_axes, ("success @0.95 (%)", "score")):
             ax.set_aspect("auto")
             ax.set_xscale("log", base=2)
-            ax.set(xlabel="network calls per chunk", ylabel=what, title=f"{condition}: {what}")
+            ax.set_xlabel("network calls per chunk", fontsize=10)
+            ax.set_ylabel(what, fontsize=10)
+            ax.set_title(f"{condition}: {what}", fontsize=11)
+            ax.tick_params(labelsize=9)
             ax.grid(alpha=0.3)
-        row_axes[0].legend(fontsize=6)
+        # right of the row's score panel, outside both axes: it covers no line or interval
+        row_axes[1].legend(loc="upper left", bbox_to_anchor=(1.03, 1.0), fontsize=8, frameon=False)
     save_figure(fig, path, dpi=110, bbox_inches="tight")
     close(fig)
     return Path(path)

@@ -14,6 +14,7 @@ actions.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 from tqdm import tqdm
@@ -26,6 +27,36 @@ def _errors(chunk: np.ndarray, recorded: np.ndarray, mask: np.ndarray) -> tuple[
     n = min(len(chunk), int(mask.sum()))
     gaps = np.linalg.norm(chunk[:n] - recorded[:n], axis=-1)
     return float(gaps[0]), float(gaps.mean())
+
+
+def action_names(width: int, layout: Mapping | None = None, columns: list | None = None) -> list[str]:
+    """A name per action dimension for the figure: the dataset's own column names when it has one per dimension
+    (a LeRobot dataset's ``features.action.names``), else the layout's (:class:`~kpflow.core.policy.PolicyLayout`'s
+    record: ``x, y(, z) position``, ``rotation 0..5`` when it has one, then ``gripper``), else ``action dim i``."""
+    if columns is not None and len(columns) == width and all(isinstance(c, str) and c for c in columns):
+        return list(columns)
+    if layout is None:
+        return [f"action dim {d}" for d in range(width)]
+    position = [f"{axis} position" for axis in "xyz"[: int(layout["keypoint_dim"])]]
+    rotation = [f"rotation {i} (6-D)" for i in range(6)] if layout.get("rotation") else []
+    rest = width - len(position) - len(rotation)
+    return position + rotation + (["gripper"] if rest == 1 else [f"gripper {i}" for i in range(max(rest, 0))])
+
+
+def shown_dims(names: list[str], limit: int = 4) -> list[int]:
+    """The action dimensions the figure draws: at most ``limit``, the 6-D rotation's values last (x, y, z and the
+    gripper of a robot arm's 10)."""
+    order = sorted(range(len(names)), key=lambda d: names[d].startswith("rotation "))
+    return sorted(order[:limit])
+
+
+def _column_names(data: ChunkDataModule) -> list | None:
+    """The action column names a LeRobot dataset declares (None for an episode store: it names fields only)."""
+    from kpflow.data.lerobot_dataset import feature_name, flat_names, is_lerobot, read_info
+
+    if not is_lerobot(data.path):
+        return None
+    return flat_names(read_info(data.path)["features"].get(feature_name(data.action_key), {}).get("names"))
 
 
 def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: ChunkDataModule, steps: int | None = None,
@@ -87,8 +118,11 @@ def evaluate_offline(output_dir: str | Path, seed: int, checkpoint: str, data: C
     )
     shown = rows[0][0]  # the first held-out episode, plotted with every decision taken in it
     picked = [i for i, row in enumerate(rows) if row[0] == shown]
-    figure = offline_figure(out / "offline.png", held_out.episode_actions(shown), [rows[i][1] for i in picked],
-                            [chunks[i] for i in picked], shown)  # fmt: skip
+    recorded = held_out.episode_actions(shown)
+    config = getattr(policy.model, "policy_config", None)
+    names = action_names(recorded.shape[1], getattr(config, "layout", None), _column_names(data))
+    figure = offline_figure(out / "offline.png", recorded, [rows[i][1] for i in picked], [chunks[i] for i in picked],
+                            shown, names=names, dims=shown_dims(names))  # fmt: skip
     write_json(
         out / "results.json",
         {

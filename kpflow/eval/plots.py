@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import matplotlib
 
@@ -87,21 +88,42 @@ def draw_matches(
 
 
 def offline_figure(
-    path: Path, recorded: np.ndarray, steps: list[int], predicted: list[np.ndarray], episode: int
+    path: Path,
+    recorded: np.ndarray,
+    steps: list[int],
+    predicted: list[np.ndarray],
+    episode: int,
+    names: Sequence[str] | None = None,
+    dims: Sequence[int] | None = None,
 ) -> Path:
-    """One held-out episode's recorded actions (a line per action dimension, at most 4) and each predicted chunk
-    drawn from the step it was asked at (the offline check, :mod:`kpflow.eval.offline`)."""
-    dims = min(recorded.shape[1], 4)
-    fig, axes = new_figure(1, dims)
-    for d, ax in enumerate(axes.flat):
-        ax.set_aspect("auto")
+    """One held-out episode's recorded actions (a panel per action dimension, at most 4) and each predicted chunk
+    drawn from the step it was asked at, cut at the episode's last step (the offline check,
+    :mod:`kpflow.eval.offline`).
+
+    ``names``: one per action dimension (the panels' titles; default ``action dim i``); ``dims``: the
+    dimensions drawn (default the first 4)."""
+    length, width = recorded.shape
+    names = [f"action dim {d}" for d in range(width)] if names is None else list(names)
+    if len(names) != width:
+        raise ValueError(f"{len(names)} names for actions of {width} values: {names}")
+    dims = list(range(min(width, 4)) if dims is None else dims)
+    fig, axes = plt.subplots(1, len(dims), figsize=(3.6 * len(dims), 3.2), squeeze=False)
+    for d, ax in zip(dims, axes.flat):
         ax.plot(recorded[:, d], color="black", lw=1.5, label="recorded")
         for i, (t, chunk) in enumerate(zip(steps, predicted)):
-            ax.plot(
-                range(t, t + len(chunk)), chunk[:, d], color="tab:orange", lw=1, label="predicted" if i == 0 else None
-            )
-        ax.set(title=f"episode {episode}: action {d}", xlabel="step")
-    axes.flat[0].legend(fontsize=7)
+            shown = chunk[: max(length - t, 0)]  # a chunk asked near the end runs past it: drawn up to the last step
+            ax.plot(range(t, t + len(shown)), shown[:, d], color="tab:orange", lw=1,
+                    label="predicted chunks" if i == 0 else None)  # fmt: skip
+        ax.set_xlim(0, max(length - 1, 1))
+        ax.set_title(names[d], fontsize=11)
+        ax.set_xlabel("step in the episode", fontsize=10)
+        ax.set_ylabel("action value", fontsize=10)
+        ax.tick_params(labelsize=9)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"held-out episode {episode}: recorded and predicted actions", fontsize=12)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=9, frameon=False, bbox_to_anchor=(0.5, -0.02))
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     fig.savefig(path, dpi=100, bbox_inches="tight")
     close(fig)
     return Path(path)

@@ -116,9 +116,14 @@ axes[1].plot(*moved.positions.T, "tab:green", label="ILWR")
 axes[1].plot(*gp_moved.positions.T, "tab:orange", label="GP mean")
 for sample in gp_moved.samples:  # [20, 200, 2]: 20 maps drawn from the GP's posterior
     axes[1].plot(*sample.T, color="tab:orange", alpha=0.3, lw=0.6)
-lower, upper = gp_moved.band(2.0)  # the 2-sigma band of each coordinate, drawn as boxes
-for lo, hi in zip(lower[::10], upper[::10]):
-    axes[1].add_patch(plt.Rectangle(lo.tolist(), *(hi - lo).tolist(), color="tab:orange", alpha=0.08, lw=0))
+# the GP's 2-sigma band: the region inside some path point's 2-sigma ellipse (semi-axes 2 std of each coordinate),
+# the level 1 of its smallest normalised distance to the path, drawn as one smooth filled contour
+gx, gy = torch.meshgrid(torch.linspace(-0.6, 4.6, 260), torch.linspace(-1.0, 1.7, 140), indexing="xy")
+grid = torch.stack([gx, gy], -1).reshape(-1, 1, 2)  # [G, 1, 2]
+reach = ((grid - gp_moved.positions) / (2.0 * gp_moved.std)).norm(dim=-1).min(dim=1).values  # [G]
+axes[1].contourf(gx, gy, reach.reshape(gx.shape), levels=[0.0, 1.0], colors="tab:orange", alpha=0.18)
+axes[1].contour(gx, gy, reach.reshape(gx.shape), levels=[1.0], colors="tab:orange", linewidths=0.8, alpha=0.6)
+axes[1].plot([], [], color="tab:orange", lw=6, alpha=0.25, label="GP 2-sigma band")  # the band's legend entry
 axes[1].scatter(*target.T, c="tab:red", label="target keypoints")
 for ax, x, r in ((axes[0], positions, orientations), (axes[1], moved.positions, moved.orientations)):
     ax.quiver(
@@ -127,8 +132,10 @@ for ax, x, r in ((axes[0], positions, orientations), (axes[1], moved.positions, 
 for ax, title in zip(axes, ("demonstrated scene", "new scene")):
     ax.set_title(title)
     ax.set_aspect("equal")
-    ax.legend(loc="upper left", fontsize=8)
+    ax.set_xlabel("x (scene units; a box is 0.6 wide)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+axes[0].set_ylabel("y (scene units)")
 fig.tight_layout()
-fig.savefig("transport_trajectory.png", dpi=120)
+fig.savefig("transport_trajectory.png", dpi=120, bbox_inches="tight")
 print("wrote transport_trajectory.png")
 # --8<-- [end:plot]

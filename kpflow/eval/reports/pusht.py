@@ -69,10 +69,11 @@ class PushTReport:
         episode's maximum coverage."""
         splits = list(dict.fromkeys(t.condition for t in trials))
         summaries = {p: self.summarise([t for t in trials if t.condition == p]) for p in splits}
-        fig, axes = plots.new_figure(1, 2, size=4.0)
+        fig, axes = plots.new_figure(1, 2, size=4.4)
         ax, bx = axes[0]
         for a in (ax, bx):
             a.set_aspect("auto")
+            a.tick_params(labelsize=10)
         x = np.arange(len(splits))
         for offset, th in ((-0.18, "085"), (0.18, "095")):
             rate = np.array([summaries[p][f"success_{th}"] for p in splits])
@@ -81,9 +82,9 @@ class PushTReport:
             ax.errorbar(x + offset, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt="none", ecolor="k", capsize=3)
         ax.set_xticks(x, [p.replace("_", "\n") for p in splits])
         ax.set_ylim(0, 105)
-        ax.set_ylabel("success (%) with 95% CI")
-        ax.set_title(trial.policy_name)
-        ax.legend(loc="lower left")
+        ax.set_ylabel("success (%) with 95% CI", fontsize=11)
+        ax.set_title(trial.policy_name, fontsize=12)
+        ax.grid(axis="y", alpha=0.3)
         for p in splits:
             bx.hist(
                 [t.scores["max_coverage"] for t in trials if t.condition == p],
@@ -92,9 +93,13 @@ class PushTReport:
                 alpha=0.6,
                 label=p,
             )
-        bx.set_xlabel("max coverage in the episode")
-        bx.set_ylabel("episodes")
-        bx.legend(loc="upper left")
-        save_figure(fig, out / "success.png", dpi=110)
+        bx.set_xlabel("max coverage in the episode", fontsize=11)
+        bx.set_ylabel("episodes", fontsize=11)
+        bx.set_title("max coverage per episode", fontsize=12)
+        # the legends under the axes, where they cover no bar whatever the rates and coverages
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, fontsize=10, frameon=False)
+        bx.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=min(len(splits), 3), fontsize=10, frameon=False)
+        fig.tight_layout()
+        save_figure(fig, out / "success.png", dpi=110, bbox_inches="tight")
         plots.close(fig)
         return ["success.png"]
