@@ -63,10 +63,12 @@ def tiny(tmp_path_factory):
     lightning.seed_everything(0, verbose=False)
     trainer = lightning.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False, default_root_dir=root,
                                 enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)  # fmt: skip
-    trainer.fit(
+    model, data = (
         KCFM(N_KEYPOINTS, horizon=H),
-        datamodule=ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
+        ChunkDataModule(root / "demos.zarr", horizon=H, batch_size=64, val_fraction=0.0),
     )
+    model.fit_processor(data.training_chunks())
+    trainer.fit(model, datamodule=data)
     good = root / "good" / "kcfm.ckpt"
     good.parent.mkdir()
     trainer.save_checkpoint(good)
