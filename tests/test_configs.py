@@ -46,7 +46,6 @@ ENTRIES = {
     "model/objective": dict.fromkeys(["icfm", "otcfm", "ddpm", "meanflow", "reflow"], "train"),
     "policy": dict.fromkeys(["nearest", "transport", "kcfm", "transported_kcfm"], "evaluate"),
     "keypoints": dict.fromkeys(["sim", "camera", "camera_clean"], "generate"),
-    "source_search": dict.fromkeys(["default", "pusht"], "evaluate"),
     "task": {
         **dict.fromkeys(["frames", "pusht", "packing", "stacking"], "evaluate"),
         **dict.fromkeys(["lift", "stack", "can", "square"], "generate"),
@@ -203,19 +202,17 @@ def test_policy_options_build_policies_that_act(name, store, tmp_path):
     assert chunk.ndim == 2 and chunk.shape[1] == 2 and torch.isfinite(torch.as_tensor(chunk)).all()
 
 
-@pytest.mark.parametrize("name", sorted(ENTRIES["source_search"]))
-def test_source_search_options_reach_the_transporting_policy(name, store, tmp_path):
-    from kpflow.policies.source_search import SourceSearch
-
+@pytest.mark.parametrize("search, stuck", [(None, 5), ("{stuck_decisions: false}", None), ("{stuck_decisions: 3}", 3)])
+def test_the_source_search_is_the_tasks_unless_the_policy_says(search, stuck, store, tmp_path):
+    """``policy.search`` unset: Push-T's own search (a stuck block after 5 decisions, compared relative to the block);
+    given: its options over the task's, ``false`` turning stuck detection off."""
+    given = [] if search is None else [f"policy.search={search}"]
     cfg = compose_config(
-        "evaluate",
-        [f"source_search={name}", "policy=transport", "data=pusht_store", f"data.path={store}", "logger=none"],
-        tmp_path,
+        "evaluate", ["policy=transport", "data=pusht_store", f"data.path={store}", "logger=none", *given], tmp_path
     )
-    search = SourceSearch.of(cfg.source_search)
     policy = instantiate(cfg.policy)
-    assert policy.source.stuck_decisions == search.stuck_decisions == (5 if name == "pusht" else None)
-    assert search.frame == "objects" and policy.index.reference == list(PushTTask.policy_layout.indices("objects"))
+    assert policy.source.stuck_decisions == stuck
+    assert policy.index.reference == list(PushTTask.policy_layout.indices("objects"))
 
 
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "evaluate"))

@@ -80,7 +80,7 @@ def test_an_option_the_mode_ignores_is_refused_by_name(given, stored, match):
         ({"pull_back": "hand"}, "pull_back must be one of"),
         ({"map": "os.system"}, "must name a file of kpflow/conf/map"),
         ({"map_options": {"_target_": "os.system"}}, r"\['_target_'\] are refused"),
-        ({"search": {"nearest": 3}}, "source_search has no option nearest"),
+        ({"search": {"nearest": 3}}, "the source search has no option nearest"),
         ({"alternatives": 0}, "alternatives must be an integer >= 1"),
         ({"segments": "yes"}, "segments must be true or false"),
     ],

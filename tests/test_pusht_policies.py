@@ -353,9 +353,9 @@ def test_clipped_transport_starts_from_the_robot_keypoint_of_the_observation():
 
 
 def test_one_source_search_reaches_every_transporting_policy(demos):
-    """``source_search.<key>=`` composes the search options into nearest neighbour and policy transportation, and a
-    served (or evaluated) transported K-CFM's ``transport.search`` takes the same options, checked as one options
-    object."""
+    """``policy.search=`` gives the search options to nearest neighbour and policy transportation over the task's
+    defaults (Push-T: a stuck block after 5 decisions; weights layered group by group), and a served (or evaluated)
+    transported K-CFM's ``transport.search`` takes the same options, checked as one options object."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_dir
@@ -364,8 +364,8 @@ def test_one_source_search_reaches_every_transporting_policy(demos):
     from kpflow.policies.source_search import SourceSearch
 
     conf = str(Path(__file__).resolve().parents[1] / "kpflow" / "conf")
-    overrides = ["data=pusht_store", f"data.path={demos.path}", "logger=none", "source_search.candidates=5",
-                 "source_search.weights.robot=2.0", "source_search.frame=world"]  # fmt: skip
+    overrides = ["data=pusht_store", f"data.path={demos.path}", "logger=none",
+                 "policy.search={candidates: 5, weights: {robot: 2.0}, frame: world}"]  # fmt: skip
     with initialize_config_dir(conf, version_base="1.3"):
         transport = instantiate(compose("evaluate", overrides=[*overrides, "policy=transport"]).policy)
         nearest = instantiate(compose("evaluate", overrides=[*overrides, "policy=nearest"]).policy)
@@ -374,13 +374,24 @@ def test_one_source_search_reaches_every_transporting_policy(demos):
     assert transport.index.reference is None and nearest.index.reference is None  # frame=world
     agent = list(PushTTask.policy_layout.indices("robot"))
     assert transport.index.weights[agent].tolist() == nearest.index.weights[agent].tolist() == [2.0]
+    block = list(PushTTask.policy_layout.indices("objects"))
+    assert set(transport.index.weights[block].tolist()) == {1.0}  # the other groups' weights: the defaults'
+    never = compose_evaluate(conf, [*overrides[:3], "policy=transport", "policy.search={stuck_decisions: false}"])
+    assert instantiate(never.policy).source.stuck_decisions is None  # false: never, over the task's 5
     assert (
         SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None
     )  # the rest: the checkpoint's
-    with pytest.raises(ValueError, match="source_search has no option canidates; its options are candidates, frame"):
+    with pytest.raises(ValueError, match="the source search has no option canidates; its options are candidates, frame"):
         SourceSearch.of({"canidates": 3})
     with pytest.raises(ValueError, match="temperature must be a positive number"):
         TransportPolicy(demos_index(demos), layout=PUSHT, **SourceSearch(temperature=0.0).choice())
+
+
+def compose_evaluate(conf: str, overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(conf, version_base="1.3"):
+        return compose("evaluate", overrides=overrides)
 
 
 def demos_index(store) -> SourceIndex:

@@ -281,7 +281,7 @@ def test_transported_policy_is_served_with_its_source_index(tiny_run):
         client.reset(1), local.reset(1)
         np.testing.assert_array_equal(client.act(obs), local.act(obs))
     # the evaluated configuration (kpflow/conf/policy/transported_kcfm.yaml): map on the block and the agent, stuck detection
-    # and kpflow-evaluate's source search (conf/source_search/pusht.yaml's weights and frame, a stuck block after 2)
+    # and the default search's weights and frame, a stuck block after 2
     fit_on, search = (
         [*range(12), 24],
         SourceSearch({"objects": 1.0, "goals": 1.0, "robot": 4.0}, "objects", stuck_decisions=2),

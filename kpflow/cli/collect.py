@@ -16,6 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from kpflow.cli.spellings import old_spellings_read
 from kpflow.core.task import GymTask
 from kpflow.tasks.collection import collect_gym_episodes
 from kpflow.tasks.pusht.collection import collect_pusht
@@ -40,6 +41,7 @@ KEYS = {
 }
 
 
+@old_spellings_read
 @config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="collect")
 @command

@@ -21,6 +21,7 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from kpflow.cli.spellings import old_spellings_read
 from kpflow.data.episode_store import LOCK_NAME, EpisodeStore
 from kpflow.eval import plots
 from kpflow.eval.policy_trial import PolicyTrial
@@ -106,6 +107,7 @@ def _plot(reports: list[dict], start_steps: int, evals: list[dict | None], path:
     plots.close(fig)
 
 
+@old_spellings_read
 @config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="correct")
 @command

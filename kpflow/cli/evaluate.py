@@ -17,6 +17,7 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from kpflow.cli.spellings import old_spellings_read
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import abandon_run, log_metrics, make_loggers, start_run, write_config
@@ -78,6 +79,7 @@ def record_used(cfg: DictConfig, results: dict) -> None:
             cfg.experiment.trial.max_steps = int(limits)
 
 
+@old_spellings_read
 @config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
 @command

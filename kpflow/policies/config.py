@@ -105,7 +105,7 @@ class TransportConfig:
         if self.search is not None:
             from .source_search import SourceSearch
 
-            search = _plain("transport.search", dict(self.search))
+            search = _set_search(_plain("transport.search", dict(self.search)))
             SourceSearch.of(search)  # refuses an unknown option, naming the known ones
             object.__setattr__(self, "search", search)
         if self.alternatives is not None and (
@@ -138,7 +138,7 @@ class TransportConfig:
     def on(self, lower: TransportConfig) -> TransportConfig:
         """This config's options where set, else ``lower``'s; the search's option by option."""
         merged = {**lower.record(), **self.record()}
-        search = {**(lower.search or {}), **{k: v for k, v in (self.search or {}).items() if v is not None}}
+        search = merge_search(lower.search, self.search)
         return TransportConfig(**{k: v for k, v in merged.items() if k != "search"}, search=search or None)
 
     def over(self, *lower: TransportConfig, defaults: Mapping | None = None) -> TransportConfig:
@@ -156,11 +156,9 @@ class TransportConfig:
         )
         given.check_used(segments, arm)
         resolved = {**DEFAULTS, **_used(task, segments, arm), **given.record(), "segments": segments, "arm": arm}
-        resolved["search"] = {
-            **_used_search(DEFAULTS["search"], segments),
-            **_used_search(task.search or {}, segments),
-            **(given.search or {}),
-        }
+        resolved["search"] = merge_search(
+            _used_search(DEFAULTS["search"], segments), _used_search(task.search or {}, segments), given.search
+        )
         if segments:
             resolved["fit_on"] = "all"  # each phase's own (unused)
         return TransportConfig(**resolved)
@@ -193,6 +191,30 @@ class TransportConfig:
             raise ValueError(
                 f"the transport ignores {', '.join(ignored)} ({why}): drop {'it' if len(ignored) == 1 else 'them'}"
             )
+
+
+def _set_search(search: Mapping) -> dict:
+    """The search options that are set: None entries (and None keypoint weights) dropped, ``weights`` left out when
+    none is set."""
+    out = {k: v for k, v in search.items() if v is not None}
+    if isinstance(out.get("weights"), Mapping):
+        out["weights"] = {k: w for k, w in out["weights"].items() if w is not None}
+        if not out["weights"]:
+            del out["weights"]
+    return out
+
+
+def merge_search(*layers: Mapping | None) -> dict:
+    """Source search options layered lowest first (:class:`~.source_search.SourceSearch`'s keys): each layer's set
+    options over the ones below, ``weights`` group by group (``{robot: 16}`` over ``{objects: 1, robot: 4}`` is
+    ``{objects: 1, robot: 16}``; a later name wins where a group and a role name the same keypoints)."""
+    out: dict = {}
+    for layer in layers:
+        layer = _set_search(layer or {})
+        if "weights" in layer:
+            layer["weights"] = {**dict(out.get("weights") or {}), **dict(layer["weights"])}
+        out.update(layer)
+    return out
 
 
 def _used_search(search: Mapping, segments: bool | None) -> dict:

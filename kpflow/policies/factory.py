@@ -6,7 +6,7 @@ functions Hydra instantiates) for ``evaluate`` and ``correct``; a policy in a ch
 What is task-specific comes from the task's :class:`~.base.PolicyLayout`: the keypoints' dimension, their named
 groups and roles (``objects``, ``goals``, ``robot``) and whether actions carry a rotation. Options that name
 keypoints take group or role names: the source search's ``weights`` and ``frame`` (:class:`~.source_search.SourceSearch`,
-one options object for every transporting policy) and ``fit_on`` (the keypoints a map is fitted on, or ``all``). Push-T's groups are ``block``,
+one options object for every transporting policy, ``policy.search``) and ``fit_on`` (the keypoints a map is fitted on, or ``all``). Push-T's groups are ``block``,
 ``goal``, ``agent``; a robosuite task's are its object, its target and ``gripper``.
 """
 
@@ -131,11 +131,25 @@ def make_transported_kcfm(model, index: SourceIndex, layout: PolicyLayout, make_
     return within_reach(policy, layout, limits.reach, limits.turn_deg)
 
 
+def resolved_search(layout: PolicyLayout, search: Mapping | None = None, fit_on: str | Sequence[str] | None = None):
+    """``(SourceSearch, fit_on)`` of a transporting policy without phases: the options given, else the task's
+    defaults (``layout.transport``), else the built-in ones (:meth:`~.config.TransportConfig.over`, the same
+    layering as a transported K-CFM's)."""
+    from .config import TransportConfig
+
+    if isinstance(search, SourceSearch):
+        search = {k: v for k, v in vars(search).items()}
+    given = TransportConfig.of({"segments": False, "fit_on": fit_on, "search": search}, "policy")
+    resolved = given.over(defaults=layout.transport)
+    return SourceSearch.of(resolved.search), resolved.fit_on
+
+
 def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, search: SourceSearch | Mapping | None = None,
             relative: bool = False):  # fmt: skip
-    """Nearest neighbour over the demonstrations (:class:`~.nearest.NearestNeighbourPolicy`), compared with
-    ``search``'s weights and frame (its choice unused: the nearest)."""
-    index = SourceSearch.of(search).index(_built(demos), layout_of(task), horizon)
+    """Nearest neighbour over the demonstrations (:class:`~.nearest.NearestNeighbourPolicy`), compared with the
+    weights and frame of ``search`` (:func:`resolved_search`; its choice unused: the nearest)."""
+    layout = layout_of(task)
+    index = resolved_search(layout, search)[0].index(_built(demos), layout, horizon)
     return NearestNeighbourPolicy(index, execute, relative)
 
 
@@ -144,10 +158,11 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
               max_step: float | None = None):  # fmt: skip
     """Policy transportation (:class:`~.chunk_transport.TransportPolicy`) over the demonstrations' index, its source
     found as ``search`` says (:class:`~.source_search.SourceSearch`), its map fitted on ``fit_on``, each executed
-    step clipped to ``max_step``. ``make_map`` None: ILWR (``kpflow/conf/map/ilwr.yaml``); ``fit_on`` None: the task's default (``PolicyLayout.transport``, else all). A
+    step clipped to ``max_step``. ``make_map`` None: ILWR (``kpflow/conf/map/ilwr.yaml``); ``search`` and ``fit_on``
+    not given: the task's defaults (``PolicyLayout.transport``), else the built-in ones (:func:`resolved_search`). A
     learned map is read now and checked against the keypoints it is fitted on."""
-    layout, search = layout_of(task), SourceSearch.of(search)
-    fit_on = layout.transport.get("fit_on", "all") if fit_on is None else fit_on
+    layout = layout_of(task)
+    search, fit_on = resolved_search(layout, search, fit_on)
     if make_map is None:
         from .config import map_factory
 

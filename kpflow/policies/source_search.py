@@ -1,5 +1,8 @@
 """How a transporting policy finds its source: one options object for nearest neighbour, policy transportation and the
-transported K-CFM (``source_search=`` on the command line, ``kpflow/conf/source_search/*.yaml``).
+transported K-CFM (``policy.search={candidates: 5}`` on the command line, ``policy.transport.search`` for a transported
+K-CFM, ``transport.search`` for ``kpflow-serve``). An option not given is the task's (``PolicyLayout.transport``:
+Push-T detects a stuck block), else :data:`~.config.DEFAULTS`'s (:meth:`~.config.TransportConfig.over`); keypoint
+weights are layered group by group.
 
 A source is a demonstrated configuration ``S`` of the :class:`~kpflow.data.source_index.SourceIndex` near the
 observed one. The index compares configurations by a weighted distance over keypoint groups (``weights``: group or
@@ -7,7 +10,8 @@ role -> weight, e.g. ``{objects: 1, goals: 1, robot: 4}``) relative to ``frame``
 configurations are aligned on, or ``world``: as they are). The source is then chosen among the nearest
 (:class:`~.source_choice.SourceChoice`): the nearest with ``candidates = 1``, else drawn among the ``candidates``
 nearest with rank weights ``exp(-rank / temperature)``; after ``stuck_decisions`` decisions over which the object
-moved less than ``stuck_distance``, drawn uniformly among ``stuck_candidates`` nearest.
+moved less than ``stuck_distance``, drawn uniformly among ``stuck_candidates`` nearest (``stuck_decisions: false``:
+never, whatever the task's default; ``null`` means not given here).
 """
 
 from __future__ import annotations
@@ -35,6 +39,12 @@ class SourceSearch:
     stuck_distance: float = 2.0
     stuck_candidates: int = 50
 
+    def __post_init__(self) -> None:
+        if self.stuck_decisions is False:  # "never", said where a null would mean "the task's default"
+            object.__setattr__(self, "stuck_decisions", None)
+        elif self.stuck_decisions is True:
+            raise ValueError("stuck_decisions must be a number of decisions >= 1, or false (never); got true")
+
     @classmethod
     def of(cls, search: SourceSearch | Mapping | None) -> SourceSearch:
         """``search`` as options: None for the defaults, a mapping (a config node) of some of the fields (an unknown
@@ -45,13 +55,13 @@ class SourceSearch:
             return search
         if not isinstance(search, Mapping):
             raise ValueError(
-                f"source_search must be a mapping of {[f.name for f in fields(cls)]}, got {type(search).__name__}"
+                f"the source search must be a mapping of {[f.name for f in fields(cls)]}, got {type(search).__name__}"
             )
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(search) - known)
         if unknown:
             raise ValueError(
-                f"source_search has no option {', '.join(unknown)}; its options are {', '.join(sorted(known))}"
+                f"the source search has no option {', '.join(unknown)}; its options are {', '.join(sorted(known))}"
             )
         values = dict(search)
         if values.get("weights") is not None:
