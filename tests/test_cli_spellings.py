@@ -6,7 +6,9 @@ from kpflow.cli.spellings import new_spelling
 
 
 def test_the_old_search_group_is_read_as_the_policys_search():
-    args, notes = new_spelling(["policy=transport", "source_search.candidates=5", "source_search.weights.agent=16", "seed=1"])
+    args, notes = new_spelling(
+        ["policy=transport", "source_search.candidates=5", "source_search.weights.agent=16", "seed=1"]
+    )
     assert args == ["policy=transport", "++policy.search.candidates=5", "++policy.search.weights.agent=16", "seed=1"]
     assert len(notes) == 2 and "old spelling of ++policy.search.candidates=5" in notes[0]
 

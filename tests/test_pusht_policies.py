@@ -381,7 +381,9 @@ def test_one_source_search_reaches_every_transporting_policy(demos):
     assert (
         SourceSearch.of(served).candidates == 5 and SourceSearch.of(served).stuck_decisions is None
     )  # the rest: the checkpoint's
-    with pytest.raises(ValueError, match="the source search has no option canidates; its options are candidates, frame"):
+    with pytest.raises(
+        ValueError, match="the source search has no option canidates; its options are candidates, frame"
+    ):
         SourceSearch.of({"canidates": 3})
     with pytest.raises(ValueError, match="temperature must be a positive number"):
         TransportPolicy(demos_index(demos), layout=PUSHT, **SourceSearch(temperature=0.0).choice())
