@@ -146,3 +146,24 @@ def test_correct_cli_grows_a_copy_of_the_demonstrations(tmp_path):
     assert "| 1 | 2 |" in (run / "rounds.md").read_text() and (run / "rounds.png").stat().st_size > 0
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     assert cfg["policy"]["_target_"] == "kpflow.policies.factory.nearest" and cfg["rounds"] == 2
+
+
+def test_an_evaluation_builds_its_task_once(tmp_path):
+    """Every ``${task}`` of the experiment and the policy is the one task object (it was built once per mention),
+    and the config written keeps the task's config."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.utils import instantiate
+
+    from kpflow.cli.evaluate import with_task_built
+    from kpflow.tasks.pusht.task import PushTTask
+
+    with initialize_config_module("kpflow.conf", version_base="1.3"):
+        cfg = compose("evaluate", return_hydra_config=True, overrides=["policy=kcfm", "checkpoint=release:pusht_standard_fast",
+                      "logger=none", f"output_dir={tmp_path}"])  # fmt: skip
+    HydraConfig.instance().set_config(cfg)
+    built, task = with_task_built(cfg)
+    assert isinstance(task, PushTTask) and built.experiment.trial.task is task and built.policy.task is task
+    assert cfg.task._target_ == "kpflow.tasks.pusht.task.PushTTask"  # the run's own config is left as it was
+    run = instantiate(built.experiment)  # run_trials with its trial, the policy built for the same task
+    assert run.keywords["trial"].task is task

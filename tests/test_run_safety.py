@@ -24,7 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def entry_keys():
     from kpflow.cli import collect, correct, evaluate, train
 
-    return {"evaluate": evaluate.keys_of, "train": train.KEYS, "collect": collect.KEYS, "correct": correct.KEYS}
+    return {
+        "evaluate": lambda cfg: evaluate.keys_of(evaluate.with_task_built(cfg)[1]),
+        "train": train.KEYS,
+        "collect": collect.KEYS,
+        "correct": correct.KEYS,
+    }
 
 
 BAD = [

@@ -11,6 +11,7 @@ checkpoint's own settings, :mod:`kpflow.policies.settings`) and the step limit.
 The run folder is the run's alone: a second run into a folder another live run holds is refused at once
 (:func:`~kpflow.utils.run.claim_run_folder`)."""
 
+import copy
 import logging
 
 import hydra
@@ -32,10 +33,24 @@ KEYS = {
 }
 
 
-def keys_of(cfg: DictConfig) -> dict:
+def keys_of(task) -> dict:
     """:data:`KEYS`, with ``condition`` one of the conditions the run's task declares (``task.conditions``) or ``all``."""
-    conditions = getattr(instantiate(cfg.task), "conditions", None) if cfg.get("task") is not None else None
+    conditions = getattr(task, "conditions", None)
     return {**KEYS, "condition": Key(str, choices=(*conditions, "all"))} if conditions else KEYS
+
+
+def with_task_built(cfg: DictConfig) -> tuple[DictConfig, object]:
+    """``(config, task)``: the run's task built once and a copy of ``cfg`` whose ``task`` is that object, so that
+    every ``${task}`` of the experiment and the policy is the same task (it was built once per mention); ``cfg``
+    itself keeps the task's config, for ``config.yaml``. Without a task: ``(cfg, None)``."""
+    if cfg.get("task") is None:
+        return cfg, None
+    task = instantiate(cfg.task)
+    built = copy.deepcopy(cfg)
+    built._set_flag("allow_objects", True)
+    with open_dict(built):
+        built.task = task
+    return built, task
 
 
 def read_old_spellings(cfg: DictConfig) -> None:
@@ -85,10 +100,13 @@ def record_used(cfg: DictConfig, results: dict) -> None:
 @command
 def main(cfg: DictConfig) -> dict:
     read_old_spellings(cfg)
-    out = start_run(cfg, keys_of(cfg))
+    built, task = with_task_built(cfg)
+    out = start_run(cfg, keys_of(task))
     try:
         loggers = make_loggers(cfg)
-        run = instantiate(cfg.experiment)  # the policy built and checked (a checkpoint of another task is refused here)
+        run = instantiate(
+            built.experiment
+        )  # the policy built and checked (a checkpoint of another task is refused here)
     except BaseException:
         abandon_run(out)  # nothing ran: no run folder is left behind
         raise
