@@ -29,3 +29,8 @@ def test_the_old_group_choices_become_the_tasks_search_or_no_stuck_detection():
 def test_other_arguments_pass_unchanged():
     args = ["policy.search={candidates: 5}", "source_searching=1", "--help"]
     assert new_spelling(args) == (args, [])
+
+
+def test_a_commands_own_renamed_key():
+    args, notes = new_spelling(["goal=fixed", "n_episodes=3"], {"goal": "options.goal"})
+    assert args == ["options.goal=fixed", "n_episodes=3"] and "old spelling of options.goal=fixed" in notes[0]

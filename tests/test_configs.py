@@ -314,14 +314,14 @@ def test_experiment_options_compose_and_instantiate(name, entry, store, tmp_path
 
 
 def test_evaluate_takes_condition_and_still_reads_split_its_old_spelling(tmp_path):
-    from kpflow.cli.evaluate import read_old_spellings
+    from kpflow.cli.spellings import read_split
 
     new = compose_config("evaluate", ["condition=standard"], tmp_path)
     old = compose_config("evaluate", ["split=standard"], tmp_path)
-    read_old_spellings(new), read_old_spellings(old)
+    read_split(new), read_split(old)
     assert new.condition == old.condition == "standard" and old.split is None
     assert OmegaConf.to_container(old.experiment, resolve=True)["conditions"] == "standard"
     with pytest.raises(
         ValueError, match="split=robot_ood \\(the old spelling of condition\\) contradicts condition=standard"
     ):
-        read_old_spellings(compose_config("evaluate", ["split=robot_ood", "condition=standard"], tmp_path))
+        read_split(compose_config("evaluate", ["split=robot_ood", "condition=standard"], tmp_path))

@@ -13,7 +13,7 @@ from kpflow.eval.policy_trial import PolicyTrial
 from kpflow.eval.reports.success import SuccessReport
 from kpflow.eval.trials import run_trials
 from kpflow.examples import TEMPLATES
-from kpflow.tasks.collection import collect_gym_episodes
+from kpflow.tasks.collection import CollectRequest, collect_episodes
 
 sys.path.insert(0, str(TEMPLATES / "reach_task"))  # as a project folder copied by kpflow-example
 from reach import ReachTask  # noqa: E402
@@ -84,13 +84,24 @@ def test_the_loop_ends_on_a_stop_and_marks_what_an_override_took():
 
 
 def test_collection_stores_the_experts_successes(tmp_path):
-    summary = collect_gym_episodes(ReachTask(), tmp_path / "demos.zarr", 4, progress=False)
+    summary = collect_episodes(ReachTask(), tmp_path / "demos.zarr", CollectRequest(4, progress=False))
     store = EpisodeStore(tmp_path / "demos.zarr")
     assert summary["episodes"] == store.n_episodes == 4 and summary["successes"] == summary["attempts"] == 4
     assert store.field("keypoints").shape[1:] == (5, 2) and dict(store.attrs) == {
         "task": "reach",
         "condition": "default",
     }
+
+
+def test_the_generic_collection_refuses_what_it_cannot_honour_by_name(tmp_path):
+    """kpflow-collect's one path: a task without a collector of its own gets the expert in one process; a policy,
+    worker processes, videos or a task option are refused, naming them, before anything is written."""
+    request = CollectRequest(2, workers=2, videos=1, options={"goal": "fixed"}, progress=False)
+    with pytest.raises(ValueError, match="reach's collection .* takes no videos, workers, options.goal: drop them"):
+        collect_episodes(ReachTask(), tmp_path / "demos.zarr", request)
+    assert not (tmp_path / "demos.zarr").exists()
+    with pytest.raises(ValueError, match="collects a Gymnasium task with an expert"):
+        collect_episodes(object(), tmp_path / "demos.zarr", CollectRequest(2))
 
 
 def test_the_trial_scores_a_policy_on_evaluation_seeds():

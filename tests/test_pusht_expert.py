@@ -149,7 +149,10 @@ def test_collect_cli_writes_store_config_summary_and_video(tmp_path):
     assert summary["episodes"] == 2 and len(EpisodeStore(tmp_path / "episodes.zarr")) == 2
     assert (tmp_path / "episode_000.mp4").stat().st_size > 0
     log = (tmp_path / "collect.log").read_text()  # the run's log says what it did (it was empty: issue 66)
-    assert "collecting 2 Push-T episodes" in log and f"collected 2 episodes (2/{summary['attempts']} attempts" in log
+    assert (
+        "collecting 2 pusht episodes (expert, condition in_distribution)" in log
+        and f"collected 2 episodes (2/{summary['attempts']} attempts" in log
+    )
 
 
 @pytest.mark.slow
@@ -157,7 +160,7 @@ def test_collect_cli_names_an_unknown_task(tmp_path):
     done = run_command("kpflow.cli.collect", "task=packing", f"hydra.run.dir={tmp_path}")
     assert (
         done.returncode != 0
-        and "collects Push-T or a Gymnasium task with an expert (kpflow.core.task.GymTask), not PackingTask"
+        and "collects a Gymnasium task with an expert (kpflow.core.task.GymTask, e.g. Push-T), not PackingTask"
         in done.stderr
     )  # no scripted collector for it
     assert not (tmp_path / "config.yaml").exists()

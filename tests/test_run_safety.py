@@ -22,12 +22,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def entry_keys():
+    from hydra.utils import instantiate
+
     from kpflow.cli import collect, correct, evaluate, train
 
     return {
         "evaluate": lambda cfg: evaluate.keys_of(evaluate.with_task_built(cfg)[1]),
         "train": train.KEYS,
-        "collect": collect.KEYS,
+        "collect": lambda cfg: collect.keys_of(instantiate(cfg.task)),
         "correct": correct.KEYS,
     }
 
@@ -43,8 +45,8 @@ BAD = [
     ("collect", "n_episodes=abc", "config key n_episodes must be an integer >= 1; got 'abc'"),
     (
         "collect",
-        "split=bogus",
-        "config key split must be one of in_distribution, robot_ood, object_ood, standard; got 'bogus'",
+        "condition=bogus",
+        "config key condition must be one of in_distribution, robot_ood, object_ood, standard or null; got 'bogus'",
     ),
     ("collect", "keep_failures=maybe", "config key keep_failures must be true or false; got 'maybe'"),
     ("correct", "rounds=abc", "config key rounds must be an integer >= 1; got 'abc'"),

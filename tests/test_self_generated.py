@@ -16,12 +16,12 @@ from tests.helpers import compose_config
 
 
 def test_a_policy_collects_its_own_episodes_on_the_standard_start_states(walk_store, tmp_path):
-    """``kpflow-collect policy=transport ... split=standard first_index=7`` composes; its policy's episodes start
+    """``kpflow-collect policy=transport ... condition=standard first_index=7`` composes; its policy's episodes start
     at Diffusion Policy's start states for seeds 7, 8, ..., are recorded with their config index and the policy as
     their source, and the store is continued only by the same collection."""
     cfg = compose_config(
         "collect",
-        ["policy=transport", "data=pusht_store", f"data.path={walk_store}", "split=standard", "first_index=7"],
+        ["policy=transport", "data=pusht_store", f"data.path={walk_store}", "condition=standard", "first_index=7"],
         tmp_path,
     )
     policy = instantiate(cfg.policy)

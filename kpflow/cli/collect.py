@@ -1,11 +1,13 @@
 """Collect demonstrations: ``kpflow-collect task=pusht n_episodes=35``, or for a Gymnasium task of your own
 (:class:`~kpflow.core.task.GymTask` with an expert) ``kpflow-collect --config-dir conf task=<task> n_episodes=50``.
-Push-T also collects a policy's own successful episodes (self-generated demonstrations):
-``kpflow-collect policy=transport data=pusht_human data.max_episodes=90 split=standard first_index=10000``.
+A policy's own successful episodes (self-generated demonstrations), where the task's collector lets a policy act
+(Push-T): ``kpflow-collect policy=transport data=pusht_human data.max_episodes=90 condition=standard first_index=10000``.
 
-Rolls the task's scripted expert out on seeded configurations and commits each successful episode to an
+One path for every task (:func:`~kpflow.tasks.collection.collect_episodes`): the task's scripted expert (or the
+policy) is rolled out on seeded scenes and each successful episode committed to an
 :class:`~kpflow.data.episode_store.EpisodeStore` (zarr, Diffusion Policy layout) in the run's output folder
-(``episodes.zarr``), beside the resolved config and (Push-T) a few episode videos.
+(``episodes.zarr``), beside the resolved config and (Push-T) a few episode videos. ``split=`` is the old spelling
+of ``condition=``, ``goal=`` of ``options.goal=``.
 """
 
 import logging
@@ -16,11 +18,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from kpflow.cli.spellings import old_spellings_read
+from kpflow.cli.spellings import old_spellings_read, read_split
 from kpflow.core.task import GymTask
-from kpflow.tasks.collection import collect_gym_episodes
-from kpflow.tasks.pusht.collection import collect_pusht
-from kpflow.tasks.pusht.scene import GOAL_MODES, SPLITS
+from kpflow.tasks.collection import CollectRequest, collect_episodes
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import write_json
@@ -30,62 +30,55 @@ log = logging.getLogger(__name__)  # the console and the run's collect.log (Hydr
 KEYS = {
     "n_episodes": Key(int, lo=1),
     "seed": SEED,
-    "max_steps": Key(int, lo=1),
-    "workers": Key(int, lo=1),
-    "videos": Key(int, lo=0),
+    "max_steps": Key(int, lo=1, nullable=True),
+    "workers": Key(int, lo=1, nullable=True),
+    "videos": Key(int, lo=0, nullable=True),
     "keep_failures": Key(bool),
-    "split": Key(str, choices=(*SPLITS, "standard")),
     "first_index": Key(int, lo=0),
-    "goal": Key(str, choices=GOAL_MODES),
     "condition": Key(str, nullable=True),
 }
 
 
-@old_spellings_read
+def keys_of(task) -> dict:
+    """:data:`KEYS`, with ``condition`` one of the conditions ``task`` declares (or null: its first)."""
+    conditions = getattr(task, "conditions", None)
+    return {**KEYS, "condition": Key(str, nullable=True, choices=tuple(conditions))} if conditions else KEYS
+
+
+@old_spellings_read(renamed={"goal": "options.goal"})  # goal= was a top-level key
 @config_dir_checked
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="collect")
 @command
 def main(cfg: DictConfig) -> dict:
-    if HydraConfig.get().runtime.choices.get("task") != "pusht":
-        return collect_task(cfg)
-    policy = source = None
-    if cfg.get("policy") is not None:
-        source = f"policy:{HydraConfig.get().runtime.choices.get('policy')}"
-        policy = instantiate(cfg.policy)  # before the run folder: a bad policy leaves nothing behind
-    out = start_run(cfg, KEYS)
-    log.info("collecting %d Push-T episodes (%s, split %s) into %s", cfg.n_episodes, source or "expert", cfg.split, out)
-    summary = collect_pusht(
-        out / "episodes.zarr",
-        n_episodes=cfg.n_episodes,
-        split=cfg.split,
-        goal=cfg.goal,
-        seed=cfg.seed,
-        max_steps=cfg.max_steps,
-        workers=cfg.workers,
-        keep_failures=cfg.keep_failures,
-        videos=cfg.videos,
-        video_dir=out,
-        policy=policy,
-        source=source or "expert",
-        first_index=cfg.first_index,
-    )
-    return finished(out, summary)
-
-
-def collect_task(cfg: DictConfig) -> dict:
-    """A Gymnasium task's expert episodes (:func:`~kpflow.tasks.collection.collect_gym_episodes`)."""
+    read_split(cfg)
     task = instantiate(cfg.task)
     if not isinstance(task, GymTask):
         remove_unused_run_folder(Path(cfg.output_dir))
         raise ValueError(
-            f"kpflow-collect collects Push-T or a Gymnasium task with an expert (kpflow.core.task.GymTask), not {type(task).__name__}"
+            f"kpflow-collect collects a Gymnasium task with an expert (kpflow.core.task.GymTask, e.g. Push-T), not {type(task).__name__}"
         )
-    out = start_run(cfg, KEYS)
-    log.info("collecting %d episodes of %s's expert into %s", cfg.n_episodes, type(task).__name__, out)
-    summary = collect_gym_episodes(
-        task, out / "episodes.zarr", cfg.n_episodes, cfg.condition, cfg.seed, cfg.keep_failures
+    policy, source = None, "expert"
+    if cfg.get("policy") is not None:
+        source = f"policy:{HydraConfig.get().runtime.choices.get('policy')}"
+        policy = instantiate(cfg.policy)  # before the run folder: a bad policy leaves nothing behind
+    out = start_run(cfg, keys_of(task))
+    request = CollectRequest(
+        n_episodes=cfg.n_episodes,
+        condition=cfg.condition,
+        seed=cfg.seed,
+        keep_failures=cfg.keep_failures,
+        first_index=cfg.first_index,
+        max_steps=cfg.max_steps,
+        workers=cfg.workers,
+        videos=cfg.videos,
+        video_dir=out,
+        policy=policy,
+        source=source,
+        options=dict(cfg.get("options") or {}),
     )
-    return finished(out, summary)
+    log.info("collecting %d %s episodes (%s, condition %s) into %s", cfg.n_episodes, task.name, source,
+             cfg.condition or task.conditions[0], out)  # fmt: skip
+    return finished(out, collect_episodes(task, out / "episodes.zarr", request))
 
 
 def finished(out: Path, summary: dict) -> dict:

@@ -18,7 +18,7 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from kpflow.cli.spellings import old_spellings_read
+from kpflow.cli.spellings import old_spellings_read, read_split
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.run import abandon_run, log_metrics, make_loggers, start_run, write_config
@@ -53,21 +53,6 @@ def with_task_built(cfg: DictConfig) -> tuple[DictConfig, object]:
     return built, task
 
 
-def read_old_spellings(cfg: DictConfig) -> None:
-    """``split=`` (the old spelling of ``condition=``) read as ``condition``, with a note; both given and different:
-    ``ValueError`` naming them."""
-    split = cfg.get("split")
-    if split is None:
-        return
-    if cfg.condition not in ("all", split):
-        raise ValueError(
-            f"split={split} (the old spelling of condition) contradicts condition={cfg.condition}: give condition alone"
-        )
-    log.warning("split=%s is the old spelling of condition=%s: read as that", split, split)
-    with open_dict(cfg):
-        cfg.condition, cfg.split = split, None
-
-
 def record_used(cfg: DictConfig, results: dict) -> None:
     """Write into ``cfg`` what the run used (``results``' ``policy_settings`` and ``max_steps``, as its trial describes
     them) where the config names the key: ``policy.<setting>`` (a goal shown as observed is ``false``, never ``null``),
@@ -99,7 +84,7 @@ def record_used(cfg: DictConfig, results: dict) -> None:
 @hydra.main(version_base="1.3", config_path="pkg://kpflow.conf", config_name="evaluate")
 @command
 def main(cfg: DictConfig) -> dict:
-    read_old_spellings(cfg)
+    read_split(cfg)
     built, task = with_task_built(cfg)
     out = start_run(cfg, keys_of(task))
     try:

@@ -104,3 +104,32 @@ class PushTTask(GymTask):
     def demonstrator(self, config: Config) -> PushTExpert:
         """The scripted expert for ``config``'s workspace."""
         return PushTExpert(config.workspace)
+
+    def collect(self, store_path, request) -> dict:
+        """Push-T's collector (:func:`~.collection.collect_pusht`, for :func:`~kpflow.tasks.collection.collect_episodes`):
+        the condition is the split (None: ``in_distribution``; ``standard`` with a policy), ``options.goal``
+        ``random`` (default) or ``fixed``; ``max_steps`` 600, ``workers`` 2 and ``videos`` 2 where the request
+        leaves them None. An unknown option is refused by name."""
+        from .collection import collect_pusht
+
+        options = {k: v for k, v in dict(request.options).items() if v is not None}
+        if unknown := sorted(set(options) - {"goal"}):
+            raise ValueError(
+                f"Push-T's collection has no option {', '.join(unknown)}; its option is goal (random | fixed)"
+            )
+        return collect_pusht(
+            store_path,
+            n_episodes=request.n_episodes,
+            split=request.condition or "in_distribution",
+            goal=options.get("goal", "random"),
+            seed=request.seed,
+            max_steps=600 if request.max_steps is None else request.max_steps,
+            workers=2 if request.workers is None else request.workers,
+            keep_failures=request.keep_failures,
+            videos=2 if request.videos is None else request.videos,
+            video_dir=request.video_dir,
+            progress=request.progress,
+            policy=request.policy,
+            source=request.source,
+            first_index=request.first_index,
+        )
