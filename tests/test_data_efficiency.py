@@ -23,6 +23,7 @@ def test_points_table_and_figure_from_real_runs(tmp_path):
     assert all(p.success == 0.0 for p in points if p.policy == "still")  # six steps of standing still cover nothing
     text = table(points)
     assert "| still | 20 | 0.0% [" in text and text.count("\n| ") == 4
+    assert text.startswith("# Push-T: success against the number of demonstrations\n")  # a page with a title
     out = tmp_path / "fig.png"
     main([str(tmp_path / "runs"), "--out", str(out)])
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.with_suffix(".md").read_text() == text

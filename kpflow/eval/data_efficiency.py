@@ -77,7 +77,9 @@ def table(points: list[Point], threshold: str = "085") -> str:
                 f"{100 * hit[0].success:.1f}% [{100 * hit[0].ci[0]:.1f}, {100 * hit[0].ci[1]:.1f}]" if hit else "-"
             )
         rows.append(f"| {policy} | {n} | {' | '.join(cells)} | {', '.join(map(str, episodes))} |")
-    return f"Success at coverage 0.{threshold[1:]}, 95% Wilson intervals.\n\n" + "\n".join(rows) + "\n"
+    title = "# Push-T: success against the number of demonstrations"
+    what = f"Success at coverage 0.{threshold[1:]}, 95% Wilson intervals, per split of Table 1."
+    return f"{title}\n\n{what}\n\n" + "\n".join(rows) + "\n"
 
 
 def plot(points: list[Point], out: str | Path, threshold: str = "085") -> Path:
