@@ -213,6 +213,17 @@ def test_the_source_search_is_the_tasks_unless_the_policy_says(search, stuck, st
     policy = instantiate(cfg.policy)
     assert policy.source.stuck_decisions == stuck
     assert policy.index.reference == list(PushTTask.policy_layout.indices("objects"))
+    from kpflow.cli.evaluate import record_used
+    from kpflow.eval.policy_trial import PolicyTrial
+    from kpflow.eval.reports.pusht import PushTReport
+
+    record_used(cfg, PolicyTrial(PushTTask(), policy, PushTReport()).describe())  # config.yaml: what the run used
+    assert cfg.policy.search.stuck_decisions == stuck and dict(cfg.policy.search.weights) == {
+        "objects": 1.0,
+        "goals": 1.0,
+        "robot": 4.0,
+    }
+    assert list(cfg.policy.fit_on) == ["objects", "robot"]
 
 
 @pytest.mark.parametrize("name", sorted(n for n, entry in ENTRIES["task"].items() if entry == "evaluate"))

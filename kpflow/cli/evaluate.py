@@ -56,7 +56,8 @@ def with_task_built(cfg: DictConfig) -> tuple[DictConfig, object]:
 def record_used(cfg: DictConfig, results: dict) -> None:
     """Write into ``cfg`` what the run used (``results``' ``policy_settings`` and ``max_steps``, as its trial describes
     them) where the config names the key: ``policy.<setting>`` (a goal shown as observed is ``false``, never ``null``),
-    ``policy.transport`` (a transported K-CFM's options as resolved) and ``experiment.trial.max_steps`` when the conditions run share one limit."""
+    ``policy.transport`` (a transported K-CFM's options as resolved), ``policy.search`` and ``policy.fit_on`` (nearest
+    neighbour's and policy transportation's, as resolved) and ``experiment.trial.max_steps`` when the conditions run share one limit."""
     policy = cfg.get("policy")
     with open_dict(cfg):
         if policy is not None and "policy_settings" in results:
@@ -74,6 +75,9 @@ def record_used(cfg: DictConfig, results: dict) -> None:
             limits = limits.pop() if len(limits) == 1 else None
         if policy is not None and "transport" in results and "transport" in policy:
             policy.transport = OmegaConf.create(results["transport"])  # every option as resolved, none left null
+        for name, value in results.get("resolved", {}).items():  # policy=nearest | transport: the search, the fit
+            if policy is not None and name in policy:
+                policy[name] = OmegaConf.create(value) if isinstance(value, (dict, list)) else value
         trial = OmegaConf.select(cfg, "experiment.trial", default=None)
         if limits is not None and trial is not None and "max_steps" in trial:
             cfg.experiment.trial.max_steps = int(limits)

@@ -86,11 +86,14 @@ class PolicyTrial:
 
     def describe(self) -> dict:
         """The policy's name, the settings it acts with (:func:`~kpflow.policies.settings.effective_settings`),
-        a transported one's resolved transport options (:class:`~kpflow.policies.config.TransportConfig`), each
+        a transported one's resolved transport options (:class:`~kpflow.policies.config.TransportConfig`; nearest
+        neighbour's and policy transportation's resolved search and fit under ``resolved``), each
         condition's step limit and the task's own description (:meth:`~kpflow.core.task.GymTask.describe`)."""
         limits = {c: self.task.steps_limit(c, self.max_steps) for c in self.conditions}
         out = {"policy": self.policy_name, "policy_settings": effective_settings(self.policy), "max_steps": limits}
         config = getattr(self.policy, "policy_config", None)  # a policy built from a checkpoint: what it resolved
         if config is not None and config.transport is not None:
             out["transport"] = config.transport.record()
+        if resolved := getattr(self.policy, "resolved", None):  # a transporting policy's search and fit, as resolved
+            out["resolved"] = dict(resolved)
         return {**out, **self.task.describe()}

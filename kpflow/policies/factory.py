@@ -149,8 +149,10 @@ def nearest(demos: ChunkDataModule, task, horizon: int = 20, execute: int = 8, s
     """Nearest neighbour over the demonstrations (:class:`~.nearest.NearestNeighbourPolicy`), compared with the
     weights and frame of ``search`` (:func:`resolved_search`; its choice unused: the nearest)."""
     layout = layout_of(task)
-    index = resolved_search(layout, search)[0].index(_built(demos), layout, horizon)
-    return NearestNeighbourPolicy(index, execute, relative)
+    search = resolved_search(layout, search)[0]
+    policy = NearestNeighbourPolicy(search.index(_built(demos), layout, horizon), execute, relative)
+    policy.resolved = {"search": search.record()}  # what a run's config.yaml records it used
+    return policy
 
 
 def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap] | None = None, horizon: int = 20,
@@ -169,9 +171,11 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
         make_map = map_factory("ilwr")
     fit = fit_on_indices(layout, fit_on)
     make_map = _map_factory(make_map, layout, fit, f"policy transportation (fit_on={fit_on})")
-    return TransportPolicy(
+    policy = TransportPolicy(
         search.index(_built(demos), layout, horizon), make_map, execute, max_step, fit, layout, **search.choice()
     )
+    policy.resolved = {"search": search.record(), "fit_on": fit_on if isinstance(fit_on, str) else list(fit_on)}
+    return policy
 
 
 class PolicyBuilder:

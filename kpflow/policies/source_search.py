@@ -68,6 +68,12 @@ class SourceSearch:
             values["weights"] = {str(k): float(v) for k, v in dict(values["weights"]).items()}
         return cls(**values)
 
+    def record(self) -> dict:
+        """Every option as plain data (what a run's config records)."""
+        out = asdict(self)
+        out["weights"] = None if self.weights is None else dict(self.weights)
+        return out
+
     def choice(self) -> dict:
         """The options of :class:`~.source_choice.SourceChoice`."""
         return {k: v for k, v in asdict(self).items() if k not in ("weights", "frame")}
