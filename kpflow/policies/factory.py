@@ -165,6 +165,7 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
     learned map is read now and checked against the keypoints it is fitted on."""
     layout = layout_of(task)
     search, fit_on = resolved_search(layout, search, fit_on)
+    fit_on = fit_on if isinstance(fit_on, str) else list(fit_on)
     if make_map is None:
         from .config import map_factory
 
@@ -174,7 +175,7 @@ def transport(demos: ChunkDataModule, task, make_map: Callable[[], TransportMap]
     policy = TransportPolicy(
         search.index(_built(demos), layout, horizon), make_map, execute, max_step, fit, layout, **search.choice()
     )
-    policy.resolved = {"search": search.record(), "fit_on": fit_on if isinstance(fit_on, str) else list(fit_on)}
+    policy.resolved = {"search": search.record(), "fit_on": fit_on}
     return policy
 
 
