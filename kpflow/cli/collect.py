@@ -19,8 +19,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from kpflow.cli.spellings import old_spellings_read, read_split
-from kpflow.core.task import GymTask
-from kpflow.tasks.collection import CollectRequest, collect_episodes
+from kpflow.tasks.collection import CollectRequest, check_collectable, collect_episodes
 from kpflow.utils.config_checks import SEED, Key
 from kpflow.utils.errors import command, config_dir_checked
 from kpflow.utils.io import write_json
@@ -52,11 +51,11 @@ def keys_of(task) -> dict:
 def main(cfg: DictConfig) -> dict:
     read_split(cfg)
     task = instantiate(cfg.task)
-    if not isinstance(task, GymTask):
+    try:
+        check_collectable(task)
+    except ValueError:
         remove_unused_run_folder(Path(cfg.output_dir))
-        raise ValueError(
-            f"kpflow-collect collects a Gymnasium task with an expert (kpflow.core.task.GymTask, e.g. Push-T), not {type(task).__name__}"
-        )
+        raise
     policy, source = None, "expert"
     if cfg.get("policy") is not None:
         source = f"policy:{HydraConfig.get().runtime.choices.get('policy')}"

@@ -93,9 +93,8 @@ def main(cfg: DictConfig) -> dict:
     out = start_run(cfg, keys_of(task))
     try:
         loggers = make_loggers(cfg)
-        run = instantiate(
-            built.experiment
-        )  # the policy built and checked (a checkpoint of another task is refused here)
+        # the policy built and checked (a checkpoint of another task is refused here)
+        run = instantiate(built.experiment)
     except BaseException:
         abandon_run(out)  # nothing ran: no run folder is left behind
         raise

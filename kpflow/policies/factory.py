@@ -138,7 +138,7 @@ def resolved_search(layout: PolicyLayout, search: Mapping | None = None, fit_on:
     from .config import TransportConfig
 
     if isinstance(search, SourceSearch):
-        search = {k: v for k, v in vars(search).items()}
+        search = search.record()
     given = TransportConfig.of({"segments": False, "fit_on": fit_on, "search": search}, "policy")
     resolved = given.over(defaults=layout.transport)
     return SourceSearch.of(resolved.search), resolved.fit_on

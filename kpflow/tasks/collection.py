@@ -57,13 +57,18 @@ class CollectRequest:
     progress: bool = True
 
 
-def collect_episodes(task: GymTask, store_path: str | Path, request: CollectRequest) -> dict:
-    """Collect ``request`` of ``task`` into the store at ``store_path`` (module docstring); returns the collector's
-    summary (``store``, ``episodes``, ``attempts``, ``successes``, ``steps``, ...)."""
+def check_collectable(task) -> None:
+    """Raise ``ValueError`` naming ``task``'s type unless it is a :class:`~kpflow.core.task.GymTask`."""
     if not isinstance(task, GymTask):
         raise ValueError(
             f"kpflow-collect collects a Gymnasium task with an expert (kpflow.core.task.GymTask, e.g. Push-T), not {type(task).__name__}"
         )
+
+
+def collect_episodes(task: GymTask, store_path: str | Path, request: CollectRequest) -> dict:
+    """Collect ``request`` of ``task`` into the store at ``store_path`` (module docstring); returns the collector's
+    summary (``store``, ``episodes``, ``attempts``, ``successes``, ``steps``, ...)."""
+    check_collectable(task)
     own = getattr(task, "collect", None)
     if own is not None:
         return own(Path(store_path), request)
