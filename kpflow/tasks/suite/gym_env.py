@@ -13,7 +13,9 @@ the object picked, once the jaws close on it, is carried with them from where it
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the
 gripper (closed when > 0); a step refuses an action that is not 10 finite numbers or names no rotation, and clips
 the position to the action space (:meth:`SuiteGymEnv.checked_action`). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
-that could not place an object. When the first read places nothing, reset's ``info["failure"]`` is ``"not
+that could not place an object; with a perception other than the simulator's, ``info["perception_errors"]`` is
+each stage's largest keypoint error so far against the simulator's (:mod:`.perception_errors`: the object before
+and at the grasp, in the hand, the goal, the placement at the release). When the first read places nothing, reset's ``info["failure"]`` is ``"not
 perceived"`` and the loop ends the episode before any step.
 """
 
@@ -25,7 +27,8 @@ import numpy as np
 from kpflow.geometry.rotations import rot6d_to_matrix
 
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import SimulatorPoses, policy_keypoints, policy_objects
+from .keypoints import SimulatorPoses, object_pose, policy_keypoints, policy_objects
+from .perception_errors import PerceptionErrors, keypoint_error_mm, relative_error_mm
 from .scene import sample_scene
 
 ACTION_DIM = 10  #: position [3], 6-D rotation [6], gripper [1]
@@ -52,6 +55,8 @@ class SuiteGymEnv(gym.Env):
         self.action_space = gym.spaces.Box(-bound, bound, (ACTION_DIM,), np.float64)
         self._names = policy_objects(sim.spec)
         self._poses, self._read, self._closed, self._unseen, self._obs = None, True, False, 0, None
+        #: compared with the simulator's poses at every read (:mod:`.perception_errors`); None: the simulator's own
+        self._errors = None if isinstance(self.perception, SimulatorPoses) else PerceptionErrors()
 
     def will_read(self, read: bool) -> None:
         """Whether the observation the next step returns will be read by a decision (the loop says, before each step);
@@ -64,6 +69,8 @@ class SuiteGymEnv(gym.Env):
                 self._poses = self.perception.poses(self.sim, self.sim.spec, self._names)
             except ValueError:  # an object hidden (by the arm, the jaws) in this read: keep what was seen last
                 self._unseen += 1
+            else:
+                self._audit_read()
         if self._poses is None:
             keypoints = np.full(self.observation_space["keypoints"].shape, np.nan)
         else:
@@ -71,8 +78,31 @@ class SuiteGymEnv(gym.Env):
         self._obs = {"keypoints": keypoints, "joints": self.sim.arm_joints()}
         return self._obs
 
+    def _true(self) -> dict:
+        return {n: object_pose(self.sim, self.sim.spec, n) for n in self._names}
+
+    def _audit_read(self) -> None:
+        """Each object's read against the simulator's, in its stage (:mod:`.perception_errors`)."""
+        if self._errors is None:
+            return
+        spec, true = self.sim.spec, self._true()
+        for name in self._names:
+            stage = ("held" if self._closed else "pick") if name == spec.grasp else "goal"
+            self._errors.add(stage, keypoint_error_mm(spec, name, self._poses[name], true[name]))
+
+    def _audit_jaws(self, closing: bool) -> None:
+        """At the step the jaws close, the object to pick as last seen; as they open, the placement."""
+        if self._errors is None or self._poses is None:
+            return
+        spec, true = self.sim.spec, self._true()
+        if closing:
+            self._errors.add("grasp", keypoint_error_mm(spec, spec.grasp, self._poses[spec.grasp], true[spec.grasp]))
+        elif spec.target is not None:
+            self._errors.add("place", relative_error_mm(spec, spec.grasp, spec.target, self._poses, true))
+
     def _info(self, **extra) -> dict:
-        return {"is_success": self.sim.success(), "unseen_reads": self._unseen, **extra}
+        errors = {} if self._errors is None else {"perception_errors": self._errors.summary()}
+        return {"is_success": self.sim.success(), "unseen_reads": self._unseen, **errors, **extra}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -83,6 +113,7 @@ class SuiteGymEnv(gym.Env):
         self.sim.reset_to(scene)
         self.perception.reseed(index)
         self._poses, self._read, self._closed, self._unseen = None, True, False, 0
+        self._errors = None if self._errors is None else PerceptionErrors()
         obs = self._observe()
         extra = {"failure": "not perceived"} if self._poses is None else {}
         return obs, self._info(scene=scene.as_dict(), **extra)
@@ -115,6 +146,8 @@ class SuiteGymEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         position, rotation, closing = self.checked_action(action)
         target = (position, rotation)
+        if closing != self._closed:
+            self._audit_jaws(closing)
         if closing and not self._closed:  # the jaws close on the object to pick: a camera carries its pose with them
             self.perception.grasped(self.sim, self.sim.spec.grasp, target)
         elif self._closed and not closing:

@@ -124,12 +124,14 @@ class SuiteTask(GymTask):
 
     def score(self, episode) -> tuple[bool, str | None, dict]:
         """robosuite's success; the failure ``"not perceived"`` (the cameras never placed the objects) or ``"time
-        limit"``; the steps, decisions and the reads that could not place an object."""
+        limit"``; the steps, decisions and the reads that could not place an object; on a perception other than the
+        simulator's, each stage's largest keypoint error (``error_<stage>_mm``, :mod:`.perception_errors`)."""
         failure = episode.first_info.get("failure") or (None if episode.success else "time limit")
         scores = {
             "steps": episode.steps,
             "decisions": episode.decisions,
             "unseen_reads": int(episode.info.get("unseen_reads", 0)),
+            **episode.info.get("perception_errors", {}),
         }
         return episode.success, failure, scores
 
