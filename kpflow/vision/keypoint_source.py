@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from .noise import CameraNoise
+from .occlusion import FootprintGate
 from .pose_filter import PoseFilter
 from .segmentation import Segmenter
 
@@ -27,7 +28,9 @@ class KeypointSource:
     each object's pixels
     (:class:`~kpflow.vision.segmentation.Segmenter`, e.g. :class:`~kpflow.vision.grounded_sam.GroundedSAM`; None:
     the renderer's instance masks); ``filter``: the options of a :class:`~kpflow.vision.pose_filter.PoseFilter` over
-    each object's reads (``window``, ``gate``, ``gate_deg``, ``patience``; None: every read as it comes)."""
+    each object's reads (``window``, ``gate``, ``gate_deg``, ``patience``; None: every read as it comes);
+    ``occlusion_gate``: the tolerance (m) of a :class:`~kpflow.vision.occlusion.FootprintGate` that refuses a
+    partly hidden object's reads (None: every read taken)."""
 
     kind: str = "sim"
     cameras: tuple[str, ...] | None = None
@@ -38,6 +41,7 @@ class KeypointSource:
     temporal: int = 1
     segmenter: Segmenter | None = None
     filter: Mapping | None = None
+    occlusion_gate: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -53,6 +57,8 @@ class KeypointSource:
         if self.filter is not None:
             object.__setattr__(self, "filter", dict(self.filter))
             self.pose_filter()  # refuses bad options now
+        if self.occlusion_gate is not None:
+            self.footprint_gate()  # refuses a bad tolerance now
         if self.segmenter is not None and not isinstance(self.segmenter, Segmenter):
             raise TypeError(f"segmenter must have masks(frame, names); got {type(self.segmenter).__name__}")
 
@@ -66,6 +72,10 @@ class KeypointSource:
                 f"unknown pose filter options {sorted(unknown)}; it takes window, gate, gate_deg, patience"
             )
         return PoseFilter(**self.filter)
+
+    def footprint_gate(self) -> FootprintGate | None:
+        """A new :class:`~kpflow.vision.occlusion.FootprintGate` of tolerance :attr:`occlusion_gate` (None without)."""
+        return None if self.occlusion_gate is None else FootprintGate(float(self.occlusion_gate))
 
     @property
     def camera(self) -> bool:

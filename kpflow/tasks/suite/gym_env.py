@@ -13,7 +13,8 @@ the object picked, once the jaws close on it, is carried with them from where it
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the
 gripper (closed when > 0); a step refuses an action that is not 10 finite numbers or names no rotation, and clips
 the position to the action space (:meth:`SuiteGymEnv.checked_action`). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
-that could not place an object; with a perception other than the simulator's, ``info["perception_errors"]`` is
+that could not place an object; with a perception other than the simulator's, ``info["occluded_reads"]`` those it
+refused as partly hidden (:mod:`kpflow.vision.occlusion`) and ``info["perception_errors"]`` is
 each stage's largest keypoint error so far against the simulator's (:mod:`.perception_errors`: the object before
 and at the grasp, in the hand, the goal, the placement at the release). When the first read places nothing, reset's ``info["failure"]`` is ``"not
 perceived"`` and the loop ends the episode before any step.
@@ -101,7 +102,11 @@ class SuiteGymEnv(gym.Env):
             self._errors.add("place", relative_error_mm(spec, spec.grasp, spec.target, self._poses, true))
 
     def _info(self, **extra) -> dict:
-        errors = {} if self._errors is None else {"perception_errors": self._errors.summary()}
+        errors = (
+            {}
+            if self._errors is None
+            else {"perception_errors": self._errors.summary(), "occluded_reads": self.perception.occluded}
+        )
         return {"is_success": self.sim.success(), "unseen_reads": self._unseen, **errors, **extra}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -34,6 +34,7 @@ from kpflow.vision.cameras import CameraFrame
 from kpflow.vision.depth_filter import smooth_depth, temporal_mean
 from kpflow.vision.keypoint_source import KeypointSource
 from kpflow.vision.noise import CameraNoise
+from kpflow.vision.occlusion import FootprintGate, OccludedRead
 from kpflow.vision.pose_filter import PoseFilter
 from kpflow.vision.segmentation import InstanceSegmenter, Segmenter
 
@@ -111,13 +112,16 @@ class CameraKeypoints:
             start, a policy's decision).
         pose_filter: each object's reads filtered (:class:`~kpflow.vision.pose_filter.PoseFilter`: the median of
             the reads that agree, outliers rejected) within a scene; None: every read as it comes.
+        occlusion: a read whose footprint is not the object's first one in the scene refused
+            (:class:`~kpflow.vision.occlusion.FootprintGate`: part of it hidden, by the jaws above it), the object
+            kept where it was last seen (:attr:`occluded` counts them); None: every read taken.
     """
 
     per_step = False  #: a capture costs about a second: read where a policy decides, not at every control step
 
     def __init__(self, cameras: SuiteCameras | None = None, noise: CameraNoise | None = None, segmenter: Segmenter | None = None,
                  seed: int = 0, erode: int = 2, smooth: int = 5, voxel: float = 0.002, top_fraction: float = 0.1,
-                 temporal: int = 1, pose_filter: PoseFilter | None = None) -> None:  # fmt: skip
+                 temporal: int = 1, pose_filter: PoseFilter | None = None, occlusion: FootprintGate | None = None) -> None:  # fmt: skip
         if int(temporal) != temporal or temporal < 1:
             raise ValueError(f"temporal must be a whole number of frames >= 1; got {temporal!r}")
         self.temporal = int(temporal)
@@ -126,7 +130,7 @@ class CameraKeypoints:
         self.segmenter, self.erode, self.smooth = segmenter, int(erode), int(smooth)
         self.voxel, self.top_fraction = float(voxel), float(top_fraction)
         self.seed = int(seed)
-        self.pose_filter = pose_filter
+        self.pose_filter, self.occlusion = pose_filter, occlusion
         self.reseed()
 
     @classmethod
@@ -140,6 +144,7 @@ class CameraKeypoints:
             source.seed,
             temporal=source.temporal,
             pose_filter=source.pose_filter(),
+            occlusion=source.footprint_gate(),
         )
 
     def reseed(self, *keys: int) -> None:
@@ -149,8 +154,10 @@ class CameraKeypoints:
         self.rng = np.random.default_rng([self.seed, *map(int, keys)])
         self.last: dict[str, ObjectPose] = {}  # each object's pose when last seen
         self.held: dict[str, ObjectPose] = {}  # held objects' poses in the grip site's frame
-        if self.pose_filter is not None:
-            self.pose_filter.reset()
+        self.occluded = 0  # reads refused as partly hidden, this scene
+        for per_object in (self.pose_filter, self.occlusion):
+            if per_object is not None:
+                per_object.reset()
 
     def frames(self, env) -> list[CameraFrame]:
         """The cameras' frames of the scene now, as the sensor gives them (noisy depth, the calibrated pose)."""
@@ -177,7 +184,8 @@ class CameraKeypoints:
 
     def pose(self, env, spec: TaskSpec, frames: Sequence[CameraFrame], name: str) -> ObjectPose:
         """The pose of object or fixture ``name`` seen in ``frames`` (:func:`pose_from_box`; through :attr:`pose_filter`
-        where there is one), remembered as where it was last seen."""
+        where there is one), remembered as where it was last seen; a read :attr:`occlusion` refuses gives where it
+        was last seen (``ValueError`` when it never was)."""
         segmenter = self._segmenter(env)
         masks = [self.noise.mask(segmenter.masks(f, [name])[0], self.rng) for f in frames]
         kind = spec.kinds[name]
@@ -188,6 +196,14 @@ class CameraKeypoints:
             raise ValueError(
                 f"{spec.name}: cannot place {name!r} from the cameras {[f.name for f in frames]}: {e}"
             ) from None
+        if self.occlusion is not None:
+            try:
+                self.occlusion.check(name, box)
+            except OccludedRead as e:
+                if name not in self.last:
+                    raise ValueError(f"{spec.name}: {e}, and it was never seen whole") from None
+                self.occluded += 1
+                return self.last[name]
         pose = ObjectPose(*pose_from_box(kind, box, support))
         if self.pose_filter is not None:
             seen = self.pose_filter.update(name, pose.pos, yaw_of(pose.rot), SYMMETRY[kind], pose.half)
@@ -214,8 +230,9 @@ class CameraKeypoints:
     def released(self, name: str) -> None:
         """The jaws open: ``name`` is seen by the cameras again (where it was put: its filtered reads are forgotten)."""
         self.held.pop(name, None)
-        if self.pose_filter is not None:
-            self.pose_filter.forget(name)
+        for per_object in (self.pose_filter, self.occlusion):
+            if per_object is not None:
+                per_object.forget(name)
 
     def carried(self, env, name: str) -> ObjectPose:
         """Where held object ``name`` is now, carried by the jaws since :meth:`grasped`."""

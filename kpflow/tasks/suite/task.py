@@ -131,6 +131,7 @@ class SuiteTask(GymTask):
             "steps": episode.steps,
             "decisions": episode.decisions,
             "unseen_reads": int(episode.info.get("unseen_reads", 0)),
+            **({"occluded_reads": int(episode.info["occluded_reads"])} if "occluded_reads" in episode.info else {}),
             **episode.info.get("perception_errors", {}),
         }
         return episode.success, failure, scores
