@@ -77,10 +77,8 @@ def test_the_report_sets_failed_against_succeeded_episodes_stage_by_stage():
     assert not any(k.startswith("error_") for k in plain) and "by stage" not in report.table({("d0",): plain}, [])
 
 
-def test_a_camera_episode_records_every_stage_and_the_simulators_none():
-    """A Stack scene on camera keypoints (D435 noise): the first reads place both cubes within a centimetre and a
-    half; closing the jaws records the grasp, a read while closed the carried cube, opening them the placement. On
-    the simulator's poses nothing is recorded."""
+@pytest.fixture(scope="module")
+def stack_env():
     from kpflow.tasks.suite.cameras import SuiteCameras
     from kpflow.tasks.suite.env import SuiteEnv
     from kpflow.tasks.suite.gym_env import SuiteGymEnv
@@ -89,12 +87,45 @@ def test_a_camera_episode_records_every_stage_and_the_simulators_none():
 
     sim = SuiteEnv(STACK, render=True)
     n_keypoints = SuiteTask("stack").policy_layout.n_keypoints
-    env = SuiteGymEnv(sim, "d0", n_keypoints, CameraKeypoints(SuiteCameras(("frontview", "agentview")), seed=2))
+    return SuiteGymEnv(sim, "d0", n_keypoints, CameraKeypoints(SuiteCameras(("frontview", "agentview")), seed=2))
+
+
+def holding_still(env, gripper: float) -> np.ndarray:
+    pos, rot = env.sim.ee_pose()
+    return np.concatenate([pos, matrix_to_rot6d(rot), [gripper]])
+
+
+def test_jaws_that_close_on_nothing_hand_the_object_back_to_the_cameras(stack_env):
+    """The jaws close at home, far above the cube: the perception carries the cube with them at first, and once
+    their finger pads meet (nothing between them) it reads the cube where it stands again, as the simulator has it."""
+    from kpflow.tasks.suite.keypoints import PADS_EMPTY_BELOW
+
+    env = stack_env
+    env.reset(seed=3)
+    env.will_read(False)  # no capture while the jaws close
+    env.step(holding_still(env, 1.0))
+    assert set(env.perception.held) == {"cubeA"}
+    for _ in range(30):
+        env.step(holding_still(env, 1.0))
+    assert np.linalg.norm(np.subtract(*env.sim.finger_pads())) < PADS_EMPTY_BELOW
+    assert env.perception.held == {}
+    env.will_read(True)
+    _, _, _, _, info = env.step(holding_still(env, 1.0))
+    assert info["perception_errors"]["error_pick_mm"] < 15  # read again where it stands
+
+
+def test_a_camera_episode_records_every_stage_and_the_simulators_none(stack_env):
+    """A Stack scene on camera keypoints (D435 noise): the first reads place both cubes within a centimetre and a
+    half; closing the jaws records the grasp, a read while closed the carried cube, opening them the placement. On
+    the simulator's poses nothing is recorded."""
+    from kpflow.tasks.suite.gym_env import SuiteGymEnv
+
+    env, sim = stack_env, stack_env.sim
+    n_keypoints = env.observation_space["keypoints"].shape[0]
     _, info = env.reset(seed=3)
     first = info["perception_errors"]
     assert set(first) == {"error_pick_mm", "error_goal_mm"} and 0 < max(first.values()) < 15
-    pos, rot = sim.ee_pose()
-    hold = np.concatenate([pos, matrix_to_rot6d(rot), [1.0]])
+    hold = holding_still(env, 1.0)
     for action in (hold, hold, np.concatenate([hold[:9], [-1.0]])):  # close, read while closed, open
         _, _, _, _, info = env.step(action)
     errors = info["perception_errors"]

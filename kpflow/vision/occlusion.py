@@ -7,8 +7,8 @@ the ring alone: square, so its longer axis and the end the ring is at are a gues
 :class:`FootprintGate` remembers each object's footprint from its first read in a scene (its half sides along the
 rectangle's longer and shorter axes) and refuses a later read whose half sides differ from those by more than
 ``tolerance`` (m) along either axis: the read names a smaller (or merged, larger) object, and the object keeps the
-pose it was last seen at. :meth:`FootprintGate.forget` drops an object's footprint (released by the jaws: it may
-lie on another face now).
+pose it was last seen at. The footprint is kept for the scene, through grasps and releases (a nut or a cube set
+down or dropped lies on the same face); :meth:`FootprintGate.forget` drops it (an object that may lie otherwise now).
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ seed, a scene drawn from the env's generator)
 :class:`~.arm_limits.SuiteArmLimits`): the gripper's from the robot, the objects' from the perception (the
 simulator's at every step; a camera's only where the loop says a decision will read the observation,
 :meth:`SuiteGymEnv.will_read`, held in between; an object the cameras cannot place in a read keeps its last seen pose;
-the object picked, once the jaws close on it, is carried with them from where it was last seen). An action is an
+the object picked, once the jaws close on it, is carried with them from where it was last seen, until they open or
+close on nothing: their finger pads nearer than the empty jaws' ``PADS_EMPTY_BELOW``). An action is an
 end-effector target ``[10]``: position, 6-D rotation (:func:`kpflow.geometry.rotations.rot6d_to_matrix`) and the
 gripper (closed when > 0); a step refuses an action that is not 10 finite numbers or names no rotation, and clips
 the position to the action space (:meth:`SuiteGymEnv.checked_action`). ``info["is_success"]`` is robosuite's own check; ``info["unseen_reads"]`` counts the reads
@@ -28,7 +29,7 @@ import numpy as np
 from kpflow.geometry.rotations import rot6d_to_matrix
 
 from .env import CLOSED, OPEN, SuiteEnv
-from .keypoints import SimulatorPoses, object_pose, policy_keypoints, policy_objects
+from .keypoints import PADS_EMPTY_BELOW, SimulatorPoses, object_pose, policy_keypoints, policy_objects
 from .perception_errors import PerceptionErrors, keypoint_error_mm, relative_error_mm
 from .scene import sample_scene
 
@@ -56,6 +57,7 @@ class SuiteGymEnv(gym.Env):
         self.action_space = gym.spaces.Box(-bound, bound, (ACTION_DIM,), np.float64)
         self._names = policy_objects(sim.spec)
         self._poses, self._read, self._closed, self._unseen, self._obs = None, True, False, 0, None
+        self._held = False  # the perception carries the object to pick with the jaws
         #: compared with the simulator's poses at every read (:mod:`.perception_errors`); None: the simulator's own
         self._errors = None if isinstance(self.perception, SimulatorPoses) else PerceptionErrors()
 
@@ -88,7 +90,7 @@ class SuiteGymEnv(gym.Env):
             return
         spec, true = self.sim.spec, self._true()
         for name in self._names:
-            stage = ("held" if self._closed else "pick") if name == spec.grasp else "goal"
+            stage = ("held" if self._held else "pick") if name == spec.grasp else "goal"
             self._errors.add(stage, keypoint_error_mm(spec, name, self._poses[name], true[name]))
 
     def _audit_jaws(self, closing: bool) -> None:
@@ -117,7 +119,7 @@ class SuiteGymEnv(gym.Env):
         scene = sample_scene(self.sim.spec, self.sim, self.variant, index, stream)
         self.sim.reset_to(scene)
         self.perception.reseed(index)
-        self._poses, self._read, self._closed, self._unseen = None, True, False, 0
+        self._poses, self._read, self._closed, self._unseen, self._held = None, True, False, 0, False
         self._errors = None if self._errors is None else PerceptionErrors()
         obs = self._observe()
         extra = {"failure": "not perceived"} if self._poses is None else {}
@@ -151,14 +153,21 @@ class SuiteGymEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         position, rotation, closing = self.checked_action(action)
         target = (position, rotation)
-        if closing != self._closed:
-            self._audit_jaws(closing)
+        grasp = self.sim.spec.grasp
         if closing and not self._closed:  # the jaws close on the object to pick: a camera carries its pose with them
-            self.perception.grasped(self.sim, self.sim.spec.grasp, target)
+            self._audit_jaws(True)
+            self.perception.grasped(self.sim, grasp, target)
+            self._held = True
         elif self._closed and not closing:
-            self.perception.released(self.sim.spec.grasp)
+            if self._held:
+                self._audit_jaws(False)
+            self.perception.released(grasp)
+            self._held = False
         self._closed = closing
         self.sim.command(*target, CLOSED if closing else OPEN)
+        if self._held and np.linalg.norm(np.subtract(*self.sim.finger_pads())) < PADS_EMPTY_BELOW:
+            self.perception.released(grasp)  # the jaws closed on nothing: the object is where the cameras see it
+            self._held = False
         info = self._info()
         obs = self._obs if info["is_success"] else self._observe()  # the episode is over: nothing more to read
         return obs, float(info["is_success"]), info["is_success"], False, info

@@ -230,9 +230,8 @@ class CameraKeypoints:
     def released(self, name: str) -> None:
         """The jaws open: ``name`` is seen by the cameras again (where it was put: its filtered reads are forgotten)."""
         self.held.pop(name, None)
-        for per_object in (self.pose_filter, self.occlusion):
-            if per_object is not None:
-                per_object.forget(name)
+        if self.pose_filter is not None:
+            self.pose_filter.forget(name)  # its footprint stays: what was set down or dropped lies as it did
 
     def carried(self, env, name: str) -> ObjectPose:
         """Where held object ``name`` is now, carried by the jaws since :meth:`grasped`."""
