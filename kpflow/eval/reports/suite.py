@@ -18,12 +18,7 @@ _FAILED = re.compile(r"^error_(\w+)_mm_failed$")
 
 def stage_errors(trials: list[TrialResult]) -> list[str]:
     """The stages whose keypoint errors ``trials`` scored (``error_<stage>_mm``), in the order first seen."""
-    stages = {}
-    for t in trials:
-        for key in t.scores:
-            if (m := _ERROR.match(key)) and key not in stages:
-                stages[key] = m.group(1)
-    return list(stages.values())
+    return list(dict.fromkeys(m.group(1) for t in trials for key in t.scores if (m := _ERROR.match(key))))
 
 
 class SuiteReport(SuccessReport):

@@ -58,13 +58,13 @@ def relative_error_mm(
 class PerceptionErrors:
     """The errors (mm) of one episode's reads, by stage (module docstring)."""
 
-    errors: dict[str, list[float]] = field(default_factory=dict)
+    largest: dict[str, float] = field(default_factory=dict)  #: each stage's largest error so far
 
     def add(self, stage: str, mm: float) -> None:
         if stage not in STAGES:
             raise ValueError(f"unknown stage {stage!r}; the stages are {', '.join(STAGES)}")
-        self.errors.setdefault(stage, []).append(float(mm))
+        self.largest[stage] = max(self.largest.get(stage, float(mm)), float(mm))
 
     def summary(self) -> dict[str, float]:
         """``error_<stage>_mm``: the largest error of each stage the episode went through."""
-        return {f"error_{s}_mm": max(self.errors[s]) for s in STAGES if self.errors.get(s)}
+        return {f"error_{s}_mm": self.largest[s] for s in STAGES if s in self.largest}
