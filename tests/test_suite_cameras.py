@@ -95,7 +95,7 @@ def test_a_pose_filter_steadies_the_reads_of_a_still_cube(env):
         reads = np.stack([perception.poses(env, SPEC, ["cube"])["cube"].pos for _ in range(10)])
         jumps[name] = np.linalg.norm(np.diff(reads[3:], axis=0), axis=1).mean()
     assert jumps["filtered"] < 0.6 * jumps["raw"]
-    perception.released("cube")
+    perception.missed("cube")
     assert "cube" not in perception.pose_filter.estimate
 
 
@@ -283,7 +283,7 @@ def test_a_picked_cube_is_carried_by_the_jaws(env):
 
 def test_a_grasped_object_is_carried_from_where_it_was_last_seen():
     """After grasped() the object's pose moves with the grip site from where the cameras last saw it, relative to
-    the commanded grasp pose; released() gives it back to the cameras; reseed() forgets both."""
+    the commanded grasp pose; released() gives it back to the cameras, lying where the jaws carried it; reseed() forgets both."""
     from kpflow.tasks.suite.keypoints import ObjectPose
 
     class Hand:  # the grip site's pose, as a SuiteEnv reports it
@@ -302,8 +302,9 @@ def test_a_grasped_object_is_carried_from_where_it_was_last_seen():
     np.testing.assert_allclose(carried.pos, [0.0, 0.2, 0.99])
     np.testing.assert_allclose(carried.rot, turn)
     assert carried.half == 0.02
-    perception.released("cube")
+    perception.released(now, "cube")  # set down where the jaws carried it, until a whole read says otherwise
     assert perception.held == {}
+    np.testing.assert_allclose(perception.last["cube"].pos, [0.0, 0.2, 0.99])
     perception.grasped(now, "cube", at=now.pose)
     perception.reseed(4)
     assert perception.held == perception.last == {}

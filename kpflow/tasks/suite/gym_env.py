@@ -161,12 +161,12 @@ class SuiteGymEnv(gym.Env):
         elif self._closed and not closing:
             if self._held:
                 self._audit_jaws(False)
-            self.perception.released(grasp)
+            self.perception.released(self.sim, grasp)
             self._held = False
         self._closed = closing
         self.sim.command(*target, CLOSED if closing else OPEN)
         if self._held and np.linalg.norm(np.subtract(*self.sim.finger_pads())) < PADS_EMPTY_BELOW:
-            self.perception.released(grasp)  # the jaws closed on nothing: the object is where the cameras see it
+            self.perception.missed(grasp)  # the jaws closed on nothing: the object is where the cameras saw it
             self._held = False
         info = self._info()
         obs = self._obs if info["is_success"] else self._observe()  # the episode is over: nothing more to read

@@ -68,7 +68,10 @@ class SimulatorPoses:
     def grasped(self, env, name: str, at: tuple[np.ndarray, np.ndarray]) -> None:
         """Nothing to remember: a held object's pose is read like any other."""
 
-    def released(self, name: str) -> None:
+    def released(self, env, name: str) -> None:
+        """Nothing to forget."""
+
+    def missed(self, name: str) -> None:
         """Nothing to forget."""
 
 

@@ -227,8 +227,16 @@ class CameraKeypoints:
             seen = self.last[name]
             self.held[name] = ObjectPose(rot.T @ (seen.pos - pos), rot.T @ seen.rot, seen.half)
 
-    def released(self, name: str) -> None:
-        """The jaws open: ``name`` is seen by the cameras again (where it was put: its filtered reads are forgotten)."""
+    def released(self, env, name: str) -> None:
+        """The jaws open: ``name`` is seen by the cameras again, and until a read of it is whole it lies where the
+        jaws carried it (not where it was seen before the grasp: the hand still hides it as it lets go); its
+        filtered reads are forgotten."""
+        if name in self.held:
+            self.last[name] = self.carried(env, name)
+        self.missed(name)
+
+    def missed(self, name: str) -> None:
+        """The jaws closed on nothing: ``name`` is not held, and lies where the cameras last saw it."""
         self.held.pop(name, None)
         if self.pose_filter is not None:
             self.pose_filter.forget(name)  # its footprint stays: what was set down or dropped lies as it did

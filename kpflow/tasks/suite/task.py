@@ -185,7 +185,7 @@ class SuiteTask(GymTask):
             if t and trajectory.grasp[t] and not trajectory.grasp[t - 1]:  # the jaws close on the object
                 self.perception.grasped(env, self.spec.grasp, (trajectory.positions[t], trajectory.rotations[t]))
             elif t and trajectory.grasp[t - 1] and not trajectory.grasp[t]:  # they let it go
-                self.perception.released(self.spec.grasp)
+                self.perception.released(env, self.spec.grasp)
             gripper = CLOSED if trajectory.grasp[t] else OPEN
             env.command(trajectory.positions[t], trajectory.rotations[t], gripper)
             actions.append(env.last_action.copy())
