@@ -306,5 +306,9 @@ def test_a_grasped_object_is_carried_from_where_it_was_last_seen():
     assert perception.held == {}
     np.testing.assert_allclose(perception.last["cube"].pos, [0.0, 0.2, 0.99])
     perception.grasped(now, "cube", at=now.pose)
+    perception.missed("cube")  # the jaws closed on nothing: it lies where the cameras last saw it
+    assert perception.held == {}
+    np.testing.assert_allclose(perception.last["cube"].pos, [0.0, 0.2, 0.99])
+    perception.grasped(now, "cube", at=now.pose)
     perception.reseed(4)
     assert perception.held == perception.last == {}
